@@ -1,0 +1,1 @@
+"""Inference: the BP-HMM MCMC kernel and its moves, fit, results, diagnostics, metrics, CLI."""
