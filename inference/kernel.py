@@ -1,0 +1,263 @@
+"""The BP-HMM Gibbs sampler as a ``numpyro.infer.mcmc.MCMCKernel``.
+
+One sweep (jitted whole, static shapes: K = ``max_skills`` slots with an active mask):
+
+1. features f_ik, one skill at a time for all trajectories at once, from their conditional
+   with the skill sequences summed out (forward filter with f_ik = 0 and f_ik = 1);
+2. skill sequences z_i by forward filtering, backward sampling;
+3. transition weights eta_i from their conjugate (Gamma-Dirichlet) conditional given z_i;
+4. emission parameters with the emission's own move given the steps assigned to each skill;
+5. skill popularities omega_k | F ~ Beta(alpha/K + m_k, 1 + N - m_k);
+6. optionally alpha, kappa, gamma by random-walk Metropolis on log scale.
+
+Every density used here is one of the model's own (``npbrs.models.bphmm``).
+"""
+
+from __future__ import annotations
+
+from functools import partial
+from typing import Any, Dict, NamedTuple, Optional
+
+import jax
+import jax.numpy as jnp
+import numpyro.distributions as dist
+from numpyro.infer.mcmc import MCMCKernel
+
+from npbrs.models.bphmm import (Hyper, bphmm_model, hmm_parameters, log_joint_terms,
+                                log_marginal_likelihoods)
+from npbrs.models.emissions import Emission, HMMData
+from npbrs.models.hmm import batch_backward_sample, batch_forward_filter, transition_counts
+
+jax.config.update("jax_enable_x64", True)
+
+__all__ = ["BPHMMState", "BPHMMKernel"]
+
+
+class BPHMMState(NamedTuple):
+    """State of one chain of the BP-HMM sampler.
+
+    step: sweeps done. rng_key: the chain's key. omega (K,), features (N, K) 0/1, eta (N, K, K),
+    params: emission parameters {site: (K, ...)}, cache: emission cache, hyper: Hyper,
+    z (N, T) skill sequences (-1 on padding), log_lik (N, T, K), log_marginals (N,),
+    log_joint: the model's log density, num_skills: skills used by z, num_switches: mean
+    switches per trajectory, accept: the emission move's mean acceptance, best_*: the
+    highest-log-joint state seen after warmup.
+    """
+
+    step: jax.Array
+    rng_key: jax.Array
+    omega: jax.Array
+    features: jax.Array
+    eta: jax.Array
+    params: Dict[str, jax.Array]
+    cache: Any
+    hyper: Hyper
+    z: jax.Array
+    log_lik: jax.Array
+    log_marginals: jax.Array
+    log_joint: jax.Array
+    num_skills: jax.Array
+    num_switches: jax.Array
+    accept: jax.Array
+    best_log_joint: jax.Array
+    best_z: jax.Array
+    best_params: Dict[str, jax.Array]
+    best_features: jax.Array
+
+
+def _skill_weights(z, mask, K):
+    return jax.nn.one_hot(z, K, dtype=jnp.float64) * mask[..., None]
+
+
+def _label_invariant(z, mask, K):
+    used = jnp.any(_skill_weights(z, mask, K) > 0, axis=(0, 1))
+    switches = jnp.sum((z[:, 1:] != z[:, :-1]) & mask[:, 1:], axis=1)
+    return jnp.sum(used).astype(jnp.int32), jnp.mean(switches.astype(jnp.float64))
+
+
+class BPHMMKernel(MCMCKernel):
+    """Gibbs sampler of the BP-HMM for any emission model.
+
+    Args:
+        emission: an :class:`~npbrs.models.emissions.Emission`.
+        data: :class:`~npbrs.models.emissions.HMMData`.
+        max_skills: truncation K (skill slots).
+        alpha, kappa, gamma: BP-HMM hyperparameters (initial values when sampled).
+        hyperpriors: optional {"alpha" | "kappa" | "gamma": (shape, rate)}: sample those.
+        init_skills: skills used by the initial state (data-driven: trajectories cut into
+            windows of ``init_window`` steps assigned to skills at random, each skill's
+            parameters proposed from its windows).
+        init_window: window length of the initial segmentation.
+        sample_features: Gibbs on the features (off only for tests of the other steps).
+    """
+
+    sample_field = "params"
+
+    def __init__(self, emission: Emission, data: HMMData, max_skills: int, alpha=1.0, kappa=10.0,
+                 gamma=1.0, hyperpriors: Optional[Dict] = None, init_skills: Optional[int] = None,
+                 init_window: int = 25, sample_features: bool = True):
+        self.emission = emission
+        self.data = data
+        self.max_skills = int(max_skills)
+        self.hyper0 = Hyper(jnp.float64(alpha), jnp.float64(kappa), jnp.float64(gamma))
+        self.hyperpriors = dict(hyperpriors or {})
+        self.init_skills = int(init_skills if init_skills is not None else max(1, (self.max_skills + 1) // 2))
+        self.init_window = int(init_window)
+        self.sample_features = bool(sample_features)
+        self._num_warmup = 0
+
+    # ------------------------------------------------------------------ numpyro hooks
+    @property
+    def model(self):
+        return partial(bphmm_model, self.data, self.emission, self.max_skills, *self.hyper0,
+                       hyperpriors=self.hyperpriors or None)
+
+    @property
+    def default_fields(self):
+        return ("params", "log_joint", "num_skills", "num_switches", "features", "accept")
+
+    def get_diagnostics_str(self, state):
+        return f"log joint {float(state.log_joint):.1f}, skills {int(state.num_skills)}"
+
+    def init(self, rng_key, num_warmup, init_params, model_args, model_kwargs):
+        self._num_warmup = int(num_warmup)
+        if jnp.ndim(rng_key) > 1 or (jax.dtypes.issubdtype(rng_key.dtype, jax.dtypes.prng_key)
+                                     and jnp.ndim(rng_key) > 0):
+            return jax.jit(jax.vmap(self._init))(rng_key)
+        return jax.jit(self._init)(rng_key)
+
+    def sample(self, state, model_args, model_kwargs):
+        if jnp.ndim(state.step) > 0:
+            return jax.vmap(self.sweep)(state)
+        return self.sweep(state)
+
+    # ------------------------------------------------------------------ pieces
+    def _finish(self, state: BPHMMState) -> BPHMMState:
+        """Recompute likelihoods, the log joint and the summaries of ``state``."""
+        K = self.max_skills
+        log_lik, cache = self.emission.log_likelihoods(state.params, self.data, state.cache)
+        log_marg = log_marginal_likelihoods(state.features, state.eta, log_lik, self.data.mask)
+        terms = log_joint_terms(state.omega, state.features, state.eta, state.params, log_marg, state.hyper,
+                                self.emission, self.hyperpriors or None)
+        log_joint = sum(terms.values())
+        num_skills, num_switches = _label_invariant(state.z, self.data.mask, K)
+        return state._replace(cache=cache, log_lik=log_lik, log_marginals=log_marg, log_joint=log_joint,
+                              num_skills=num_skills, num_switches=num_switches)
+
+    def _init(self, rng_key):
+        N, T = self.data.states.shape
+        K, K0 = self.max_skills, self.init_skills
+        keys = jax.random.split(rng_key, 6)
+        num_windows = -(-T // self.init_window)
+        window_skill = jax.random.randint(keys[0], (N, num_windows), 0, K0)
+        z = jnp.repeat(window_skill, self.init_window, axis=1)[:, :T]
+        z = jnp.where(self.data.mask, z, -1).astype(jnp.int32)
+        weights = _skill_weights(z, self.data.mask, K)
+        params = self.emission.init_params(keys[1], self.data, weights)
+        features = jnp.zeros((N, K)).at[:, :K0].set(1.0)
+        hyper = self.hyper0
+        m = features.sum(0)
+        omega = jax.random.beta(keys[2], hyper.alpha / K + m, 1.0 + N - m)
+        eta = self._sample_eta(keys[3], z, features, hyper)
+        zero = jnp.float64(0.0)
+        state = BPHMMState(
+            step=jnp.int32(0), rng_key=keys[4], omega=omega, features=features, eta=eta, params=params,
+            cache=self.emission.init_cache(K), hyper=hyper, z=z,
+            log_lik=jnp.zeros((N, T, K)), log_marginals=jnp.zeros(N), log_joint=zero,
+            num_skills=jnp.int32(0), num_switches=zero, accept=zero,
+            best_log_joint=jnp.float64(-jnp.inf), best_z=z, best_params=params, best_features=features)
+        return self._finish(state)
+
+    def _sample_eta(self, key, z, features, hyper):
+        """eta | z, F: Dirichlet(conc + counts) proportions over active skills times a
+        Gamma(sum conc) total (the Gamma-Dirichlet decomposition); inactive from the prior."""
+        N, K = features.shape
+        conc = hyper.gamma + hyper.kappa * jnp.eye(K)
+        counts = transition_counts(z, self.data.mask, K)  # (N, K, K)
+        active = (features > 0)[:, None, :]
+        k1, k2 = jax.random.split(key)
+        g = jax.random.gamma(k1, jnp.where(active, conc + counts, conc))
+        g = jnp.maximum(g, 1e-300)
+        total_conc = jnp.sum(jnp.where(active, conc, 0.0), -1, keepdims=True)
+        total = jax.random.gamma(k2, jnp.maximum(total_conc, 1e-300))
+        g_active_sum = jnp.sum(jnp.where(active, g, 0.0), -1, keepdims=True)
+        scaled = g / jnp.maximum(g_active_sum, 1e-300) * total
+        return jnp.maximum(jnp.where(active, scaled, g), 1e-300)
+
+    def _sample_features(self, key, state: BPHMMState) -> jax.Array:
+        """Gibbs on every f_ik with z summed out; skills in turn, trajectories at once."""
+        N, K = state.features.shape
+        mask = self.data.mask
+        log_lik = state.log_lik
+
+        def one_skill(carry, k_key):
+            features, = carry
+            k, key = k_key
+            on = features.at[:, k].set(1.0)
+            off = features.at[:, k].set(0.0)
+            both = jnp.concatenate([on, off], 0)
+            eta2 = jnp.concatenate([state.eta, state.eta], 0)
+            ll2 = jnp.concatenate([log_lik, log_lik], 0)
+            m2 = jnp.concatenate([mask, mask], 0)
+            log_marg = log_marginal_likelihoods(both, eta2, ll2, m2)
+            lm_on, lm_off = log_marg[:N], log_marg[N:]
+            # a trajectory must keep at least one skill
+            lm_off = jnp.where(jnp.sum(off, -1) > 0, lm_off, -jnp.inf)
+            prior = dist.Bernoulli(probs=state.omega[k])
+            logit = (lm_on + prior.log_prob(1.0)) - (lm_off + prior.log_prob(0.0))
+            new = jax.random.bernoulli(key, jax.nn.sigmoid(logit)).astype(features.dtype)
+            return (features.at[:, k].set(new),), None
+
+        keys = jax.random.split(key, K)
+        (features,), _ = jax.lax.scan(one_skill, (state.features,), (jnp.arange(K), keys))
+        return features
+
+    def sweep(self, state: BPHMMState) -> BPHMMState:
+        """One full Gibbs sweep."""
+        N, K = state.features.shape
+        mask = self.data.mask
+        key, k_feat, k_z, k_eta, k_em, k_omega, k_hyp = jax.random.split(state.rng_key, 7)
+        features = self._sample_features(k_feat, state) if self.sample_features else state.features
+        log_init, log_trans, active = hmm_parameters(features, state.eta)
+        _, log_alpha = batch_forward_filter(log_init, log_trans, state.log_lik, mask, active)
+        z = batch_backward_sample(k_z, log_trans, log_alpha, mask, active)
+        eta = self._sample_eta(k_eta, z, features, state.hyper)
+        weights = _skill_weights(z, mask, K)
+        params, cache, info = self.emission.update(k_em, state.params, state.cache, self.data, weights, state.step)
+        m = features.sum(0)
+        hyper = state.hyper
+        omega = jax.random.beta(k_omega, hyper.alpha / K + m, 1.0 + N - m)
+        omega = jnp.clip(omega, 1e-300, 1.0 - 1e-16)
+        accept = jnp.asarray(info.get("accept", 1.0) if isinstance(info, dict) else 1.0, jnp.float64)
+        new = state._replace(rng_key=key, omega=omega, features=features, eta=eta, params=params, cache=cache,
+                             z=z, accept=jnp.mean(accept))
+        if self.hyperpriors:
+            new = new._replace(hyper=self._sample_hyper(k_hyp, new))
+        new = self._finish(new)
+        better = (state.step >= self._num_warmup) & (new.log_joint > state.best_log_joint)
+        pick = lambda a, b: jax.tree.map(lambda x, y: jnp.where(better, x, y), a, b)  # noqa: E731
+        return new._replace(step=state.step + 1, best_log_joint=jnp.where(better, new.log_joint, state.best_log_joint),
+                            best_z=pick(new.z, state.best_z), best_params=pick(new.params, state.best_params),
+                            best_features=pick(new.features, state.best_features))
+
+    def _sample_hyper(self, key, state: BPHMMState) -> Hyper:
+        """Random-walk Metropolis on log alpha, log kappa, log gamma (each in turn)."""
+        hyper = state.hyper
+        zeros = jnp.zeros(state.features.shape[0])
+
+        def log_target(h):
+            terms = log_joint_terms(state.omega, state.features, state.eta, state.params, zeros, h,
+                                    self.emission, self.hyperpriors)
+            return terms["omega"] + terms["features"] + terms["eta"] + sum(
+                terms[n] for n in self.hyperpriors)
+
+        for name, k in zip(self.hyperpriors, jax.random.split(key, len(self.hyperpriors))):
+            k1, k2 = jax.random.split(k)
+            old = getattr(hyper, name)
+            prop = old * jnp.exp(0.3 * jax.random.normal(k1))
+            cand = hyper._replace(**{name: prop})
+            # log-scale proposal: Jacobian log(prop / old)
+            log_ratio = log_target(cand) - log_target(hyper) + jnp.log(prop) - jnp.log(old)
+            accept = jnp.log(jax.random.uniform(k2)) < log_ratio
+            hyper = hyper._replace(**{name: jnp.where(accept, prop, old)})
+        return hyper

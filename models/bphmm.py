@@ -1,0 +1,132 @@
+"""The Beta-Process HMM as a NumPyro model: the single statement of the joint density.
+
+Weak-limit truncation at K = ``max_skills`` slots (all shapes static):
+
+    omega_k ~ Beta(alpha / K, 1)                      skill popularity
+    f_ik | omega_k ~ Bernoulli(omega_k)                trajectory i may use skill k
+    eta_ijk ~ Gamma(gamma + kappa [j == k], 1)         unnormalised transition weights
+    pi_ij = eta_ij * f_i / sum(eta_ij * f_i)           transitions among i's active skills
+    z_i1 ~ uniform over i's active skills;  z_it ~ pi_i,z_i(t-1)
+    params_k ~ emission prior                          e.g. reward weights theta_k
+    step t of trajectory i ~ emission(params_{z_it})
+
+The skill sequences z are summed out by the forward filter, which enters the model as one
+``numpyro.factor``. The MCMC kernel evaluates every acceptance ratio and Gibbs conditional
+with the functions below (``prior_distributions``, ``hmm_parameters``,
+``log_marginal_likelihoods``), which this model also uses: the density is written once.
+"""
+
+from __future__ import annotations
+
+from typing import Dict, NamedTuple, Optional
+
+import jax
+import jax.numpy as jnp
+import numpyro
+import numpyro.distributions as dist
+
+from .hmm import batch_forward_filter
+
+jax.config.update("jax_enable_x64", True)
+
+__all__ = ["Hyper", "prior_distributions", "hmm_parameters", "log_marginal_likelihoods",
+           "bphmm_model", "log_joint_terms"]
+
+class Hyper(NamedTuple):
+    """BP-HMM hyperparameters: IBP mass alpha, stickiness kappa, transition concentration gamma."""
+
+    alpha: jax.Array
+    kappa: jax.Array
+    gamma: jax.Array
+
+
+def prior_distributions(num_trajectories: int, max_skills: int, hyper: Hyper) -> Dict:
+    """The BP-HMM's prior distributions (omega, features given omega, eta).
+
+    Returns a dict with ``"omega"`` (a Distribution over (K,)), ``"features"`` (a function
+    omega -> Distribution over (N, K)) and ``"eta"`` (a Distribution over (N, K, K)).
+    """
+    N, K = num_trajectories, max_skills
+    alpha, kappa, gamma = hyper
+    omega = dist.Beta(jnp.full((K,), alpha / K), jnp.ones((K,))).to_event(1)
+
+    def features(om):
+        return dist.Bernoulli(probs=jnp.broadcast_to(om, (N, K))).to_event(2)
+
+    conc = gamma + kappa * jnp.eye(K)
+    eta = dist.Gamma(jnp.broadcast_to(conc, (N, K, K)), 1.0).to_event(3)
+    return {"omega": omega, "features": features, "eta": eta}
+
+
+def hmm_parameters(features, eta):
+    """Per-trajectory HMM parameters in the form the array filters take.
+
+    Args:
+        features: (N, K) 0/1 skills each trajectory may use.
+        eta: (N, K, K) positive transition weights.
+    Returns:
+        log_init (N, K) (zeros: uniform over the active skills), log_trans (N, K, K)
+        (log eta, normalised over the active skills by the filters), active (N, K) bool.
+    """
+    return jnp.zeros(features.shape, eta.dtype), jnp.log(eta), features > 0
+
+
+def log_marginal_likelihoods(features, eta, log_lik, mask):
+    """log p(data_i | f_i, eta_i, params) with the skill sequence summed out, per trajectory (N,)."""
+    log_init, log_trans, active = hmm_parameters(features, eta)
+    log_marg, _ = batch_forward_filter(log_init, log_trans, log_lik, mask, active)
+    return log_marg
+
+
+def _hyper_value(name, value, hyperpriors):
+    if hyperpriors is not None and name in hyperpriors:
+        shape, rate = hyperpriors[name]
+        return numpyro.sample(name, dist.Gamma(shape, rate))
+    return jnp.asarray(value, dtype=jnp.float64)
+
+
+def bphmm_model(data, emission, max_skills: int, alpha=1.0, kappa=10.0, gamma=1.0,
+                hyperpriors: Optional[Dict] = None):
+    """The BP-HMM joint density as a NumPyro model.
+
+    Args:
+        data: an :class:`~npbrs.models.emissions.HMMData` (N padded trajectories).
+        emission: an :class:`~npbrs.models.emissions.Emission`.
+        max_skills: truncation K.
+        alpha, kappa, gamma: hyperparameter values (used when not sampled).
+        hyperpriors: optional {"alpha" | "kappa" | "gamma": (shape, rate)} Gamma hyperpriors;
+            a named hyperparameter becomes a sample site.
+    """
+    N = data.states.shape[0]
+    K = max_skills
+    hyper = Hyper(_hyper_value("alpha", alpha, hyperpriors), _hyper_value("kappa", kappa, hyperpriors),
+                  _hyper_value("gamma", gamma, hyperpriors))
+    priors = prior_distributions(N, K, hyper)
+    omega = numpyro.sample("omega", priors["omega"])
+    features = numpyro.sample("features", priors["features"](omega))
+    eta = numpyro.sample("eta", priors["eta"])
+    params = emission.sample_params(K)
+    log_lik, _ = emission.log_likelihoods(params, data, emission.init_cache(K))
+    numpyro.factor("log_likelihood", jnp.sum(log_marginal_likelihoods(features, eta, log_lik, data.mask)))
+
+
+def log_joint_terms(omega, features, eta, params, log_marginals, hyper: Hyper, emission,
+                    hyperpriors: Optional[Dict] = None):
+    """The model's log density split into its terms, from already computed marginals.
+
+    The kernel uses this to avoid recomputing emission log-likelihoods; a test checks that the
+    sum equals ``numpyro.infer.util.log_density(bphmm_model, ...)``.
+    """
+    N, K = features.shape
+    priors = prior_distributions(N, K, hyper)
+    terms = {
+        "omega": priors["omega"].log_prob(omega),
+        "features": priors["features"](omega).log_prob(features),
+        "eta": priors["eta"].log_prob(eta),
+        "params": jnp.sum(emission.log_prior(params)),
+        "log_likelihood": jnp.sum(log_marginals),
+    }
+    if hyperpriors:
+        for name, (shape, rate) in hyperpriors.items():
+            terms[name] = dist.Gamma(shape, rate).log_prob(getattr(hyper, name))
+    return terms

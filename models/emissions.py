@@ -1,0 +1,195 @@
+"""Emission models of the BP-HMM: what a skill says about each step of a demonstration.
+
+The segmentation machinery only ever sees an (N, T, K) array of per-step log-likelihoods.
+An emission model supplies everything that depends on what a skill *is*:
+
+- ``sample_params(K)``: a NumPyro fragment that draws the K skills' parameters from the
+  prior as sample sites and returns them as a dict ``{site name: array with leading axis K}``;
+- ``log_prior(params) -> (K,)``: the same prior's log density per skill (tested equal to
+  the sites' log-probabilities);
+- ``log_likelihoods(params, data, cache) -> ((N, T, K), cache)``: per-step log-likelihoods
+  (``cache`` is a speed-up only, e.g. the previous soft values to warm-start a solve; the
+  answer must not depend on it beyond solver tolerance);
+- ``update(key, params, cache, data, weights, step) -> (params, cache, info)``: a move that
+  leaves the conditional posterior of every skill's parameters given its steps invariant
+  (``weights`` (N, T, K) is the one-hot of the sampled skill sequence);
+- ``propose(key, data, weights) -> (params_one, log_q)`` and
+  ``log_proposal(params_one, data, weights) -> log_q``: a data-driven proposal of one new
+  skill's parameters from weighted steps (a window of a trajectory, or one side of a split);
+  used by the trans-dimensional moves;
+- ``init_cache(K)`` and ``init_params(key, data, weights)``: the cache's initial value and a
+  data-driven starting point for a chain.
+
+A new emission model implements this protocol and registers itself with
+:func:`register_emission`; the sampler needs no change.
+"""
+
+from __future__ import annotations
+
+from typing import Any, Callable, Dict, NamedTuple
+
+import jax
+import jax.numpy as jnp
+
+jax.config.update("jax_enable_x64", True)
+
+__all__ = ["HMMData", "Emission", "register_emission", "get_emission_class", "EMISSIONS"]
+
+
+class HMMData(NamedTuple):
+    """Padded demonstrations as arrays.
+
+    states: (N, T) int32 state indices (0 where padded).
+    actions: (N, T) int32 action indices (0 where padded).
+    mask: (N, T) bool, True on real steps.
+    """
+
+    states: jax.Array
+    actions: jax.Array
+    mask: jax.Array
+
+    @classmethod
+    def from_demonstrations(cls, demos) -> "HMMData":
+        states, actions, mask = demos.padded()
+        return cls(jnp.asarray(states, jnp.int32), jnp.asarray(actions, jnp.int32), jnp.asarray(mask, bool))
+
+
+class Emission:
+    """Base class of emission models (see the module docstring for the protocol)."""
+
+    name: str = "emission"
+
+    def sample_params(self, K: int) -> Dict[str, jax.Array]:
+        raise NotImplementedError
+
+    def log_prior(self, params) -> jax.Array:
+        raise NotImplementedError
+
+    def init_cache(self, K: int) -> Any:
+        return ()
+
+    def log_likelihoods(self, params, data: HMMData, cache=()):
+        raise NotImplementedError
+
+    def update(self, key, params, cache, data: HMMData, weights, step):
+        raise NotImplementedError
+
+    def propose(self, key, data: HMMData, weights):
+        raise NotImplementedError
+
+    def log_proposal(self, params_one, data: HMMData, weights):
+        raise NotImplementedError
+
+    def init_params(self, key, data: HMMData, weights):
+        """A starting point: the proposal applied to each skill's weighted steps. (K, ...)."""
+        K = weights.shape[-1]
+        keys = jax.random.split(key, K)
+        params, _ = jax.vmap(lambda k, w: self.propose(k, data, w), in_axes=(0, 2))(keys, weights)
+        return params
+
+    def describe(self) -> dict:
+        """Plain-data options of this emission (for saved runs)."""
+        return {"name": self.name}
+
+    @classmethod
+    def from_mdp(cls, mdp, **options) -> "Emission":
+        """This emission for a TabularMDP, with its keyword options."""
+        return cls(mdp, **options)
+
+
+EMISSIONS: Dict[str, Callable[..., Emission]] = {}
+
+
+def register_emission(name: str):
+    """Class decorator: make an emission model available under ``name`` to ``fit`` and configs."""
+
+    def deco(cls):
+        if not isinstance(name, str) or not name:
+            raise ValueError("emission name must be a non-empty string")
+        EMISSIONS[name] = cls
+        cls.name = name
+        return cls
+
+    return deco
+
+
+def get_emission_class(name: str):
+    if name not in EMISSIONS:
+        raise ValueError(f"unknown emission {name!r}; known emissions: {sorted(EMISSIONS)}")
+    return EMISSIONS[name]
+
+
+@register_emission("policy")
+class PolicyEmission(Emission):
+    """Each skill is a tabular stochastic policy pi_k(a | s) with a Dirichlet(c) prior per state.
+
+    Conjugate, so its update is an exact Gibbs draw: segmentation by behaviour rather than by
+    reward (no MDP solve). Useful as a fast baseline and as the exactly tractable emission
+    of the sampler's tests.
+
+    Args:
+        num_states, num_actions: sizes of the tabular MDP.
+        concentration: the symmetric Dirichlet parameter c.
+    """
+
+    def __init__(self, num_states: int, num_actions: int, concentration: float = 0.5):
+        if num_states < 1 or num_actions < 1:
+            raise ValueError(f"num_states and num_actions must be >= 1, got {num_states}, {num_actions}")
+        if not concentration > 0:
+            raise ValueError(f"concentration must be positive, got {concentration}")
+        self.num_states = int(num_states)
+        self.num_actions = int(num_actions)
+        self.concentration = float(concentration)
+
+    @classmethod
+    def from_mdp(cls, mdp, **options):
+        return cls(mdp.num_states, mdp.num_actions, **options)
+
+    def _prior(self, K):
+        import numpyro.distributions as dist
+
+        conc = jnp.full((K, self.num_states, self.num_actions), self.concentration)
+        return dist.Dirichlet(conc).to_event(2)
+
+    def sample_params(self, K):
+        import numpyro
+
+        return {"policy": numpyro.sample("policy", self._prior(K))}
+
+    def log_prior(self, params):
+        import numpyro.distributions as dist
+
+        conc = jnp.full(params["policy"].shape, self.concentration)
+        return jnp.sum(dist.Dirichlet(conc).log_prob(params["policy"]), axis=-1)
+
+    def log_likelihoods(self, params, data, cache=()):
+        logp = jnp.log(jnp.maximum(params["policy"], 1e-300))  # (K, S, A)
+        ll = logp[:, data.states, data.actions]  # (K, N, T)
+        return jnp.where(data.mask[..., None], jnp.moveaxis(ll, 0, -1), 0.0), cache
+
+    def _counts(self, data, weights):
+        """Weighted (state, action) counts, (..., S, A) for weights (N, T, ...)."""
+        S, A = self.num_states, self.num_actions
+        flat = (data.states * A + data.actions).reshape(-1)
+        w = (weights * data.mask.reshape(data.mask.shape + (1,) * (weights.ndim - 2))).reshape(flat.shape[0], -1)
+        c = jax.ops.segment_sum(w, flat, num_segments=S * A)  # (S*A, ...)
+        return jnp.moveaxis(c.reshape((S, A) + weights.shape[2:]), (0, 1), (-2, -1))
+
+    def update(self, key, params, cache, data, weights, step):
+        counts = self._counts(data, weights)  # (K, S, A)
+        policy = jax.random.dirichlet(key, self.concentration + counts)
+        return {"policy": jnp.maximum(policy, 1e-300)}, cache, {"accept": jnp.ones(())}
+
+    def propose(self, key, data, weights):
+        conc = self.concentration + self._counts(data, weights)
+        policy = jnp.maximum(jax.random.dirichlet(key, conc), 1e-300)
+        return {"policy": policy}, self.log_proposal({"policy": policy}, data, weights)
+
+    def log_proposal(self, params_one, data, weights):
+        import numpyro.distributions as dist
+
+        conc = self.concentration + self._counts(data, weights)
+        return jnp.sum(dist.Dirichlet(conc).log_prob(params_one["policy"]))
+
+    def describe(self):
+        return {"name": self.name, "concentration": self.concentration}
