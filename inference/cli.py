@@ -7,6 +7,9 @@ import sys
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="npbrs", description="Nonparametric Bayesian reward segmentation")
     sub = parser.add_subparsers(dest="command", required=True)
+    from . import cli_generate
+
+    cli_generate.add_parser(sub)
     return parser
 
 

@@ -5,10 +5,10 @@ One sweep (jitted whole, static shapes: K = ``max_skills`` slots with an active 
 1. features f_ik, one skill at a time for all trajectories at once, from their conditional
    with the skill sequences summed out (forward filter with f_ik = 0 and f_ik = 1);
 2. skill sequences z_i by forward filtering, backward sampling;
-3. transition weights eta_i from their conjugate (Gamma-Dirichlet) conditional given z_i;
+3. transition weights eta_i from their conjugate (Gamma-Dirichlet) conditional given z_i, and
+   skill popularities omega_k | F ~ Beta(alpha/K + m_k, 1 + N - m_k) (independent given z, F);
 4. emission parameters with the emission's own move given the steps assigned to each skill;
-5. skill popularities omega_k | F ~ Beta(alpha/K + m_k, 1 + N - m_k);
-6. optionally alpha, kappa, gamma by random-walk Metropolis on log scale.
+5. optionally alpha, kappa, gamma by random-walk Metropolis on log scale.
 
 Every density used here is one of the model's own (``npbrs.models.bphmm``).
 """
@@ -156,9 +156,7 @@ class BPHMMKernel(MCMCKernel):
         params = self.emission.init_params(keys[1], self.data, weights)
         features = jnp.zeros((N, K)).at[:, :K0].set(1.0)
         hyper = self.hyper0
-        m = features.sum(0)
-        omega = jax.random.beta(keys[2], hyper.alpha / K + m, 1.0 + N - m)
-        eta = self._sample_eta(keys[3], z, features, hyper)
+        eta, omega = self._sample_eta_omega(keys[3], z, features, hyper)
         zero = jnp.float64(0.0)
         state = BPHMMState(
             step=jnp.int32(0), rng_key=keys[4], omega=omega, features=features, eta=eta, params=params,
@@ -169,65 +167,79 @@ class BPHMMKernel(MCMCKernel):
         return self._finish(state)
 
     def _sample_eta(self, key, z, features, hyper):
-        """eta | z, F: Dirichlet(conc + counts) proportions over active skills times a
-        Gamma(sum conc) total (the Gamma-Dirichlet decomposition); inactive from the prior."""
+        """eta | z, F (see :meth:`_sample_eta_omega`)."""
+        return self._sample_eta_omega(key, z, features, hyper)[0]
+
+    def _sample_eta_omega(self, key, z, features, hyper):
+        """eta | z, F and omega | F, from a single batch of Gamma draws (one Gamma sampler
+        in the compiled sweep instead of five).
+
+        eta: Dirichlet(conc + counts) proportions over the active skills times a
+        Gamma(sum conc) total (the Gamma-Dirichlet decomposition); inactive entries keep
+        their Gamma prior. omega_k ~ Beta(alpha/K + m_k, 1 + N - m_k) as a ratio of Gammas.
+        """
         N, K = features.shape
         conc = hyper.gamma + hyper.kappa * jnp.eye(K)
         counts = transition_counts(z, self.data.mask, K)  # (N, K, K)
         active = (features > 0)[:, None, :]
-        k1, k2 = jax.random.split(key)
-        g = jax.random.gamma(k1, jnp.where(active, conc + counts, conc))
-        g = jnp.maximum(g, 1e-300)
-        total_conc = jnp.sum(jnp.where(active, conc, 0.0), -1, keepdims=True)
-        total = jax.random.gamma(k2, jnp.maximum(total_conc, 1e-300))
+        shape_g = jnp.where(active, conc + counts, conc)
+        shape_total = jnp.sum(jnp.where(active, conc, 0.0), -1)  # (N, K)
+        m = features.sum(0)
+        shape_omega = jnp.concatenate([hyper.alpha / K + m, 1.0 + N - m])  # (2K,)
+        shapes = jnp.concatenate([shape_g.ravel(), shape_total.ravel(), shape_omega])
+        draws = jnp.maximum(jax.random.gamma(key, jnp.maximum(shapes, 1e-300)), 1e-300)
+        g = draws[:N * K * K].reshape(N, K, K)
+        total = draws[N * K * K:N * K * K + N * K].reshape(N, K, 1)
+        a, b = draws[N * K * K + N * K:].reshape(2, K)
         g_active_sum = jnp.sum(jnp.where(active, g, 0.0), -1, keepdims=True)
         scaled = g / jnp.maximum(g_active_sum, 1e-300) * total
-        return jnp.maximum(jnp.where(active, scaled, g), 1e-300)
+        eta = jnp.maximum(jnp.where(active, scaled, g), 1e-300)
+        omega = jnp.clip(a / (a + b), 1e-300, 1.0 - 1e-16)
+        return eta, omega
+
+    def feature_logits(self, state: BPHMMState, features, k) -> jax.Array:
+        """log p(f_ik = 1 | rest) - log p(f_ik = 0 | rest) for every trajectory i, (N,),
+        with the skill sequences summed out. ``features`` replaces ``state.features``."""
+        N = features.shape[0]
+        on = features.at[:, k].set(1.0)
+        off = features.at[:, k].set(0.0)
+        # both settings in one batch of 2N filters
+        log_marg = log_marginal_likelihoods(
+            jnp.concatenate([on, off], 0), jnp.concatenate([state.eta, state.eta], 0),
+            jnp.concatenate([state.log_lik, state.log_lik], 0), jnp.concatenate([self.data.mask] * 2, 0))
+        lm_on, lm_off = log_marg[:N], log_marg[N:]
+        # a trajectory must keep at least one skill
+        lm_off = jnp.where(jnp.sum(off, -1) > 0, lm_off, -jnp.inf)
+        prior = dist.Bernoulli(probs=state.omega[k])
+        return (lm_on + prior.log_prob(1.0)) - (lm_off + prior.log_prob(0.0))
 
     def _sample_features(self, key, state: BPHMMState) -> jax.Array:
-        """Gibbs on every f_ik with z summed out; skills in turn, trajectories at once."""
-        N, K = state.features.shape
-        mask = self.data.mask
-        log_lik = state.log_lik
+        """Gibbs on every f_ik with z summed out; skills in turn, trajectories at once
+        (given omega, the trajectories' features are conditionally independent)."""
+        K = state.features.shape[1]
 
-        def one_skill(carry, k_key):
-            features, = carry
+        def one_skill(features, k_key):
             k, key = k_key
-            on = features.at[:, k].set(1.0)
-            off = features.at[:, k].set(0.0)
-            both = jnp.concatenate([on, off], 0)
-            eta2 = jnp.concatenate([state.eta, state.eta], 0)
-            ll2 = jnp.concatenate([log_lik, log_lik], 0)
-            m2 = jnp.concatenate([mask, mask], 0)
-            log_marg = log_marginal_likelihoods(both, eta2, ll2, m2)
-            lm_on, lm_off = log_marg[:N], log_marg[N:]
-            # a trajectory must keep at least one skill
-            lm_off = jnp.where(jnp.sum(off, -1) > 0, lm_off, -jnp.inf)
-            prior = dist.Bernoulli(probs=state.omega[k])
-            logit = (lm_on + prior.log_prob(1.0)) - (lm_off + prior.log_prob(0.0))
+            logit = self.feature_logits(state, features, k)
             new = jax.random.bernoulli(key, jax.nn.sigmoid(logit)).astype(features.dtype)
-            return (features.at[:, k].set(new),), None
+            return features.at[:, k].set(new), None
 
-        keys = jax.random.split(key, K)
-        (features,), _ = jax.lax.scan(one_skill, (state.features,), (jnp.arange(K), keys))
+        features, _ = jax.lax.scan(one_skill, state.features, (jnp.arange(K), jax.random.split(key, K)))
         return features
 
     def sweep(self, state: BPHMMState) -> BPHMMState:
         """One full Gibbs sweep."""
         N, K = state.features.shape
         mask = self.data.mask
-        key, k_feat, k_z, k_eta, k_em, k_omega, k_hyp = jax.random.split(state.rng_key, 7)
+        key, k_feat, k_z, k_eta, k_em, k_hyp = jax.random.split(state.rng_key, 6)
         features = self._sample_features(k_feat, state) if self.sample_features else state.features
         log_init, log_trans, active = hmm_parameters(features, state.eta)
         _, log_alpha = batch_forward_filter(log_init, log_trans, state.log_lik, mask, active)
         z = batch_backward_sample(k_z, log_trans, log_alpha, mask, active)
-        eta = self._sample_eta(k_eta, z, features, state.hyper)
+        # eta | z, F and omega | F are conditionally independent: one block
+        eta, omega = self._sample_eta_omega(k_eta, z, features, state.hyper)
         weights = _skill_weights(z, mask, K)
         params, cache, info = self.emission.update(k_em, state.params, state.cache, self.data, weights, state.step)
-        m = features.sum(0)
-        hyper = state.hyper
-        omega = jax.random.beta(k_omega, hyper.alpha / K + m, 1.0 + N - m)
-        omega = jnp.clip(omega, 1e-300, 1.0 - 1e-16)
         accept = jnp.asarray(info.get("accept", 1.0) if isinstance(info, dict) else 1.0, jnp.float64)
         new = state._replace(rng_key=key, omega=omega, features=features, eta=eta, params=params, cache=cache,
                              z=z, accept=jnp.mean(accept))

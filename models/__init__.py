@@ -1,1 +1,6 @@
 """Probability: HMM inference on arrays, emission models, and the BP-HMM NumPyro model."""
+
+from .hmm import (batch_backward_sample, batch_forward_filter, batch_viterbi, backward_sample, forward_filter,
+                  initial_counts, transition_counts, viterbi)
+from .emissions import EMISSIONS, Emission, HMMData, PolicyEmission, get_emission_class, register_emission
+from .bphmm import Hyper, bphmm_model

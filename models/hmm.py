@@ -1,0 +1,239 @@
+"""Hidden Markov model inference on arrays: forward filter, backward sampler, Viterbi.
+
+Pure JAX functions in log space, one ``lax.scan`` over time each, jit- and vmap-friendly.
+They know nothing about emission models: an emission supplies the ``(T, K)`` array of
+per-step log-likelihoods ``log_lik[t, k] = log p(x_t | z_t = k)``.
+
+Conventions shared by every function here:
+
+- ``mask`` (T,) bool marks real steps; False marks padding. A masked step is skipped: it
+  neither emits nor advances the chain, so padding at the end of a ragged trajectory changes
+  nothing, and whatever ``log_lik`` holds there is ignored.
+- ``active`` (K,) bool (optional; all True when omitted) marks the skills a trajectory may
+  use (its features f_i). ``log_init`` and the rows of ``log_trans`` are restricted to the
+  active skills and renormalised over them, so they may be given unnormalised: passing
+  ``log eta_i`` with ``active = f_i`` gives ``pi_i = eta_i f_i / sum``, and ``log_init = 0``
+  gives a uniform start over the active skills. Inactive skills get the finite log weight
+  ``NEG_LOG`` internally, never -inf (a row of -inf makes NaN in values and gradients), so an
+  inactive skill has probability exactly 0 after exponentiation, one active skill is enough,
+  and -inf entries in the inputs are safe. At least one skill must be active.
+- Skill sequences use ``-1`` at padded steps.
+"""
+
+from __future__ import annotations
+
+from typing import Optional, Tuple
+
+import jax
+import jax.numpy as jnp
+
+jax.config.update("jax_enable_x64", True)
+
+__all__ = ["NEG_LOG", "forward_filter", "backward_sample", "viterbi", "batch_forward_filter",
+           "batch_backward_sample", "batch_viterbi", "transition_counts", "initial_counts"]
+
+# Stands in for log 0. exp(NEG_LOG) is exactly 0 in float32 and float64, and sums of a few of
+# them stay far from overflow; any real log-likelihood is far above it.
+NEG_LOG = -1e10
+
+
+def _prepare(log_init, log_trans, active):
+    """Restrict to the active skills, renormalise, and replace log 0 by NEG_LOG."""
+    K = log_trans.shape[-1]
+    if active is None:
+        active = jnp.ones(K, dtype=bool)
+    active = jnp.asarray(active, dtype=bool)
+    pair = active[:, None] & active[None, :]
+    log_trans = jnp.where(pair, jnp.maximum(log_trans, NEG_LOG), NEG_LOG)
+    log_trans = log_trans - jax.nn.logsumexp(log_trans, axis=-1, keepdims=True)
+    log_trans = jnp.where(pair, log_trans, NEG_LOG)
+    out = (active, log_trans)
+    if log_init is not None:
+        log_init = jnp.where(active, jnp.maximum(log_init, NEG_LOG), NEG_LOG)
+        log_init = log_init - jax.nn.logsumexp(log_init)
+        log_init = jnp.where(active, log_init, NEG_LOG)
+        out = out + (log_init,)
+    return out
+
+
+def _prepare_lik(log_lik, active):
+    # NaN or -inf in an inactive skill's column must not leak into the sums (or their gradients)
+    return jnp.where(active, jnp.maximum(log_lik, NEG_LOG), 0.0)
+
+
+def forward_filter(log_init, log_trans, log_lik, mask=None, active=None) -> Tuple[jax.Array, jax.Array]:
+    """Forward filter: the marginal likelihood with the skill sequence summed out.
+
+    Args:
+        log_init: (K,) log initial weights.
+        log_trans: (K, K) log transition weights, ``log_trans[j, k]`` from j to k.
+        log_lik: (T, K) per-step log-likelihoods.
+        mask: (T,) bool, real steps (default all).
+        active: (K,) bool, usable skills (default all).
+    Returns:
+        log_marginal: scalar, log p(x_{1:T}).
+        log_alpha: (T, K) normalised filtered log-probabilities log p(z_t | x_{1:t}); at a
+            masked step, a copy of the last real step's (the normalised ``log_init`` before
+            the first real step).
+    """
+    log_lik = jnp.asarray(log_lik)
+    T, K = log_lik.shape
+    mask = jnp.ones(T, dtype=bool) if mask is None else jnp.asarray(mask, dtype=bool)
+    active, log_trans, log_init = _prepare(jnp.asarray(log_init), jnp.asarray(log_trans), active)
+    log_lik = _prepare_lik(log_lik, active)
+
+    def step(carry, inputs):
+        log_pred, last_filt, total = carry
+        ll, real = inputs
+        joint = log_pred + ll
+        log_c = jax.nn.logsumexp(joint)
+        filt = joint - log_c
+        pred_next = jax.nn.logsumexp(filt[:, None] + log_trans, axis=0)
+        log_pred = jnp.where(real, pred_next, log_pred)
+        filt = jnp.where(real, filt, last_filt)
+        total = total + jnp.where(real, log_c, 0.0)
+        return (log_pred, filt, total), filt
+
+    init = (log_init, log_init, jnp.zeros((), log_lik.dtype))
+    (_, _, log_marginal), log_alpha = jax.lax.scan(step, init, (log_lik, mask))
+    return log_marginal, log_alpha
+
+
+def backward_sample(key, log_trans, log_alpha, mask=None, active=None) -> jax.Array:
+    """Draw a skill sequence from p(z_{1:T} | x_{1:T}) given the filter's output.
+
+    Step t uses the key ``jax.random.fold_in(key, t)``, so a padded trajectory draws the same
+    sequence as the unpadded one from the same key.
+
+    Args:
+        key: a PRNG key.
+        log_trans: (K, K) log transition weights, as given to :func:`forward_filter`.
+        log_alpha: (T, K) filtered log-probabilities from :func:`forward_filter`.
+        mask: (T,) bool, real steps (default all).
+        active: (K,) bool, as given to :func:`forward_filter`.
+    Returns:
+        z: (T,) int32 skills, -1 at masked steps.
+    """
+    log_alpha = jnp.asarray(log_alpha)
+    T, K = log_alpha.shape
+    mask = jnp.ones(T, dtype=bool) if mask is None else jnp.asarray(mask, dtype=bool)
+    _, log_trans = _prepare(None, jnp.asarray(log_trans), active)
+
+    def step(z_next, inputs):
+        t, filt, real = inputs
+        # z_next == -1 until the last real step has been drawn
+        to_next = jnp.where(z_next >= 0, log_trans[:, jnp.maximum(z_next, 0)], 0.0)
+        z = jax.random.categorical(jax.random.fold_in(key, t), filt + to_next).astype(jnp.int32)
+        z = jnp.where(real, z, jnp.int32(-1))
+        return jnp.where(real, z, z_next), z
+
+    _, z = jax.lax.scan(step, jnp.int32(-1), (jnp.arange(T), log_alpha, mask), reverse=True)
+    return z
+
+
+def viterbi(log_init, log_trans, log_lik, mask=None, active=None) -> Tuple[jax.Array, jax.Array]:
+    """The most probable skill sequence, argmax_z p(z_{1:T}, x_{1:T}).
+
+    Args:
+        log_init, log_trans, log_lik, mask, active: as for :func:`forward_filter`.
+    Returns:
+        z: (T,) int32, the path, -1 at masked steps (ties go to the lowest skill index).
+        log_prob: scalar, its joint log-probability log p(z, x) (0 when no step is real).
+    """
+    log_lik = jnp.asarray(log_lik)
+    T, K = log_lik.shape
+    mask = jnp.ones(T, dtype=bool) if mask is None else jnp.asarray(mask, dtype=bool)
+    active, log_trans, log_init = _prepare(jnp.asarray(log_init), jnp.asarray(log_trans), active)
+    log_lik = _prepare_lik(log_lik, active)
+    identity = jnp.arange(K, dtype=jnp.int32)
+
+    def forward(carry, inputs):
+        # best: max over paths into each skill at the next real step; pointer: where they came from
+        best, pointer, last_delta = carry
+        ll, real = inputs
+        delta = best + ll
+        scores = delta[:, None] + log_trans
+        new = (jnp.max(scores, axis=0), jnp.argmax(scores, axis=0).astype(jnp.int32), delta)
+        carry = jax.tree.map(lambda a, b: jnp.where(real, a, b), new, carry)
+        return carry, jnp.where(real, pointer, identity)
+
+    init = (log_init, identity, jnp.zeros(K, log_lik.dtype))
+    (_, _, last_delta), pointers = jax.lax.scan(forward, init, (log_lik, mask))
+
+    def backward(z, pointer):
+        return pointer[z], z
+
+    _, z = jax.lax.scan(backward, jnp.argmax(last_delta).astype(jnp.int32), pointers, reverse=True)
+    return jnp.where(mask, z, -1), jnp.max(last_delta)
+
+
+def _axis(x, batched_ndim):
+    return None if x is None or jnp.ndim(x) < batched_ndim else 0
+
+
+def batch_forward_filter(log_init, log_trans, log_lik, mask=None, active=None):
+    """:func:`forward_filter` over N trajectories.
+
+    Args:
+        log_init: (K,) shared or (N, K) per trajectory.
+        log_trans: (K, K) shared or (N, K, K) per trajectory.
+        log_lik: (N, T, K).
+        mask: (N, T) bool (default all real).
+        active: None, (K,) shared or (N, K) per trajectory.
+    Returns:
+        log_marginal: (N,); log_alpha: (N, T, K).
+    """
+    axes = (_axis(log_init, 2), _axis(log_trans, 3), 0, _axis(mask, 2), _axis(active, 2))
+    return jax.vmap(forward_filter, in_axes=axes)(log_init, log_trans, log_lik, mask, active)
+
+
+def batch_backward_sample(key, log_trans, log_alpha, mask=None, active=None) -> jax.Array:
+    """:func:`backward_sample` over N trajectories, with independent keys split from ``key``.
+
+    Args:
+        key: a PRNG key.
+        log_trans: (K, K) or (N, K, K).
+        log_alpha: (N, T, K) from :func:`batch_forward_filter`.
+        mask: (N, T) bool (default all real).
+        active: None, (K,) or (N, K).
+    Returns:
+        z: (N, T) int32, -1 at masked steps.
+    """
+    keys = jax.random.split(key, jnp.shape(log_alpha)[0])
+    axes = (0, _axis(log_trans, 3), 0, _axis(mask, 2), _axis(active, 2))
+    return jax.vmap(backward_sample, in_axes=axes)(keys, log_trans, log_alpha, mask, active)
+
+
+def batch_viterbi(log_init, log_trans, log_lik, mask=None, active=None):
+    """:func:`viterbi` over N trajectories (arguments as for :func:`batch_forward_filter`).
+
+    Returns:
+        z: (N, T) int32, -1 at masked steps; log_prob: (N,).
+    """
+    axes = (_axis(log_init, 2), _axis(log_trans, 3), 0, _axis(mask, 2), _axis(active, 2))
+    return jax.vmap(viterbi, in_axes=axes)(log_init, log_trans, log_lik, mask, active)
+
+
+def _one_hot(z, mask, num_states):
+    z = jnp.asarray(z)
+    mask = jnp.ones(z.shape, dtype=bool) if mask is None else jnp.asarray(mask, dtype=bool)
+    return jax.nn.one_hot(z, num_states, dtype=jnp.int32) * (mask & (z >= 0))[..., None]
+
+
+def transition_counts(z, mask, num_states: int) -> jax.Array:
+    """Counts of transitions j -> k between consecutive real steps.
+
+    Args:
+        z: (N, T) int skill sequences (or (T,)).
+        mask: (N, T) bool real steps, padding at the end (None: all real).
+        num_states: K (static).
+    Returns:
+        (N, K, K) int32 counts ``n[i, j, k]`` (or (K, K)).
+    """
+    hot = _one_hot(z, mask, num_states)
+    return jnp.einsum("...tj,...tk->...jk", hot[..., :-1, :], hot[..., 1:, :])
+
+
+def initial_counts(z, mask, num_states: int) -> jax.Array:
+    """One-hot first skill of each trajectory: (N, K) int32 (or (K,)); zeros if it is empty."""
+    return _one_hot(z, mask, num_states)[..., 0, :]

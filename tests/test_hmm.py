@@ -1,0 +1,198 @@
+import itertools
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from scipy import stats
+from scipy.special import logsumexp
+
+from npbrs.models.hmm import (backward_sample, batch_backward_sample, batch_forward_filter, batch_viterbi,
+                              forward_filter, initial_counts, transition_counts, viterbi)
+
+
+def random_hmm(seed, K, T):
+    rng = np.random.default_rng(seed)
+    init = rng.dirichlet(np.ones(K))
+    trans = rng.dirichlet(np.ones(K), size=K)
+    log_lik = rng.normal(scale=1.5, size=(T, K))
+    return np.log(init), np.log(trans), log_lik
+
+
+def path_table(log_init, log_trans, log_lik):
+    """Every path of the HMM and its joint log-probability log p(z, x)."""
+    T, K = log_lik.shape
+    paths = np.array(list(itertools.product(range(K), repeat=T)))
+    logp = log_init[paths[:, 0]] + log_lik[np.arange(T), paths].sum(1)
+    logp += log_trans[paths[:, :-1], paths[:, 1:]].sum(1)
+    return paths, logp
+
+
+CASES = [(seed, K, T) for seed, (K, T) in enumerate([(2, 1), (2, 4), (2, 6), (3, 3), (3, 5)])]
+
+
+@pytest.mark.parametrize("seed, K, T", CASES)
+def test_the_filter_equals_brute_force_enumeration(seed, K, T):
+    log_init, log_trans, log_lik = random_hmm(seed, K, T)
+    log_marginal, log_alpha = jax.jit(forward_filter)(log_init, log_trans, log_lik)
+    paths, logp = path_table(log_init, log_trans, log_lik)
+    np.testing.assert_allclose(log_marginal, logsumexp(logp), rtol=1e-12)
+    for t in range(T):  # filtered p(z_t | x_1..t): enumerate the prefix alone
+        prefix_paths, prefix_logp = path_table(log_init, log_trans, log_lik[:t + 1])
+        expected = [logsumexp(prefix_logp[prefix_paths[:, t] == k]) for k in range(K)]
+        np.testing.assert_allclose(log_alpha[t], np.array(expected) - logsumexp(prefix_logp), atol=1e-12)
+
+
+@pytest.mark.parametrize("seed, K, T", CASES)
+def test_viterbi_equals_the_brute_force_argmax_path(seed, K, T):
+    log_init, log_trans, log_lik = random_hmm(seed, K, T)
+    z, log_prob = jax.jit(viterbi)(log_init, log_trans, log_lik)
+    paths, logp = path_table(log_init, log_trans, log_lik)
+    np.testing.assert_array_equal(z, paths[np.argmax(logp)])
+    np.testing.assert_allclose(log_prob, logp.max(), rtol=1e-12)
+
+
+def path_frequencies(z, K):
+    T = z.shape[1]
+    codes = np.asarray(z) @ (K ** np.arange(T)[::-1])
+    return np.bincount(codes, minlength=K ** T)
+
+
+@pytest.mark.parametrize("seed, K, T", [(10, 2, 4), (11, 3, 3)])
+def test_backward_sampler_draws_paths_with_their_posterior_probabilities(seed, K, T):
+    log_init, log_trans, log_lik = random_hmm(seed, K, T)
+    _, log_alpha = forward_filter(log_init, log_trans, log_lik)
+    n = 20000
+    keys = jax.random.split(jax.random.key(seed), n)
+    z = jax.jit(jax.vmap(backward_sample, in_axes=(0, None, None)))(keys, log_trans, log_alpha)
+    _, logp = path_table(log_init, log_trans, log_lik)
+    posterior = np.exp(logp - logsumexp(logp))  # paths in the same lexicographic order
+    counts = path_frequencies(z, K)
+    assert stats.chisquare(counts, n * posterior).pvalue > 1e-3
+    # and every path within 4.5 binomial standard errors
+    assert np.all(np.abs(counts / n - posterior) <= 4.5 * np.sqrt(posterior * (1 - posterior) / n) + 1e-12)
+
+
+def test_padding_at_the_end_changes_nothing():
+    log_init, log_trans, log_lik = random_hmm(20, 3, 5)
+    garbage = np.array([[np.nan, -np.inf, 1e6]] * 4)
+    padded = np.concatenate([log_lik, garbage])
+    mask = np.arange(9) < 5
+    m0, a0 = forward_filter(log_init, log_trans, log_lik)
+    m1, a1 = forward_filter(log_init, log_trans, padded, mask)
+    np.testing.assert_allclose(m1, m0, rtol=1e-14)
+    np.testing.assert_allclose(a1[:5], a0, rtol=1e-14)
+    np.testing.assert_allclose(a1[5:], np.repeat(a0[-1:], 4, 0), rtol=1e-14)  # padding repeats the last
+
+    z0, p0 = viterbi(log_init, log_trans, log_lik)
+    z1, p1 = viterbi(log_init, log_trans, padded, mask)
+    np.testing.assert_array_equal(z1, np.concatenate([z0, [-1] * 4]))
+    np.testing.assert_allclose(p1, p0, rtol=1e-14)
+
+    key = jax.random.key(3)
+    s0 = backward_sample(key, log_trans, a0)
+    s1 = backward_sample(key, log_trans, a1, mask)
+    np.testing.assert_array_equal(s1, np.concatenate([s0, [-1] * 4]))
+
+
+def test_an_empty_trajectory_has_likelihood_one():
+    log_init, log_trans, log_lik = random_hmm(21, 2, 3)
+    mask = np.zeros(3, bool)
+    m, _ = forward_filter(log_init, log_trans, log_lik, mask)
+    z, p = viterbi(log_init, log_trans, log_lik, mask)
+    s = backward_sample(jax.random.key(0), log_trans, forward_filter(log_init, log_trans, log_lik, mask)[1], mask)
+    assert float(m) == 0.0 and float(p) == 0.0
+    np.testing.assert_array_equal(z, [-1, -1, -1])
+    np.testing.assert_array_equal(s, [-1, -1, -1])
+
+
+def test_inactive_skills_have_zero_probability_and_are_never_sampled():
+    K, T = 4, 5
+    rng = np.random.default_rng(30)
+    log_eta = np.log(rng.gamma(1.0, size=(K, K)))  # unnormalised weights, as the sampler keeps them
+    log_lik = rng.normal(size=(T, K))
+    log_lik[:, 1] = 50.0  # the inactive skill explains the data best
+    active = np.array([True, False, True, True])
+
+    m, log_alpha = forward_filter(np.zeros(K), log_eta, log_lik, active=active)
+    assert np.all(np.exp(log_alpha[:, 1]) == 0.0)
+    # the same as the HMM on the active skills alone, normalised and starting uniformly
+    sub = np.flatnonzero(active)
+    sub_trans = log_eta[np.ix_(sub, sub)]
+    sub_trans = sub_trans - logsumexp(sub_trans, axis=1, keepdims=True)
+    _, logp = path_table(np.full(3, -np.log(3)), sub_trans, log_lik[:, sub])
+    np.testing.assert_allclose(m, logsumexp(logp), rtol=1e-12)
+
+    z, _ = viterbi(np.zeros(K), log_eta, log_lik, active=active)
+    assert 1 not in np.asarray(z)
+    keys = jax.random.split(jax.random.key(0), 2000)
+    draws = jax.vmap(backward_sample, in_axes=(0, None, None, None, None))(keys, log_eta, log_alpha, None, active)
+    assert 1 not in np.asarray(draws)
+
+
+def test_one_active_skill_gives_no_nan_in_values_or_gradients():
+    K, T = 3, 6
+    rng = np.random.default_rng(31)
+    log_lik = rng.normal(size=(T, K))
+    log_trans = np.full((K, K), -np.inf)  # log 0 everywhere but the one skill's self-loop
+    log_trans[2, 2] = 0.0
+    log_init = np.array([-np.inf, -np.inf, 0.0])
+    active = np.array([False, False, True])
+
+    m, log_alpha = forward_filter(log_init, log_trans, log_lik, active=active)
+    np.testing.assert_allclose(m, log_lik[:, 2].sum(), rtol=1e-12)
+    assert np.all(np.isfinite(log_alpha))
+    np.testing.assert_allclose(np.exp(log_alpha), np.tile([0.0, 0.0, 1.0], (T, 1)))
+    grad = jax.grad(lambda ll: forward_filter(log_init, log_trans, ll, active=active)[0])(log_lik)
+    np.testing.assert_allclose(grad, np.tile([0.0, 0.0, 1.0], (T, 1)))
+    z, p = viterbi(log_init, log_trans, log_lik, active=active)
+    np.testing.assert_array_equal(z, [2] * T)
+    np.testing.assert_allclose(p, m, rtol=1e-12)
+    np.testing.assert_array_equal(backward_sample(jax.random.key(1), log_trans, log_alpha, active=active), [2] * T)
+
+
+def test_the_filter_gradient_matches_brute_force():
+    log_init, log_trans, log_lik = random_hmm(40, 3, 4)
+    paths, log_prior = path_table(log_init, log_trans, np.zeros_like(log_lik))
+
+    def brute(ll):
+        return jax.nn.logsumexp(log_prior + ll[np.arange(4), paths].sum(1))
+
+    grad = jax.grad(lambda ll: forward_filter(log_init, log_trans, ll)[0])(log_lik)
+    np.testing.assert_allclose(grad, jax.grad(brute)(jnp.asarray(log_lik)), atol=1e-12)
+
+
+def test_batched_versions_equal_one_trajectory_at_a_time():
+    N, K, T = 4, 3, 6
+    rng = np.random.default_rng(50)
+    log_init = np.log(rng.dirichlet(np.ones(K)))  # shared
+    log_trans = np.log(rng.dirichlet(np.ones(K), size=(N, K)))  # per trajectory
+    log_lik = rng.normal(size=(N, T, K))
+    lengths = np.array([6, 2, 4, 5])
+    mask = np.arange(T)[None] < lengths[:, None]
+    active = np.array([[1, 1, 1], [1, 0, 1], [0, 1, 0], [1, 1, 0]], bool)
+
+    m, a = jax.jit(batch_forward_filter)(log_init, log_trans, log_lik, mask, active)
+    z, p = jax.jit(batch_viterbi)(log_init, log_trans, log_lik, mask, active)
+    key = jax.random.key(5)
+    s = jax.jit(batch_backward_sample)(key, log_trans, a, mask, active)
+    keys = jax.random.split(key, N)
+    for i in range(N):
+        mi, ai = forward_filter(log_init, log_trans[i], log_lik[i], mask[i], active[i])
+        zi, pi = viterbi(log_init, log_trans[i], log_lik[i], mask[i], active[i])
+        np.testing.assert_allclose(m[i], mi, rtol=1e-13)
+        np.testing.assert_allclose(a[i], ai, rtol=1e-13)
+        np.testing.assert_array_equal(z[i], zi)
+        np.testing.assert_allclose(p[i], pi, rtol=1e-13)
+        np.testing.assert_array_equal(s[i], backward_sample(keys[i], log_trans[i], ai, mask[i], active[i]))
+        assert np.all(np.isin(np.asarray(s[i])[mask[i]], np.flatnonzero(active[i])))
+        assert np.all(np.asarray(s[i])[~mask[i]] == -1)
+
+
+def test_transition_and_initial_counts():
+    z = np.array([[0, 0, 1, 2, 2, -1], [2, 1, 1, 0, 0, 0]])
+    mask = np.array([[1, 1, 1, 1, 1, 0], [1, 1, 1, 1, 0, 0]], bool)
+    n = transition_counts(z, mask, 3)
+    np.testing.assert_array_equal(n[0], [[1, 1, 0], [0, 0, 1], [0, 0, 1]])
+    np.testing.assert_array_equal(n[1], [[0, 0, 0], [1, 1, 0], [0, 1, 0]])
+    np.testing.assert_array_equal(initial_counts(z, mask, 3), [[1, 0, 0], [0, 0, 1]])
