@@ -1,0 +1,76 @@
+"""The checks every emission model must pass to plug into the sampler unchanged.
+
+Use from a test module::
+
+    from emission_suite import check_emission
+    def test_my_emission_follows_the_protocol():
+        check_emission(MyEmission(...), data)
+"""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from numpyro import handlers
+from numpyro.infer.util import log_density
+
+from npbrs.inference.kernel import BPHMMKernel
+from npbrs.models.emissions import Emission, HMMData
+
+
+def _tree_close(a, b, **kw):
+    for x, y in zip(jax.tree.leaves(a), jax.tree.leaves(b)):
+        np.testing.assert_allclose(np.asarray(x), np.asarray(y), **kw)
+
+
+def check_emission(emission: Emission, data: HMMData, max_skills: int = 3, seed: int = 0, sweeps: int = 2):
+    """Assert that ``emission`` follows the protocol of :mod:`npbrs.models.emissions`."""
+    K = max_skills
+    N, T = data.states.shape
+    key = jax.random.PRNGKey(seed)
+
+    # prior: the sites of sample_params and log_prior agree, per skill
+    with handlers.seed(rng_seed=seed):
+        tr = handlers.trace(lambda: emission.sample_params(K)).get_trace()
+    params = {name: site["value"] for name, site in tr.items() if site["type"] == "sample"}
+    assert params, "sample_params must declare at least one sample site"
+    for name, value in params.items():
+        assert value.shape[0] == K, f"site {name!r} must have a leading axis of K={K}, got {value.shape}"
+    site_lp = sum(jnp.sum(site["fn"].log_prob(site["value"])) for site in tr.values() if site["type"] == "sample")
+    lp = emission.log_prior(params)
+    assert lp.shape == (K,), f"log_prior must return shape ({K},), got {lp.shape}"
+    np.testing.assert_allclose(float(jnp.sum(lp)), float(site_lp), rtol=1e-8, atol=1e-8)
+
+    # likelihoods: (N, T, K), finite on real steps, independent of the cache
+    cache = emission.init_cache(K)
+    ll, cache = emission.log_likelihoods(params, data, cache)
+    assert ll.shape == (N, T, K), f"log_likelihoods must return (N, T, K) = {(N, T, K)}, got {ll.shape}"
+    assert bool(jnp.all(jnp.isfinite(jnp.where(data.mask[..., None], ll, 0.0))))
+    ll_again, _ = emission.log_likelihoods(params, data, cache)
+    np.testing.assert_allclose(np.asarray(ll_again), np.asarray(ll), rtol=1e-7, atol=1e-6)
+
+    # update: jit-able, keeps shapes
+    z = jax.random.randint(key, (N, T), 0, K)
+    weights = jax.nn.one_hot(z, K) * data.mask[..., None]
+    new, cache2, info = jax.jit(emission.update)(key, params, cache, data, weights, jnp.int32(0))
+    assert jax.tree.structure(new) == jax.tree.structure(params)
+    for a, b in zip(jax.tree.leaves(new), jax.tree.leaves(params)):
+        assert a.shape == b.shape and bool(jnp.all(jnp.isfinite(a)))
+    assert isinstance(info, dict)
+
+    # proposal: the returned log density is the one log_proposal gives
+    w_one = weights[..., 0]
+    one, log_q = jax.jit(emission.propose)(key, data, w_one)
+    np.testing.assert_allclose(float(log_q), float(emission.log_proposal(one, data, w_one)), rtol=1e-8, atol=1e-8)
+    for name, value in one.items():
+        assert value.shape == params[name].shape[1:]
+
+    # the sampler runs with it, and its log joint is the model's
+    kernel = BPHMMKernel(emission, data, max_skills=K)
+    state = kernel.init(key, 0, None, (), {})
+    sweep = jax.jit(kernel.sweep)
+    for _ in range(sweeps):
+        state = sweep(state)
+    model_lp, _ = log_density(kernel.model, (), {}, {"omega": state.omega, "features": state.features,
+                                                      "eta": state.eta, **state.params})
+    np.testing.assert_allclose(float(state.log_joint), float(model_lp), rtol=1e-7)
+    return state
