@@ -28,6 +28,8 @@ from npbrs.models.bphmm import (Hyper, bphmm_model, hmm_parameters, log_joint_te
 from npbrs.models.emissions import Emission, HMMData
 from npbrs.models.hmm import batch_backward_sample, batch_forward_filter, transition_counts
 
+from .moves import birth_death
+
 jax.config.update("jax_enable_x64", True)
 
 __all__ = ["BPHMMState", "BPHMMKernel"]
@@ -40,7 +42,8 @@ class BPHMMState(NamedTuple):
     params: emission parameters {site: (K, ...)}, cache: emission cache, hyper: Hyper,
     z (N, T) skill sequences (-1 on padding), log_lik (N, T, K), log_marginals (N,),
     log_joint: the model's log density, num_skills: skills used by z, num_switches: mean
-    switches per trajectory, accept: the emission move's mean acceptance, best_*: the
+    switches per trajectory, accept: the emission move's mean acceptance, birth_accept: the
+    fraction of birth/death trials accepted in the last sweep, best_*: the
     highest-log-joint state seen after warmup.
     """
 
@@ -59,6 +62,7 @@ class BPHMMState(NamedTuple):
     num_skills: jax.Array
     num_switches: jax.Array
     accept: jax.Array
+    birth_accept: jax.Array
     best_log_joint: jax.Array
     best_z: jax.Array
     best_params: Dict[str, jax.Array]
@@ -89,13 +93,15 @@ class BPHMMKernel(MCMCKernel):
             parameters proposed from its windows).
         init_window: window length of the initial segmentation.
         sample_features: Gibbs on the features (off only for tests of the other steps).
+        moves: trans-dimensional moves, {"birth_death": trials per sweep (0: off),
+            "window": (min, max) length of a birth's window}.
     """
 
     sample_field = "params"
 
     def __init__(self, emission: Emission, data: HMMData, max_skills: int, alpha=1.0, kappa=10.0,
                  gamma=1.0, hyperpriors: Optional[Dict] = None, init_skills: Optional[int] = None,
-                 init_window: int = 25, sample_features: bool = True):
+                 init_window: int = 25, sample_features: bool = True, moves: Optional[Dict] = None):
         self.emission = emission
         self.data = data
         self.max_skills = int(max_skills)
@@ -104,7 +110,25 @@ class BPHMMKernel(MCMCKernel):
         self.init_skills = int(init_skills if init_skills is not None else max(1, (self.max_skills + 1) // 2))
         self.init_window = int(init_window)
         self.sample_features = bool(sample_features)
+        self.moves = self._check_moves(moves)
         self._num_warmup = 0
+
+    _MOVE_DEFAULTS = {"birth_death": 0, "window": (10, 50)}
+
+    @classmethod
+    def _check_moves(cls, moves):
+        out = dict(cls._MOVE_DEFAULTS)
+        for name, value in (moves or {}).items():
+            if name not in out:
+                raise ValueError(f"unknown move option {name!r}; expected one of {sorted(out)}")
+            out[name] = value
+        if not isinstance(out["birth_death"], int) or isinstance(out["birth_death"], bool) or out["birth_death"] < 0:
+            raise ValueError(f"moves.birth_death must be a number of trials >= 0, got {out['birth_death']!r}")
+        lo, hi = out["window"]
+        if not (1 <= int(lo) <= int(hi)):
+            raise ValueError(f"moves.window must be (min, max) with 1 <= min <= max, got {out['window']!r}")
+        out["window"] = (int(lo), int(hi))
+        return out
 
     # ------------------------------------------------------------------ numpyro hooks
     @property
@@ -162,7 +186,7 @@ class BPHMMKernel(MCMCKernel):
             step=jnp.int32(0), rng_key=keys[4], omega=omega, features=features, eta=eta, params=params,
             cache=self.emission.init_cache(K), hyper=hyper, z=z,
             log_lik=jnp.zeros((N, T, K)), log_marginals=jnp.zeros(N), log_joint=zero,
-            num_skills=jnp.int32(0), num_switches=zero, accept=zero,
+            num_skills=jnp.int32(0), num_switches=zero, accept=zero, birth_accept=zero,
             best_log_joint=jnp.float64(-jnp.inf), best_z=z, best_params=params, best_features=features)
         return self._finish(state)
 
@@ -231,18 +255,31 @@ class BPHMMKernel(MCMCKernel):
         """One full Gibbs sweep."""
         N, K = state.features.shape
         mask = self.data.mask
-        key, k_feat, k_z, k_eta, k_em, k_hyp = jax.random.split(state.rng_key, 6)
+        key, k_feat, k_bd, k_z, k_eta, k_em, k_hyp = jax.random.split(state.rng_key, 7)
         features = self._sample_features(k_feat, state) if self.sample_features else state.features
+        params, log_lik = state.params, state.log_lik
+        births = jnp.zeros(())
+        if self.moves["birth_death"]:
+            lo, hi = self.moves["window"]
+
+            def trial(carry, key):
+                f, p, ll = carry
+                f, p, ll, info = birth_death(key, self.emission, self.data, state.hyper, f, state.eta, p, ll, lo, hi)
+                return (f, p, ll), info.accepted
+
+            (features, params, log_lik), accepted = jax.lax.scan(
+                trial, (features, params, log_lik), jax.random.split(k_bd, self.moves["birth_death"]))
+            births = jnp.mean(accepted.astype(jnp.float64))
         log_init, log_trans, active = hmm_parameters(features, state.eta)
-        _, log_alpha = batch_forward_filter(log_init, log_trans, state.log_lik, mask, active)
+        _, log_alpha = batch_forward_filter(log_init, log_trans, log_lik, mask, active)
         z = batch_backward_sample(k_z, log_trans, log_alpha, mask, active)
         # eta | z, F and omega | F are conditionally independent: one block
         eta, omega = self._sample_eta_omega(k_eta, z, features, state.hyper)
         weights = _skill_weights(z, mask, K)
-        params, cache, info = self.emission.update(k_em, state.params, state.cache, self.data, weights, state.step)
+        params, cache, info = self.emission.update(k_em, params, state.cache, self.data, weights, state.step)
         accept = jnp.asarray(info.get("accept", 1.0) if isinstance(info, dict) else 1.0, jnp.float64)
         new = state._replace(rng_key=key, omega=omega, features=features, eta=eta, params=params, cache=cache,
-                             z=z, accept=jnp.mean(accept))
+                             z=z, accept=jnp.mean(accept), birth_accept=births)
         if self.hyperpriors:
             new = new._replace(hyper=self._sample_hyper(k_hyp, new))
         new = self._finish(new)

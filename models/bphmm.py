@@ -24,13 +24,15 @@ import jax
 import jax.numpy as jnp
 import numpyro
 import numpyro.distributions as dist
+from jax.scipy.special import betaln
 
 from .hmm import batch_forward_filter
 
 jax.config.update("jax_enable_x64", True)
 
 __all__ = ["Hyper", "prior_distributions", "hmm_parameters", "log_marginal_likelihoods",
-           "bphmm_model", "log_joint_terms"]
+           "bphmm_model", "log_joint_terms",
+           "collapsed_feature_log_prob"]
 
 class Hyper(NamedTuple):
     """BP-HMM hyperparameters: IBP mass alpha, stickiness kappa, transition concentration gamma."""
@@ -76,6 +78,16 @@ def log_marginal_likelihoods(features, eta, log_lik, mask):
     log_init, log_trans, active = hmm_parameters(features, eta)
     log_marg, _ = batch_forward_filter(log_init, log_trans, log_lik, mask, active)
     return log_marg
+
+
+def collapsed_feature_log_prob(features, alpha):
+    """log p(F) with the skill popularities omega integrated out of the model's
+    omega_k ~ Beta(alpha/K, 1), f_ik ~ Bernoulli(omega_k):
+    sum_k [log B(m_k + alpha/K, N - m_k + 1) - log B(alpha/K, 1)], m_k = sum_i f_ik."""
+    N, K = features.shape
+    a = alpha / K
+    m = jnp.sum(features, axis=0)
+    return jnp.sum(betaln(m + a, N - m + 1.0) - betaln(a, 1.0))
 
 
 def _hyper_value(name, value, hyperpriors):

@@ -80,6 +80,14 @@ class Emission:
     def log_proposal(self, params_one, data: HMMData, weights):
         raise NotImplementedError
 
+    def sample_prior_one(self, key):
+        """One skill's parameters drawn from the prior (the sites of ``sample_params(1)``)."""
+        from numpyro import handlers
+
+        with handlers.seed(rng_seed=key):
+            params = self.sample_params(1)
+        return jax.tree.map(lambda x: x[0], params)
+
     def init_params(self, key, data: HMMData, weights):
         """A starting point: the proposal applied to each skill's weighted steps. (K, ...)."""
         K = weights.shape[-1]

@@ -1,0 +1,144 @@
+"""Trans-dimensional moves of the BP-HMM sampler: data-driven birth and death of unique skills.
+
+A skill is *unique* to trajectory i when i is the only trajectory that may use it
+(f_ik = 1, m_k = 1); a slot is *unused* when no trajectory may use it (m_k = 0). Under the
+weak-limit truncation every slot always has parameters; those of an unused slot do not touch
+the data and follow the prior.
+
+Birth (trajectory i, an unused slot k): switch f_ik on and propose the slot's parameters
+from the emission's data-driven proposal fitted to a random window of trajectory i.
+Death (trajectory i, one of its unique skills k): switch f_ik off and draw the slot's
+parameters from the prior. The window is an auxiliary choice drawn independently of the
+state, the same way in both directions, so each choice is a valid Metropolis-Hastings
+kernel (DESIGN.md, "Sampler notes"). Both directions integrate out omega (the
+beta-Bernoulli marginal of the features, :func:`npbrs.models.bphmm.collapsed_feature_log_prob`);
+the sweep redraws omega from its conditional right after. The skill sequences are summed
+out by the forward filter; only trajectory i's marginal likelihood changes.
+
+With prior p0, proposal q(. | window), n_free unused slots before a birth and n_unique
+unique skills of i after it, the birth's log acceptance ratio is
+
+    [log p(x_i | f_i', params') - log p(x_i | f_i, params)] + log p0(params_k')
+    + [log p(F') - log p(F)] - log q(params_k' | window) + log n_free - log n_unique'
+
+and the death's is exactly its negative at the reversed states.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+
+from npbrs.models.bphmm import collapsed_feature_log_prob, hmm_parameters
+from npbrs.models.hmm import forward_filter
+
+__all__ = ["BirthDeathInfo", "birth_death", "birth_death_log_ratio", "window_weights"]
+
+
+class BirthDeathInfo(NamedTuple):
+    """Diagnostics of one birth/death trial: which move, whether it was possible, accepted."""
+
+    is_birth: jax.Array
+    possible: jax.Array
+    accepted: jax.Array
+    log_ratio: jax.Array
+
+
+def window_weights(key, mask, i, min_len: int, max_len: int):
+    """Weights (N, T) that are 1 on a random window of trajectory i and 0 elsewhere.
+
+    The window's length is uniform on [min_len, max_len] (clipped to the trajectory) and its
+    start uniform over the positions where it fits.
+    """
+    N, T = mask.shape
+    length_i = jnp.sum(mask[i])
+    k1, k2 = jax.random.split(key)
+    hi = jnp.minimum(max_len, length_i)
+    lo = jnp.minimum(min_len, hi)
+    length = jax.random.randint(k1, (), lo, hi + 1)
+    start = jax.random.randint(k2, (), 0, length_i - length + 1)
+    t = jnp.arange(T)
+    row = ((t >= start) & (t < start + length) & mask[i]).astype(jnp.float64)
+    return jnp.zeros((N, T)).at[i].set(row)
+
+
+def _set_slot(params, k, one):
+    return jax.tree.map(lambda p, o: p.at[k].set(o), params, one)
+
+
+def _get_slot(params, k):
+    return jax.tree.map(lambda p: p[k], params)
+
+
+def _trajectory_log_marginal(features_i, eta_i, log_lik_i, mask_i):
+    log_init, log_trans, active = hmm_parameters(features_i[None], eta_i[None])
+    lm, _ = forward_filter(log_init[0], log_trans[0], log_lik_i, mask_i, active[0])
+    return lm
+
+
+def _one_log_lik(emission, data, one):
+    """Per-step log-likelihoods (N, T) of a single skill's parameters."""
+    params = jax.tree.map(lambda x: x[None], one)
+    ll, _ = emission.log_likelihoods(params, data, emission.init_cache(1))
+    return ll[..., 0]
+
+
+def birth_death_log_ratio(emission, data, hyper, features, eta, params, log_lik, i, k, new_one, window, is_birth):
+    """log acceptance ratio of a birth (``is_birth``) of slot k in trajectory i with parameters
+    ``new_one``, or of the death of slot k in trajectory i (``new_one``: the prior draw that
+    replaces its parameters); ``window`` (N, T) are the proposal's weights.
+
+    Returns (log_ratio, features', params', log_lik')."""
+    N, K = features.shape
+    old_one = _get_slot(params, k)
+    new_features = features.at[i, k].set(jnp.where(is_birth, 1.0, 0.0))
+    new_params = _set_slot(params, k, new_one)
+    new_col = _one_log_lik(emission, data, new_one)
+    new_log_lik = log_lik.at[:, :, k].set(new_col)
+    lm_old = _trajectory_log_marginal(features[i], eta[i], log_lik[i], data.mask[i])
+    lm_new = _trajectory_log_marginal(new_features[i], eta[i], new_log_lik[i], data.mask[i])
+    # the skill that is (or becomes) used: its parameters, prior and proposal density
+    used = jax.tree.map(lambda n, o: jnp.where(is_birth, n, o), new_one, old_one)
+    log_p0 = emission.log_prior(jax.tree.map(lambda x: x[None], used))[0]
+    log_q = emission.log_proposal(used, data, window)
+    m = features.sum(0)
+    m_new = new_features.sum(0)
+    n_free_before_birth = jnp.where(is_birth, jnp.sum(m == 0), jnp.sum(m_new == 0))
+    unique_i = lambda f: jnp.sum((f[i] > 0) & (f.sum(0) == 1))  # noqa: E731
+    n_unique_after_birth = jnp.where(is_birth, unique_i(new_features), unique_i(features))
+    birth = (log_p0 - log_q + jnp.log(n_free_before_birth) - jnp.log(n_unique_after_birth))
+    sign = jnp.where(is_birth, 1.0, -1.0)
+    log_ratio = (lm_new - lm_old) + (collapsed_feature_log_prob(new_features, hyper.alpha)
+                                     - collapsed_feature_log_prob(features, hyper.alpha)) + sign * birth
+    return log_ratio, new_features, new_params, new_log_lik
+
+
+def birth_death(key, emission, data, hyper, features, eta, params, log_lik, min_len: int = 10, max_len: int = 50):
+    """One birth-or-death trial (each with probability 1/2) on a random trajectory.
+
+    Returns (features, params, log_lik, info). Impossible moves (no unused slot for a birth;
+    no unique skill, or only one skill, for a death) leave the state unchanged.
+    """
+    N, K = features.shape
+    k_type, k_i, k_win, k_slot, k_prop, k_prior, k_acc = jax.random.split(key, 7)
+    is_birth = jax.random.bernoulli(k_type)
+    i = jax.random.randint(k_i, (), 0, N)
+    window = window_weights(k_win, data.mask, i, min_len, max_len)
+    m = features.sum(0)
+    free = m == 0
+    unique = (features[i] > 0) & (m == 1)
+    candidates = jnp.where(is_birth, free, unique)
+    possible = jnp.any(candidates) & (is_birth | (features[i].sum() >= 2))
+    k = jax.random.categorical(k_slot, jnp.where(candidates, 0.0, -jnp.inf))
+    k = jnp.where(possible, k, 0)
+    proposed, _ = emission.propose(k_prop, data, window)
+    with_prior = emission.sample_prior_one(k_prior)
+    new_one = jax.tree.map(lambda b, d: jnp.where(is_birth, b, d), proposed, with_prior)
+    log_ratio, f2, p2, ll2 = birth_death_log_ratio(emission, data, hyper, features, eta, params, log_lik, i, k,
+                                                   new_one, window, is_birth)
+    accept = possible & (jnp.log(jax.random.uniform(k_acc)) < log_ratio)
+    pick = lambda a, b: jax.tree.map(lambda x, y: jnp.where(accept, x, y), a, b)  # noqa: E731
+    info = BirthDeathInfo(is_birth, possible, accept, jnp.where(possible, log_ratio, -jnp.inf))
+    return pick(f2, features), pick(p2, params), pick(ll2, log_lik), info

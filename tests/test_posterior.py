@@ -1,0 +1,86 @@
+"""The whole sampler targets the right posterior: on a tiny BP-HMM the frequencies of
+segmentations match exact enumeration (omega, eta and the policies integrated in closed form)."""
+
+import itertools
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from scipy.special import betaln, gammaln
+
+from npbrs.inference.kernel import BPHMMKernel
+from npbrs.models.emissions import HMMData, PolicyEmission
+
+ACTIONS = np.array([[0, 0, 1], [1, 1, 0]])
+K, ALPHA, KAPPA, GAMMA, CONC = 3, 1.5, 2.0, 1.0, 0.5
+
+
+def dirichlet_multinomial(counts, conc):
+    return gammaln(conc.sum()) - gammaln(conc.sum() + counts.sum()) + np.sum(gammaln(conc + counts) - gammaln(conc))
+
+
+def partition_key(z):
+    """The segmentation up to relabelling: each step's label as the rank of its first appearance."""
+    seen = {}
+    return tuple(seen.setdefault(int(v), len(seen)) for v in np.ravel(z))
+
+
+def exact_partition_posterior():
+    N, T = ACTIONS.shape
+    conc_eta = GAMMA + KAPPA * np.eye(K)
+    probs = {}
+    for F in itertools.product([0, 1], repeat=N * K):
+        F = np.array(F).reshape(N, K)
+        if np.any(F.sum(1) == 0):
+            continue
+        m = F.sum(0)
+        log_pf = np.sum(betaln(m + ALPHA / K, N - m + 1) - betaln(ALPHA / K, 1))
+        choices = [np.flatnonzero(F[i]) for i in range(N)]
+        for zs in itertools.product(*[itertools.product(c, repeat=T) for c in choices]):
+            z = np.array(zs)
+            lp = log_pf
+            for i in range(N):
+                act = choices[i]
+                lp -= np.log(len(act))
+                for j in act:
+                    n = np.array([np.sum((z[i, :-1] == j) & (z[i, 1:] == k)) for k in act])
+                    lp += dirichlet_multinomial(n, conc_eta[j, act])
+            for k in range(K):
+                n = np.bincount(ACTIONS[z == k], minlength=2)
+                lp += dirichlet_multinomial(n, np.full(2, CONC))
+            key = partition_key(z)
+            probs[key] = np.logaddexp(probs.get(key, -np.inf), lp)
+    keys = sorted(probs)
+    lps = np.array([probs[k] for k in keys])
+    return keys, np.exp(lps - np.logaddexp.reduce(lps))
+
+
+@pytest.mark.parametrize("moves", [{}, {"birth_death": 2, "window": (1, 3)}])
+def test_sampler_visits_segmentations_in_proportion_to_their_posterior(moves):
+    keys, exact = exact_partition_posterior()
+    data = HMMData(jnp.zeros(ACTIONS.shape, jnp.int32), jnp.asarray(ACTIONS, jnp.int32), jnp.ones(ACTIONS.shape, bool))
+    kernel = BPHMMKernel(PolicyEmission(1, 2, concentration=CONC), data, max_skills=K, alpha=ALPHA, kappa=KAPPA,
+                         gamma=GAMMA, init_skills=1, moves=moves)
+    chains, sweeps = 8, 3000
+
+    def run(key):
+        state = kernel._init(key)
+
+        def body(s, _):
+            s = kernel.sweep(s)
+            return s, s.z
+
+        _, zs = jax.lax.scan(body, state, None, length=sweeps)
+        return zs
+
+    zs = np.asarray(jax.jit(jax.vmap(run))(jax.random.split(jax.random.PRNGKey(0), chains)))
+    zs = zs[:, 200:].reshape(-1, *ACTIONS.shape)
+    index = {k: j for j, k in enumerate(keys)}
+    counts = np.bincount([index[partition_key(z)] for z in zs], minlength=len(keys))
+    freq = counts / counts.sum()
+    # draws are autocorrelated: allow for an effective sample size a quarter of the draws
+    n_eff = counts.sum() / 4
+    sd = np.sqrt(exact * (1 - exact) / n_eff)
+    assert np.all(np.abs(freq - exact) < 5 * sd + 1e-3), np.c_[exact, freq]
+    assert 0.5 * np.sum(np.abs(freq - exact)) < 0.03
