@@ -38,7 +38,7 @@ __all__ = ["BPHMMState", "BPHMMKernel"]
 class BPHMMState(NamedTuple):
     """State of one chain of the BP-HMM sampler.
 
-    step: sweeps done. rng_key: the chain's key. omega (K,), features (N, K) 0/1, eta (N, K, K),
+    step: sweeps done. num_warmup: sweeps of warmup (adaptation, no best-state tracking). rng_key: the chain's key. omega (K,), features (N, K) 0/1, eta (N, K, K),
     params: emission parameters {site: (K, ...)}, cache: emission cache, hyper: Hyper,
     z (N, T) skill sequences (-1 on padding), log_lik (N, T, K), log_marginals (N,),
     log_joint: the model's log density, num_skills: skills used by z, num_switches: mean
@@ -48,6 +48,7 @@ class BPHMMState(NamedTuple):
     """
 
     step: jax.Array
+    num_warmup: jax.Array
     rng_key: jax.Array
     omega: jax.Array
     features: jax.Array
@@ -183,7 +184,8 @@ class BPHMMKernel(MCMCKernel):
         eta, omega = self._sample_eta_omega(keys[3], z, features, hyper)
         zero = jnp.float64(0.0)
         state = BPHMMState(
-            step=jnp.int32(0), rng_key=keys[4], omega=omega, features=features, eta=eta, params=params,
+            step=jnp.int32(0), num_warmup=jnp.int32(self._num_warmup), rng_key=keys[4], omega=omega,
+            features=features, eta=eta, params=params,
             cache=self.emission.init_cache(K), hyper=hyper, z=z,
             log_lik=jnp.zeros((N, T, K)), log_marginals=jnp.zeros(N), log_joint=zero,
             num_skills=jnp.int32(0), num_switches=zero, accept=zero, birth_accept=zero,
@@ -276,14 +278,15 @@ class BPHMMKernel(MCMCKernel):
         # eta | z, F and omega | F are conditionally independent: one block
         eta, omega = self._sample_eta_omega(k_eta, z, features, state.hyper)
         weights = _skill_weights(z, mask, K)
-        params, cache, info = self.emission.update(k_em, params, state.cache, self.data, weights, state.step)
+        params, cache, info = self.emission.update(k_em, params, state.cache, self.data, weights,
+                                                   state.step < state.num_warmup)
         accept = jnp.asarray(info.get("accept", 1.0) if isinstance(info, dict) else 1.0, jnp.float64)
         new = state._replace(rng_key=key, omega=omega, features=features, eta=eta, params=params, cache=cache,
                              z=z, accept=jnp.mean(accept), birth_accept=births)
         if self.hyperpriors:
             new = new._replace(hyper=self._sample_hyper(k_hyp, new))
         new = self._finish(new)
-        better = (state.step >= self._num_warmup) & (new.log_joint > state.best_log_joint)
+        better = (state.step >= state.num_warmup) & (new.log_joint > state.best_log_joint)
         pick = lambda a, b: jax.tree.map(lambda x, y: jnp.where(better, x, y), a, b)  # noqa: E731
         return new._replace(step=state.step + 1, best_log_joint=jnp.where(better, new.log_joint, state.best_log_joint),
                             best_z=pick(new.z, state.best_z), best_params=pick(new.params, state.best_params),

@@ -10,9 +10,10 @@ An emission model supplies everything that depends on what a skill *is*:
 - ``log_likelihoods(params, data, cache) -> ((N, T, K), cache)``: per-step log-likelihoods
   (``cache`` is a speed-up only, e.g. the previous soft values to warm-start a solve; the
   answer must not depend on it beyond solver tolerance);
-- ``update(key, params, cache, data, weights, step) -> (params, cache, info)``: a move that
+- ``update(key, params, cache, data, weights, adapt) -> (params, cache, info)``: a move that
   leaves the conditional posterior of every skill's parameters given its steps invariant
-  (``weights`` (N, T, K) is the one-hot of the sampled skill sequence);
+  (``weights`` (N, T, K) is the one-hot of the sampled skill sequence; ``adapt`` is True
+  during warmup only, when the move may tune itself, e.g. step sizes kept in the cache);
 - ``propose(key, data, weights) -> (params_one, log_q)`` and
   ``log_proposal(params_one, data, weights) -> log_q``: a data-driven proposal of one new
   skill's parameters from weighted steps (a window of a trajectory, or one side of a split);
@@ -71,7 +72,7 @@ class Emission:
     def log_likelihoods(self, params, data: HMMData, cache=()):
         raise NotImplementedError
 
-    def update(self, key, params, cache, data: HMMData, weights, step):
+    def update(self, key, params, cache, data: HMMData, weights, adapt):
         raise NotImplementedError
 
     def propose(self, key, data: HMMData, weights):
@@ -183,7 +184,7 @@ class PolicyEmission(Emission):
         c = jax.ops.segment_sum(w, flat, num_segments=S * A)  # (S*A, ...)
         return jnp.moveaxis(c.reshape((S, A) + weights.shape[2:]), (0, 1), (-2, -1))
 
-    def update(self, key, params, cache, data, weights, step):
+    def update(self, key, params, cache, data, weights, adapt):
         counts = self._counts(data, weights)  # (K, S, A)
         policy = jax.random.dirichlet(key, self.concentration + counts)
         return {"policy": jnp.maximum(policy, 1e-300)}, cache, {"accept": jnp.ones(())}

@@ -51,7 +51,7 @@ def check_emission(emission: Emission, data: HMMData, max_skills: int = 3, seed:
     # update: jit-able, keeps shapes
     z = jax.random.randint(key, (N, T), 0, K)
     weights = jax.nn.one_hot(z, K) * data.mask[..., None]
-    new, cache2, info = jax.jit(emission.update)(key, params, cache, data, weights, jnp.int32(0))
+    new, cache2, info = jax.jit(emission.update)(key, params, cache, data, weights, jnp.bool_(True))
     assert jax.tree.structure(new) == jax.tree.structure(params)
     for a, b in zip(jax.tree.leaves(new), jax.tree.leaves(params)):
         assert a.shape == b.shape and bool(jnp.all(jnp.isfinite(a)))
