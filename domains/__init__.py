@@ -2,7 +2,12 @@
 domains as gymnasium environments, experts, demonstrations and control evaluation."""
 
 from .mdp import TabularMDP
-from .solvers import (SolveResult, boltzmann_log_policy, greedy_policy, next_value_operator,
-                      soft_value_iteration, value_iteration)
+from .solvers import (HardSolver, SoftSolver, SolveResult, boltzmann_log_policy, greedy_policy,
+                      make_hard_solver, make_soft_solver, next_value_operator, soft_value_iteration,
+                      value_iteration)
 from .demos import Demonstrations, generate_demonstrations
 from .registry import DOMAINS, get_domain, register_domain
+from .highway import HighwayEnv, highway  # registers npbrs/Highway-v0
+from .quadcopter import QuadcopterEnv, quadcopter  # registers npbrs/Quadcopter-v0
+from .experts import policy_return, policy_values, q_learning
+from .control import evaluate_control, expert_control, replay, skill_policies

@@ -4,3 +4,7 @@ from .metrics import (confusion, hungarian_accuracy, hungarian_labelling, num_sk
                       paper_accuracy, paper_labelling)
 from .fit import fit, make_emission
 from .results import FitResult
+from .config import EmissionConfig, Hyperparameter, ModelConfig, PriorConfig, SamplerConfig
+from .runs import load, load_mdp, save_mdp
+from .diagnostics import convergence, relabel, skill_summary
+from .plots import plot_segmentation, plot_skill_rewards, plot_trace, skill_styles

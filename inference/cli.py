@@ -1,15 +1,261 @@
-"""The ``npbrs`` command line."""
+"""The ``npbrs`` command line: ``generate``, ``fit``, ``report`` and ``demo``.
+
+    npbrs generate highway --trajectories 16 --length 500 -o demos.npz
+    npbrs fit demos.npz --domain highway [--config model.toml] -o run.nc [--resume]
+    npbrs report run.nc --plots plots/
+    npbrs demo [--quick] [--out DIR]
+"""
+
+from __future__ import annotations
 
 import argparse
+import os
 import sys
 
+from .cli_generate import _at_least
 
+__all__ = ["build_parser", "main", "DEMO_CONFIG", "QUICK_DEMO_CONFIG"]
+
+#: The demo's model: the reward emission on 8 highway trajectories of 200 steps, sized to
+#: finish in a few minutes on two cores. ``--quick`` is a tiny run of the same pipeline (tests).
+DEMO_CONFIG = {"emission": {"name": "reward"}, "max_skills": 6, "prior": {"alpha": 1.0, "kappa": 20.0, "gamma": 1.0},
+               "sampler": {"chains": 2, "warmup": 100, "samples": 100, "seed": 0, "init_window": 25}}
+DEMO_DATA = {"num_trajectories": 8, "length": 200}
+QUICK_DEMO_CONFIG = {"emission": {"name": "reward"}, "max_skills": 3,
+                     "sampler": {"chains": 1, "warmup": 3, "samples": 4, "seed": 0, "init_window": 10}}
+QUICK_DEMO_DATA = {"num_trajectories": 3, "length": 30}
+
+
+def _error(command: str, message) -> int:
+    print(f"npbrs {command}: error: {message}", file=sys.stderr)
+    return 2
+
+
+# ------------------------------------------------------------------------------------ fit
+def _add_fit(sub):
+    p = sub.add_parser("fit", help="segment demonstrations into skills (BP-HMM MCMC) and save the run",
+                       description="Fit the BP-HMM to demonstrations and write the run (ArviZ netCDF). The model "
+                                   "comes from --config (TOML, see npbrs.inference.config); the options below "
+                                   "override it. A checkpoint RUN.nc.checkpoint.npz is written every "
+                                   "--checkpoint-every sweeps and on Ctrl-C; --resume continues from it.")
+    p.add_argument("demos", help="demonstrations file (.npz: states, actions, lengths[, skills])")
+    world = p.add_mutually_exclusive_group(required=True)
+    world.add_argument("--domain", help="a registered domain whose MDP the demonstrations live in")
+    world.add_argument("--mdp", help="an MDP file (.npz: successors, probs, features, feature_names, discount"
+                                     "[, initial, state_vectors, name])")
+    p.add_argument("--config", help="model configuration (TOML)")
+    p.add_argument("--emission", help="emission model name (overrides the config)")
+    p.add_argument("--max-skills", type=_at_least(1), help="truncation: skill slots (overrides the config)")
+    p.add_argument("--chains", type=_at_least(1), help="number of chains")
+    p.add_argument("--samples", type=_at_least(1), help="sweeps kept per chain")
+    p.add_argument("--warmup", type=_at_least(0), help="warmup sweeps per chain")
+    p.add_argument("--seed", type=_at_least(0), help="random seed")
+    p.add_argument("-o", "--output", required=True, help="the run file to write (.nc)")
+    p.add_argument("--resume", action="store_true", help="continue from the output's checkpoint if there is one")
+    p.add_argument("--checkpoint-every", type=_at_least(0), default=100,
+                   help="sweeps between checkpoints (100; 0: no checkpoints)")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    p.set_defaults(func=fit_command)
+    return p
+
+
+def checkpoint_path_for(output) -> str:
+    """Where ``npbrs fit -o OUTPUT`` keeps its checkpoint."""
+    return os.fspath(output) + ".checkpoint.npz"
+
+
+def _load_world(args):
+    from npbrs.domains.demos import Demonstrations
+
+    from .runs import load_mdp
+
+    if args.mdp is not None:
+        mdp = load_mdp(args.mdp)
+    else:
+        from npbrs.domains.registry import get_domain
+
+        mdp = get_domain(args.domain).mdp
+    demos = Demonstrations.load(args.demos)
+    return mdp, demos
+
+
+def fit_command(args) -> int:
+    from .fit import fit
+
+    try:
+        mdp, demos = _load_world(args)
+    except (OSError, ValueError) as e:
+        return _error("fit", e)
+    checkpoint = checkpoint_path_for(args.output) if args.checkpoint_every > 0 or args.resume else None
+    if args.resume and checkpoint and os.path.exists(checkpoint):
+        print(f"resuming from {checkpoint}")
+    try:
+        result = fit(mdp, demos, args.config, emission=args.emission, max_skills=args.max_skills,
+                     num_chains=args.chains, num_samples=args.samples, num_warmup=args.warmup, seed=args.seed,
+                     progress_bar=not args.no_progress, checkpoint_path=checkpoint,
+                     checkpoint_every=args.checkpoint_every or None, resume=args.resume)
+    except ValueError as e:
+        return _error("fit", e)
+    except KeyboardInterrupt:
+        where = (f"; the checkpoint {checkpoint} is kept: run the same command with --resume to continue"
+                 if checkpoint else "")
+        print(f"\ninterrupted{where}", file=sys.stderr)
+        return 130
+    result.save(args.output)
+    if checkpoint and os.path.exists(checkpoint):
+        os.remove(checkpoint)
+    print(result.summary())
+    print(f"wrote {args.output}")
+    return 0
+
+
+# ------------------------------------------------------------------------------------ report
+def _add_report(sub):
+    p = sub.add_parser("report", help="summarise a saved run: segmentation, convergence, per-skill rewards",
+                       description="Print a saved run's segmentation summary, the R-hat and ESS of the "
+                                   "label-invariant scalars (log joint, number of skills, switches) and the "
+                                   "per-skill reward weights with credible intervals (chains relabelled by "
+                                   "Hungarian matching); optionally save plots.")
+    p.add_argument("run", help="the run file (.nc) written by npbrs fit")
+    p.add_argument("--plots", metavar="DIR", help="save trace.png and segmentation.png in DIR")
+    p.add_argument("--prob", type=float, default=0.9, help="credible interval mass (0.9)")
+    p.set_defaults(func=report_command)
+    return p
+
+
+def report_command(args) -> int:
+    import pandas as pd
+
+    from . import diagnostics
+    from .runs import load_run
+
+    try:
+        result = load_run(args.run)
+    except (OSError, ValueError) as e:
+        return _error("report", e)
+    print(result.summary())
+    print("\nconvergence of the label-invariant scalars:")
+    with pd.option_context("display.width", 120, "display.max_columns", 20):
+        print(diagnostics.convergence(result).to_string())
+        if "theta" in result.skill_params:
+            print(f"\nreward weights per skill (mean, {args.prob:.0%} interval; chains relabelled):")
+            print(diagnostics.skill_summary(result, "theta", prob=args.prob).to_string())
+    if args.plots:
+        os.makedirs(args.plots, exist_ok=True)
+        for name, path in save_plots(result, args.plots).items():
+            print(f"wrote the {name} plot {path}")
+    return 0
+
+
+def save_plots(result, directory, skill_names=None) -> dict:
+    """A run's trace, segmentation (against the true skills when known) and, for rewards,
+    skill reward plots as PNG files in ``directory``; returns {plot: path}."""
+    from . import plots
+
+    paths = {name: os.path.join(directory, f"{name.replace(' ', '_')}.png")
+             for name in ("trace", "segmentation", "skill rewards")}
+    plots.plot_trace(result, paths["trace"])
+    true = result.demos.skills if result.demos is not None else None
+    plots.plot_segmentation(true, {"npbrs": result.segmentation}, paths["segmentation"], labels=skill_names)
+    if "theta" in result.skill_params:
+        names = result.feature_names or [f"phi{d}" for d in range(result.skill_params["theta"].shape[-1])]
+        plots.plot_skill_rewards(result.skill_params["theta"], names, paths["skill rewards"])
+    else:
+        del paths["skill rewards"]
+    return paths
+
+
+# ------------------------------------------------------------------------------------ demo
+def _add_demo(sub):
+    p = sub.add_parser("demo", help="the whole pipeline on the highway: generate, fit, score, plot",
+                       description="Generate highway demonstrations with three known skills, segment them with "
+                                   "the BP-HMM, print the skills found, the segmentation accuracy against the "
+                                   "true skills and the control rewards (expert vs npbrs), and save the run, "
+                                   "its configuration and a segmentation plot.")
+    p.add_argument("--quick", action="store_true", help="a tiny version (seconds after compilation)")
+    p.add_argument("--out", default="npbrs-demo", help="output directory (npbrs-demo)")
+    p.add_argument("--emission", help="emission model (default: reward)")
+    p.add_argument("--seed", type=_at_least(0), default=0, help="random seed (0)")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    p.set_defaults(func=demo_command)
+    return p
+
+
+def demo_command(args) -> int:
+    from npbrs.domains.demos import generate_demonstrations
+    from npbrs.domains.registry import get_domain
+
+    from .config import ModelConfig
+    from .fit import fit
+    from .metrics import hungarian_accuracy, num_switches, paper_accuracy
+
+    data = QUICK_DEMO_DATA if args.quick else DEMO_DATA
+    config = ModelConfig.from_dict(QUICK_DEMO_CONFIG if args.quick else DEMO_CONFIG)
+    sampler = dict(config.sampler.to_dict(), seed=args.seed)
+    config = config.replace(sampler=sampler,
+                            emission={"name": args.emission, "options": {}} if args.emission else config.emission)
+    os.makedirs(args.out, exist_ok=True)
+    domain = get_domain("highway")
+    demos = generate_demonstrations(domain, seed=args.seed, **data)
+    demos_path, config_path, run_path = (os.path.join(args.out, n) for n in ("demos.npz", "config.toml", "run.nc"))
+    demos.save(demos_path)
+    config.to_toml(config_path)
+    print(f"{demos.num_trajectories} highway demonstrations of {data['length']} steps, skills "
+          f"{', '.join(domain.skill_names)} ({num_switches(demos.skills):.2f} switches per trajectory): {demos_path}")
+    sampler = config.sampler
+    print(f"model: {config.emission.name} emission, up to {config.max_skills} skills, {sampler.chains} "
+          f"chain{'s' if sampler.chains > 1 else ''} x ({sampler.warmup} warmup + {sampler.samples}) sweeps: "
+          f"{config_path}")
+    try:
+        result = fit(domain.mdp, demos, config, progress_bar=not args.no_progress)
+    except ValueError as e:
+        return _error("demo", e)
+    result.save(run_path)
+    print(f"\n{result.summary()}")
+    print(f"\nsegmentation vs the true skills: {result.num_skills} skills found (true: {domain.num_skills}); "
+          f"accuracy {paper_accuracy(demos.skills, result.segmentation):.3f} (paper's >50% labelling), "
+          f"{hungarian_accuracy(demos.skills, result.segmentation):.3f} (one-to-one); switches per trajectory "
+          f"{num_switches(result.segmentation):.2f} (true {num_switches(demos.skills):.2f})")
+    _control_table(domain, demos, result)
+    from . import plots
+
+    path = os.path.join(args.out, "segmentation.png")
+    plots.plot_segmentation(demos.skills, {"npbrs": result.segmentation}, path, labels=domain.skill_names)
+    print(f"\nsegmentation plot: {path}")
+    print(f"run: {run_path} (npbrs report {run_path} --plots {args.out})")
+    return 0
+
+
+def _control_table(domain, demos, result) -> None:
+    """Mean true reward per trajectory when replaying the demonstrations with the expert and
+    with the inferred skills (their rewards' optimal policies, or the policies themselves)."""
+    from npbrs.domains.control import evaluate_control, expert_control
+
+    if "theta" in result.skill_params:
+        skills = result.skill_params["theta"]
+    elif "policy" in result.skill_params:
+        skills = result.skill_params["policy"].argmax(-1)  # (K, S) the policies' greedy actions
+    else:
+        print(f"\ncontrol: the {result.emission.get('name')} emission gives no policies to act with")
+        return
+    rows = [("expert", expert_control(domain, demos)),
+            ("npbrs", evaluate_control(domain, demos, result.segmentation, skills))]
+    print("\ncontrol: the demonstrations replayed with each method's skills, scored with the true rewards")
+    print(f"{'method':<8} {'reward per trajectory':>22} {'switches':>9} {'skills':>7}")
+    for name, r in rows:
+        print(f"{name:<8} {r['reward']:>22.1f} {r['switches']:>9.2f} {r['skills']:>7d}")
+
+
+# ------------------------------------------------------------------------------------ main
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="npbrs", description="Nonparametric Bayesian reward segmentation")
     sub = parser.add_subparsers(dest="command", required=True)
     from . import cli_generate
 
     cli_generate.add_parser(sub)
+    _add_fit(sub)
+    _add_report(sub)
+    _add_demo(sub)
     return parser
 
 

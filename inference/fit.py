@@ -1,25 +1,40 @@
-"""``fit``: segment demonstrations into skills with the BP-HMM sampler under numpyro's MCMC."""
+"""``fit``: segment demonstrations into skills with the BP-HMM sampler, with checkpoints.
+
+``fit`` drives the kernel through the ``MCMCKernel`` protocol (``init``, then ``sample`` once
+per sweep), as numpyro's ``MCMC`` does, but sweep by sweep in Python so that a run can stop
+after any sweep, write a checkpoint and continue later with exactly the draws of an
+uninterrupted run: every sweep is the same compiled function applied to the same state,
+whatever the chunking. The collected fields are the kernel's ``sample_field`` and
+``default_fields`` (as under ``MCMC``), plus ``skill_steps`` (steps assigned to each slot) and
+the sampled hyperparameters.
+"""
 
 from __future__ import annotations
 
+import hashlib
+import json
+import os
+import signal
+import threading
 import time
-from typing import Optional
+from collections import OrderedDict
+from operator import attrgetter
+from typing import Optional, Union
 
 import jax
+import jax.numpy as jnp
 import numpy as np
-from numpyro.infer import MCMC
 
 from npbrs.domains.demos import Demonstrations
 from npbrs.models.emissions import Emission, HMMData, get_emission_class
 
+from .config import EmissionConfig, ModelConfig, PriorConfig
 from .kernel import BPHMMKernel
 from .results import FitResult
 
 jax.config.update("jax_enable_x64", True)
 
-__all__ = ["fit", "make_emission"]
-
-_CHAIN_METHODS = ("vectorized", "sequential", "parallel")
+__all__ = ["fit", "make_emission", "resolve_config"]
 
 
 def make_emission(emission, mdp, **options) -> Emission:
@@ -31,69 +46,417 @@ def make_emission(emission, mdp, **options) -> Emission:
     if not isinstance(emission, str):
         raise ValueError(f"emission must be a registered name or an Emission, got {emission!r}")
     cls = get_emission_class(emission)
-    return cls.from_mdp(mdp, **options)
+    try:
+        return cls.from_mdp(mdp, **options)
+    except TypeError as e:  # an unknown or missing option
+        raise ValueError(f"emission.options: {emission!r} does not take these options ({e})") from None
 
 
-def _check_positive_int(name, value, minimum=1):
-    if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < minimum:
-        raise ValueError(f"{name} must be an integer >= {minimum}, got {value!r}")
+# ------------------------------------------------------------------------------ configuration
+def resolve_config(config=None, **overrides) -> ModelConfig:
+    """A validated :class:`ModelConfig` from ``config`` (a ModelConfig, a dict, a TOML path or
+    None for the defaults) with ``fit``'s keyword arguments applied on top (None: not given)."""
+    if config is None:
+        cfg = ModelConfig()
+    elif isinstance(config, ModelConfig):
+        cfg = config
+    elif isinstance(config, dict):
+        cfg = ModelConfig.from_dict(config)
+    elif isinstance(config, (str, os.PathLike)):
+        cfg = ModelConfig.from_toml(config)
+    else:
+        raise ValueError(f"config must be a ModelConfig, a dict or a TOML path, got {type(config).__name__}")
+    data = cfg.to_dict()
+    emission, options = overrides.pop("emission", None), overrides.pop("emission_options", None)
+    if isinstance(emission, Emission):
+        description = dict(emission.describe())
+        data["emission"] = {"name": description.pop("name", emission.name), "options": description}
+        if options:
+            raise ValueError(f"emission options {sorted(options)} given with an emission instance")
+    elif emission is not None:
+        if isinstance(emission, type):
+            emission = EmissionConfig(emission).name
+        same = emission == data["emission"]["name"]
+        data["emission"] = {"name": emission, "options": data["emission"]["options"] if same else {}}
+    if options is not None:
+        data["emission"]["options"] = dict(options)
+    if overrides.get("max_skills") is not None:
+        data["max_skills"] = overrides.pop("max_skills")
+    hyperpriors = overrides.pop("hyperpriors", None)
+    for name in PriorConfig.NAMES:
+        value = overrides.pop(name, None)
+        if value is not None:
+            current = data["prior"][name]
+            if isinstance(current, dict):
+                current = {**current, "value": value}
+            else:
+                current = value
+            data["prior"][name] = current
+    if hyperpriors is not None:
+        if not isinstance(hyperpriors, dict):
+            raise ValueError(f"hyperpriors must be a dict {{name: (shape, rate)}}, got {hyperpriors!r}")
+        for name, prior in hyperpriors.items():
+            if name not in PriorConfig.NAMES:
+                raise ValueError(f"prior.{name}: unknown hyperparameter; expected alpha, kappa or gamma")
+            try:
+                shape, rate = prior
+            except (TypeError, ValueError):
+                raise ValueError(f"prior.{name}: a hyperprior is (shape, rate), got {prior!r}") from None
+            current = data["prior"][name]
+            value = current["value"] if isinstance(current, dict) else current
+            data["prior"][name] = {"value": value, "shape": shape, "rate": rate}
+    renames = {"num_chains": "chains", "num_samples": "samples", "num_warmup": "warmup"}
+    for key in ("num_chains", "num_samples", "num_warmup", "seed", "chain_method", "init_skills", "init_window",
+                "moves"):
+        value = overrides.pop(key, None)
+        if value is not None:
+            data["sampler"][renames.get(key, key)] = value
+    overrides.pop("max_skills", None)
+    if overrides:
+        raise ValueError(f"unknown options {sorted(overrides)}")
+    return ModelConfig.from_dict(data)
 
 
-def fit(mdp, demos: Demonstrations, *, emission="reward", num_chains: int = 4, num_samples: int = 200,
-        num_warmup: int = 200, max_skills: int = 8, seed: int = 0, progress_bar: bool = True,
-        chain_method: str = "vectorized", alpha: float = 1.0, kappa: float = 10.0, gamma: float = 1.0,
-        hyperpriors: Optional[dict] = None, init_skills: Optional[int] = None, init_window: int = 25,
-        emission_options: Optional[dict] = None) -> FitResult:
+# ------------------------------------------------------------------------------ compiled kernels
+def _mdp_key(mdp) -> str:
+    h = hashlib.sha256()
+    for name in ("successors", "probs", "features", "initial", "state_vectors"):
+        value = getattr(mdp, name, None)
+        if value is not None:
+            h.update(name.encode())
+            h.update(np.ascontiguousarray(value).tobytes())
+    h.update(repr((mdp.discount, tuple(mdp.feature_names), id(mdp.next_value_fn) if mdp.next_value_fn else 0)).encode())
+    return h.hexdigest()
+
+
+class _Compiled:
+    """A kernel and its jitted sweep-and-record functions (kept between fits of one model)."""
+
+    def __init__(self, kernel: BPHMMKernel, hyper_names):
+        self.kernel = kernel  # holds the emission, so an instance's id stays a valid cache key
+        self.hyper_names = tuple(hyper_names)
+        self._fns = {}
+
+    def record(self, state) -> dict:
+        """The fields kept after a sweep, of one chain."""
+        kernel = self.kernel
+        out = {}
+        for name in dict.fromkeys((kernel.sample_field,) + tuple(kernel.default_fields)):
+            value = attrgetter(name)(state)
+            if isinstance(value, dict):
+                out.update(value)
+            elif hasattr(value, "_fields"):
+                out.update(value._asdict())
+            else:
+                out[name] = value
+        K = kernel.max_skills
+        mask = kernel.data.mask
+        out["skill_steps"] = jnp.sum(jax.nn.one_hot(state.z, K, dtype=jnp.int32) * mask[..., None], axis=(0, 1))
+        for name in self.hyper_names:
+            out[name] = getattr(state.hyper, name)
+        return out
+
+    def init(self, keys, num_warmup: int):
+        """Every chain's initial state (keys (C, 2)), on the host."""
+        if "init" not in self._fns:
+            kernel = self.kernel
+            self._fns["init"] = jax.jit(lambda k: _strong(kernel.init(k, num_warmup, None, (), {})))
+        return _to_host(self._fns["init"](keys))
+
+    def step(self, method: str):
+        """state -> (next state, record): batched over chains ("vectorized"), one chain
+        ("sequential") or one chain per device ("parallel")."""
+        if method not in self._fns:
+            kernel = self.kernel
+
+            def one(state):
+                new = _strong(kernel.sample(state, (), {}))
+                return new, self.record(new)
+
+            def batched(state):
+                new = _strong(kernel.sample(state, (), {}))
+                return new, jax.vmap(self.record)(new)
+
+            self._fns[method] = {"vectorized": jax.jit(batched), "sequential": jax.jit(one),
+                                 "parallel": jax.pmap(one)}[method]
+        return self._fns[method]
+
+
+_COMPILED: "OrderedDict[str, _Compiled]" = OrderedDict()
+_COMPILED_MAX = 4
+
+
+def _compiled(cfg: ModelConfig, em: Emission, em_key: str, demos: Demonstrations) -> _Compiled:
+    """The kernel of this model and data, reused when the same model is fitted again (its
+    compiled sweep is the expensive part of a short run)."""
+    prior, sampler = cfg.prior, cfg.sampler
+    key = json.dumps([em_key, demos.fingerprint(), cfg.max_skills, prior.to_dict(), sampler.init_skills,
+                      sampler.init_window, sampler.moves, sampler.warmup], sort_keys=True)
+    if key in _COMPILED:
+        _COMPILED.move_to_end(key)
+        return _COMPILED[key]
+    kwargs = dict(alpha=prior.alpha.value, kappa=prior.kappa.value, gamma=prior.gamma.value,
+                  hyperpriors=prior.hyperpriors or None, init_skills=sampler.init_skills,
+                  init_window=sampler.init_window, moves=dict(sampler.moves))
+    kernel = BPHMMKernel(em, HMMData.from_demonstrations(demos), cfg.max_skills, **kwargs)
+    entry = _Compiled(kernel, tuple(prior.hyperpriors))
+    _COMPILED[key] = entry
+    while len(_COMPILED) > _COMPILED_MAX:
+        _COMPILED.popitem(last=False)
+    return entry
+
+
+# ------------------------------------------------------------------------------ the run
+class _Interrupt:
+    """Turns Ctrl-C into a flag checked between sweeps (a second Ctrl-C interrupts at once)."""
+
+    def __init__(self):
+        self.flag = False
+        self._old = None
+
+    def __enter__(self):
+        if threading.current_thread() is threading.main_thread():
+            self._old = signal.getsignal(signal.SIGINT)
+
+            def handler(signum, frame):
+                if self.flag:
+                    raise KeyboardInterrupt
+                self.flag = True
+
+            signal.signal(signal.SIGINT, handler)
+        return self
+
+    def __exit__(self, *exc):
+        if self._old is not None:
+            signal.signal(signal.SIGINT, self._old)
+        return False
+
+
+def _strong(tree):
+    """The same arrays without weak types: a state read back from a checkpoint has none, so
+    every sweep sees the same input types (and runs the same compiled code) either way."""
+    def strong(x):
+        if jax.dtypes.issubdtype(x.dtype, jax.dtypes.prng_key):
+            return x
+        return jax.lax.convert_element_type(x, x.dtype)
+
+    return jax.tree.map(strong, tree)
+
+
+def _to_host(tree):
+    return jax.tree.map(np.asarray, jax.device_get(tree))
+
+
+class _Chains:
+    """The chains' states under one chain method, advanced one sweep at a time."""
+
+    def __init__(self, compiled: _Compiled, method: str, state):
+        self.method = method
+        self.fn = compiled.step(method)
+        self.num_chains = int(np.shape(jax.tree_util.tree_leaves(state)[0])[0])
+        if method == "sequential":
+            self.states = [jax.tree.map(lambda x, c=c: x[c], state) for c in range(self.num_chains)]
+        else:
+            self.states = state
+
+    def advance(self):
+        """One sweep of every chain; returns the records (a list of per-chain dicts or one batched dict)."""
+        if self.method == "sequential":
+            records = []
+            for c, s in enumerate(self.states):
+                self.states[c], rec = self.fn(s)
+                records.append(rec)
+            return records
+        self.states, rec = self.fn(self.states)
+        return rec
+
+    def stack(self, records) -> dict:
+        """Records of several sweeps as host arrays {name: (C, n, ...)}."""
+        if self.method == "sequential":
+            per_sweep = [{k: np.stack([np.asarray(r[k]) for r in recs]) for k in recs[0]} for recs in records]
+        else:
+            per_sweep = [_to_host(r) for r in records]
+        return {k: np.stack([r[k] for r in per_sweep], axis=1) for k in per_sweep[0]}
+
+    def state(self):
+        """Every chain's state on the host, chains stacked on axis 0."""
+        if self.method == "sequential":
+            return jax.tree.map(lambda *xs: np.stack(xs), *[_to_host(s) for s in self.states])
+        return _to_host(self.states)
+
+
+def _chain_method(method: str, num_chains: int) -> str:
+    if num_chains == 1:
+        return "vectorized"
+    if method == "parallel" and jax.local_device_count() < num_chains:
+        import warnings
+
+        warnings.warn(f"{num_chains} chains but {jax.local_device_count()} devices: running them sequentially",
+                      stacklevel=3)
+        return "sequential"
+    return method
+
+
+def _progress(total, initial, enabled):
+    from tqdm.auto import tqdm
+
+    return tqdm(total=total, initial=initial, disable=not enabled, unit="sweep", dynamic_ncols=True, leave=True)
+
+
+def fit(mdp, demos: Demonstrations, config: Union[ModelConfig, dict, str, os.PathLike, None] = None, *,
+        emission=None, emission_options: Optional[dict] = None, num_chains: Optional[int] = None,
+        num_samples: Optional[int] = None, num_warmup: Optional[int] = None, max_skills: Optional[int] = None,
+        seed: Optional[int] = None, chain_method: Optional[str] = None, alpha: Optional[float] = None,
+        kappa: Optional[float] = None, gamma: Optional[float] = None, hyperpriors: Optional[dict] = None,
+        init_skills: Optional[int] = None, init_window: Optional[int] = None, moves: Optional[dict] = None,
+        progress_bar: bool = True, checkpoint_path=None, checkpoint_every: Optional[int] = None,
+        resume: bool = False) -> FitResult:
     """Segment demonstrations into skills.
+
+    The model and sampler come from ``config`` (defaults: :class:`ModelConfig`); the keyword
+    arguments, when given, override its entries.
 
     Args:
         mdp: the TabularMDP the demonstrations live in.
         demos: :class:`~npbrs.domains.Demonstrations`.
+        config: a :class:`~npbrs.inference.config.ModelConfig`, its dict, or a TOML file.
         emission: a registered emission name ("reward", "policy", ...) or an Emission instance.
+        emission_options: keyword options of the emission's ``from_mdp`` (e.g. prior_scale).
         num_chains, num_samples, num_warmup: MCMC sizes (sweeps per chain).
         max_skills: truncation K of the beta process (skill slots).
-        seed: the random seed; the same seed gives the same answer.
-        progress_bar: show numpyro's progress bar.
-        chain_method: "vectorized" (one process, chains vmapped), "sequential" or "parallel".
+        seed: the random seed; the same seed gives the same draws, bit for bit.
+        chain_method: "vectorized" (chains vmapped), "sequential" or "parallel" (one per device).
         alpha, kappa, gamma: BP-HMM hyperparameters (IBP mass, stickiness, transition concentration).
-        hyperpriors: optional {"alpha"|"kappa"|"gamma": (shape, rate)} to sample them.
+        hyperpriors: {"alpha"|"kappa"|"gamma": (shape, rate)}: sample those under Gamma hyperpriors.
         init_skills, init_window: the initial segmentation (see :class:`BPHMMKernel`).
-        emission_options: keyword options of the emission (e.g. prior_scale).
+        moves: options of the kernel's trans-dimensional moves, e.g. {"birth_death": True}.
+        progress_bar: show a progress bar (sweeps).
+        checkpoint_path: write a checkpoint (``.npz``) there every ``checkpoint_every`` sweeps,
+            at the end, and on Ctrl-C (then KeyboardInterrupt is re-raised).
+        checkpoint_every: sweeps between checkpoints (default 100).
+        resume: continue from ``checkpoint_path`` when it exists (it must hold the same
+            demonstrations and configuration); the result equals an uninterrupted run's.
     Returns:
         a :class:`~npbrs.inference.results.FitResult`.
+    Raises:
+        ValueError: bad demonstrations, configuration or checkpoint, before anything is compiled.
     """
+    cfg = resolve_config(config, emission=emission, emission_options=emission_options, num_chains=num_chains,
+                         num_samples=num_samples, num_warmup=num_warmup, max_skills=max_skills, seed=seed,
+                         chain_method=chain_method, alpha=alpha, kappa=kappa, gamma=gamma, hyperpriors=hyperpriors,
+                         init_skills=init_skills, init_window=init_window, moves=moves)
     if not isinstance(demos, Demonstrations):
         raise ValueError(f"demos must be npbrs.domains.Demonstrations, got {type(demos).__name__}")
     demos.validate(mdp)
-    for name, value in [("num_chains", num_chains), ("num_samples", num_samples), ("max_skills", max_skills)]:
-        _check_positive_int(name, value)
-    _check_positive_int("num_warmup", num_warmup, 0)
-    _check_positive_int("init_window", init_window)
-    if init_skills is not None:
-        _check_positive_int("init_skills", init_skills)
-        if init_skills > max_skills:
-            raise ValueError(f"init_skills ({init_skills}) exceeds max_skills ({max_skills})")
-    if chain_method not in _CHAIN_METHODS:
-        raise ValueError(f"unknown chain_method {chain_method!r}; expected one of {_CHAIN_METHODS}")
-    for name, value in [("alpha", alpha), ("kappa", kappa), ("gamma", gamma)]:
-        if not (np.isfinite(value) and value > 0 or (name == "kappa" and value == 0)):
-            raise ValueError(f"{name} must be a positive number, got {value!r}")
-    for name, prior in (hyperpriors or {}).items():
-        if name not in ("alpha", "kappa", "gamma"):
-            raise ValueError(f"unknown hyperprior {name!r}; expected 'alpha', 'kappa' or 'gamma'")
-        if len(prior) != 2 or not all(np.isfinite(p) and p > 0 for p in prior):
-            raise ValueError(f"hyperprior {name!r} must be (shape, rate) with positive entries, got {prior!r}")
-    em = make_emission(emission, mdp, **(emission_options or {}))
-    data = HMMData.from_demonstrations(demos)
-    kernel = BPHMMKernel(em, data, max_skills, alpha=alpha, kappa=kappa, gamma=gamma, hyperpriors=hyperpriors,
-                         init_skills=init_skills, init_window=init_window)
-    mcmc = MCMC(kernel, num_warmup=num_warmup, num_samples=num_samples, num_chains=num_chains,
-                chain_method=chain_method if num_chains > 1 else "sequential", progress_bar=progress_bar)
+    if checkpoint_every is not None:
+        if isinstance(checkpoint_every, bool) or not isinstance(checkpoint_every, (int, np.integer)) \
+                or checkpoint_every < 1:
+            raise ValueError(f"checkpoint_every must be an integer >= 1, got {checkpoint_every!r}")
+        if checkpoint_path is None:
+            raise ValueError("checkpoint_every given without checkpoint_path")
+    if resume and checkpoint_path is None:
+        raise ValueError("resume=True needs checkpoint_path")
+    every = int(checkpoint_every or 100)
+    if isinstance(emission, Emission):
+        em, em_key = emission, f"instance:{id(emission)}"
+    else:
+        em = make_emission(cfg.emission.name, mdp, **cfg.emission.options)
+        em_key = json.dumps([cfg.emission.to_dict(), type(em).__module__ + "." + type(em).__qualname__, _mdp_key(mdp)],
+                            sort_keys=True)
+    compiled = _compiled(cfg, em, em_key, demos)
+    kernel = compiled.kernel
+    sampler = cfg.sampler
+    C, W, S = sampler.chains, sampler.warmup, sampler.samples
+    total = W + S
+    method = _chain_method(sampler.chain_method, C)
+    meta = {"config": cfg.to_dict(), "emission": em.describe(), "fingerprint": demos.fingerprint(),
+            "seed": sampler.seed, "num_chains": C, "total_sweeps": total}
+    keys = jax.random.split(jax.random.PRNGKey(sampler.seed), C)
+
+    state, draws, done, wall = None, {}, 0, 0.0
+    if resume and os.path.exists(checkpoint_path):
+        leaves, draws, saved = _read_checkpoint(checkpoint_path, meta)
+        from .runs import restore_state
+
+        like = jax.eval_shape(lambda k: kernel.init(k, W, None, (), {}), keys)  # also sets the kernel's warmup
+        state = restore_state(leaves, like, checkpoint_path)
+        done, wall = int(saved["sweeps_done"]), float(saved["wall_time"])
+
     start = time.perf_counter()
-    mcmc.run(jax.random.PRNGKey(seed))
-    wall = time.perf_counter() - start
-    config = {"emission": em.describe(), "num_chains": num_chains, "num_samples": num_samples,
-              "num_warmup": num_warmup, "max_skills": max_skills, "seed": seed, "chain_method": chain_method,
-              "alpha": alpha, "kappa": kappa, "gamma": gamma, "hyperpriors": dict(hyperpriors or {}),
-              "init_skills": kernel.init_skills, "init_window": init_window}
-    return FitResult.from_mcmc(mcmc, demos, config=config, wall_time=wall)
+    if state is None:
+        state = compiled.init(keys, W)
+    chains = _Chains(compiled, method, state)
+    pending = []
+
+    def flush():
+        if pending:
+            new = chains.stack(pending)
+            for k, v in new.items():
+                draws[k] = np.concatenate([draws[k], v], axis=1) if k in draws else v
+            pending.clear()
+
+    def checkpoint(done_now):
+        flush()
+        write = dict(meta, sweeps_done=done_now, wall_time=wall + time.perf_counter() - start)
+        from .runs import write_checkpoint
+
+        write_checkpoint(checkpoint_path, state=chains.state(), draws=draws, meta=write)
+
+    bar = _progress(total * (C if method == "sequential" else 1), done * (C if method == "sequential" else 1),
+                    progress_bar)
+    try:
+        with _Interrupt() as interrupt:
+            while done < total:
+                bar.set_description("warmup" if done < W else "sample", refresh=False)
+                records = chains.advance()
+                if done >= W:
+                    pending.append(records)
+                done += 1
+                bar.update(C if method == "sequential" else 1)
+                if checkpoint_path is not None and (done % every == 0 or done == total):
+                    checkpoint(done)
+                    bar.set_postfix_str(f"log joint {float(np.max(draws['log_joint'][:, -1])):.1f}"
+                                        if "log_joint" in draws else "", refresh=False)
+                elif len(pending) >= 100:
+                    flush()
+                if interrupt.flag:
+                    if checkpoint_path is not None:
+                        checkpoint(done)
+                    raise KeyboardInterrupt(f"stopped after {done} of {total} sweeps"
+                                            + (f"; resume from {checkpoint_path}" if checkpoint_path else ""))
+            flush()
+    finally:
+        bar.close()
+    wall += time.perf_counter() - start
+    return FitResult.from_states(chains.state(), draws, demos, config=cfg.to_dict(), emission=em.describe(),
+                                 feature_names=tuple(getattr(mdp, "feature_names", ())), wall_time=wall,
+                                 sample_names=compiled.hyper_names)
+
+
+def _read_checkpoint(path, meta):
+    """The checkpoint's (leaves, draws, meta), refused unless it belongs to this run."""
+    from .runs import read_checkpoint
+
+    leaves, draws, saved = read_checkpoint(path)
+    if saved.get("fingerprint") != meta["fingerprint"]:
+        raise ValueError(f"{path}: the checkpoint was written for other demonstrations (fingerprint "
+                         f"{str(saved.get('fingerprint'))[:12]}, these are {meta['fingerprint'][:12]})")
+    if saved.get("config") != meta["config"]:
+        ours, theirs = meta["config"], saved.get("config") or {}
+        diff = sorted(_differences(ours, theirs))
+        raise ValueError(f"{path}: the checkpoint was written with another configuration (differs in "
+                         f"{', '.join(diff) or 'its layout'})")
+    if saved.get("emission") != json.loads(json.dumps(meta["emission"])):
+        raise ValueError(f"{path}: the checkpoint was written with another emission ({saved.get('emission')})")
+    done = int(saved["sweeps_done"])
+    if not 0 <= done <= meta["total_sweeps"]:
+        raise ValueError(f"{path}: {done} sweeps done of {meta['total_sweeps']}")
+    return leaves, draws, saved
+
+
+def _differences(a, b, prefix=""):
+    if isinstance(a, dict) and isinstance(b, dict):
+        for k in set(a) | set(b):
+            yield from _differences(a.get(k), b.get(k), f"{prefix}{k}.")
+    elif a != b:
+        yield prefix.rstrip(".")

@@ -42,10 +42,18 @@ class FitResult:
             e.g. ``skill_params["theta"]`` the reward weights.
         skill_slots: the sampler's slot index of each skill.
         best_chain: the chain of the best draw; best_log_joint: its log joint.
-        stats: per chain and draw (C, D): "log_joint", "num_skills", "num_switches", "accept".
-        samples: posterior draws {site: (C, D, ...)} (emission parameters and features).
-        config: the run's settings; fingerprint: the demonstrations' fingerprint.
-        wall_time: seconds spent sampling, compilation included.
+        stats: per chain and draw (C, D): "log_joint", "num_skills", "num_switches", "accept"
+            and any other per-draw scalar the kernel reports.
+        samples: posterior draws {site: (C, D, ...)}: the emission parameters (skill slots on
+            axis 2), "features" (C, D, N, K), "skill_steps" (C, D, K) the steps assigned to
+            each slot, and sampled hyperparameters.
+        config: the run's :class:`~npbrs.inference.config.ModelConfig` as plain data
+            (:attr:`model_config` parses it); fingerprint: the demonstrations' fingerprint.
+        wall_time: seconds spent sampling, compilation included (summed over resumed pieces).
+        emission: the emission's ``describe()``.
+        feature_names: the MDP's reward feature names (for per-skill summaries).
+        chain_best_z: (C, N, T) every chain's best segmentation in slot labels (-1 on padding).
+        demos: the demonstrations, when known.
     """
 
     segmentation: List[np.ndarray]
@@ -59,25 +67,85 @@ class FitResult:
     config: dict = field(default_factory=dict)
     fingerprint: str = ""
     wall_time: float = float("nan")
+    emission: dict = field(default_factory=dict)
+    feature_names: tuple = ()
+    chain_best_z: Optional[np.ndarray] = None
+    demos: Optional[object] = None
 
     @classmethod
-    def from_mcmc(cls, mcmc, demos, config: Optional[dict] = None, wall_time: float = float("nan")) -> "FitResult":
-        C = mcmc.num_chains
-        last = mcmc.last_state
-        best_lj = _chains(last.best_log_joint, C)
+    def from_states(cls, last_state, draws: Dict[str, np.ndarray], demos, *, config: Optional[dict] = None,
+                    emission: Optional[dict] = None, feature_names=(), wall_time: float = float("nan"),
+                    sample_names=()) -> "FitResult":
+        """Assemble a result from the chains' last kernel states and their draws.
+
+        Args:
+            last_state: the kernel state of every chain, leaves (C, ...) (``best_log_joint``,
+                ``best_z``, ``best_params`` are used).
+            draws: {name: (C, D, ...)}; per-draw scalars become ``stats`` unless named in
+                ``sample_names``, the rest ``samples``.
+        """
+        best_lj = np.asarray(last_state.best_log_joint)
         chain = int(np.argmax(best_lj))
-        best_z = _chains(last.best_z, C)[chain]
-        rows = [best_z[i, :n] for i, n in enumerate(demos.lengths)]
+        chain_best_z = np.asarray(last_state.best_z).astype(np.int64)
+        rows = [chain_best_z[chain, i, :n] for i, n in enumerate(demos.lengths)]
         segmentation, slots = _compact(rows)
-        best_params = {k: _chains(v, C)[chain][slots] for k, v in last.best_params.items()}
-        draws = mcmc.get_samples(group_by_chain=True)
-        extra = mcmc.get_extra_fields(group_by_chain=True)
-        stats = {k: np.asarray(extra[k]) for k in ("log_joint", "num_skills", "num_switches", "accept")}
-        samples = {k: np.asarray(v) for k, v in draws.items()}
-        samples["features"] = np.asarray(extra["features"])
+        best_params = {k: np.asarray(v)[chain][slots] for k, v in last_state.best_params.items()}
+        draws = {k: np.asarray(v) for k, v in draws.items()}
+        stats = {k: v for k, v in draws.items() if v.ndim == 2 and k not in sample_names}
+        samples = {k: v for k, v in draws.items() if k not in stats}
         return cls(segmentation=segmentation, num_skills=len(slots), skill_params=best_params, skill_slots=slots,
                    best_chain=chain, best_log_joint=float(best_lj[chain]), stats=stats, samples=samples,
-                   config=dict(config or {}), fingerprint=demos.fingerprint(), wall_time=float(wall_time))
+                   config=dict(config or {}), fingerprint=demos.fingerprint(), wall_time=float(wall_time),
+                   emission=dict(emission or {}), feature_names=tuple(feature_names), chain_best_z=chain_best_z,
+                   demos=demos)
+
+    @property
+    def model_config(self):
+        """The run's :class:`~npbrs.inference.config.ModelConfig`."""
+        from .config import ModelConfig
+
+        return ModelConfig.from_dict(self.config)
+
+    @property
+    def num_chains(self) -> int:
+        return int(np.shape(self.stats["log_joint"])[0])
+
+    @property
+    def num_draws(self) -> int:
+        return int(np.shape(self.stats["log_joint"])[1])
+
+    def save(self, path) -> None:
+        """Write this result to a netCDF file (atomically); read it back with ``npbrs.inference.load``."""
+        from .runs import save_run
+
+        save_run(self, path)
+
+    def equals(self, other: "FitResult", wall_time: bool = False) -> bool:
+        """Whether two results hold the same segmentation, draws, parameters and description
+        (bit for bit; ``wall_time`` compared only when asked)."""
+        if not isinstance(other, FitResult):
+            return False
+
+        def same(a, b):
+            a, b = np.asarray(a), np.asarray(b)
+            return a.shape == b.shape and np.array_equal(a, b, equal_nan=a.dtype.kind == "f" and b.dtype.kind == "f")
+
+        def same_dict(a, b):
+            return a.keys() == b.keys() and all(same(a[k], b[k]) for k in a)
+
+        return (len(self.segmentation) == len(other.segmentation)
+                and all(same(a, b) for a, b in zip(self.segmentation, other.segmentation))
+                and self.num_skills == other.num_skills and same_dict(self.skill_params, other.skill_params)
+                and same(self.skill_slots, other.skill_slots) and self.best_chain == other.best_chain
+                and same(self.best_log_joint, other.best_log_joint) and same_dict(self.stats, other.stats)
+                and same_dict(self.samples, other.samples) and self.config == other.config
+                and self.fingerprint == other.fingerprint and self.emission == other.emission
+                and tuple(self.feature_names) == tuple(other.feature_names)
+                and ((self.chain_best_z is None) == (other.chain_best_z is None))
+                and (self.chain_best_z is None or same(self.chain_best_z, other.chain_best_z))
+                and ((self.demos is None) == (other.demos is None))
+                and (self.demos is None or self.demos == other.demos)
+                and (not wall_time or same(self.wall_time, other.wall_time)))
 
     @property
     def log_joint(self) -> np.ndarray:
@@ -110,14 +178,11 @@ class FitResult:
         return self._diagnostic(effective_sample_size)
 
     def to_arviz(self):
-        """ArviZ InferenceData: posterior draws and label-invariant sample stats."""
-        import arviz as az
+        """ArviZ InferenceData: draws, label-invariant sample stats, the best segmentation and
+        the run's description (the layout of saved runs, see :mod:`npbrs.inference.runs`)."""
+        from .runs import to_inference_data
 
-        posterior = {k: v for k, v in self.samples.items()}
-        for name in LABEL_INVARIANT:
-            posterior[name] = self.stats[name]
-        sample_stats = {"lp": self.stats["log_joint"], **{k: v for k, v in self.stats.items()}}
-        return az.from_dict(posterior=posterior, sample_stats=sample_stats)
+        return to_inference_data(self)
 
     def summary(self) -> str:
         """A short text summary: skills, segment lengths, diagnostics."""

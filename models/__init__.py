@@ -4,3 +4,5 @@ from .hmm import (batch_backward_sample, batch_forward_filter, batch_viterbi, ba
                   initial_counts, transition_counts, viterbi)
 from .emissions import EMISSIONS, Emission, HMMData, PolicyEmission, get_emission_class, register_emission
 from .bphmm import Hyper, bphmm_model
+from .subgoal import SubgoalEmission, visited_states
+from .autoregressive import AutoregressiveEmission

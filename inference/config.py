@@ -1,0 +1,477 @@
+"""Model variants as plain data: the emission, the BP-HMM prior, the truncation and the sampler.
+
+A :class:`ModelConfig` is the full description of a run. It converts to and from nested dicts
+(:meth:`ModelConfig.to_dict`, :meth:`ModelConfig.from_dict`) and TOML files
+(:meth:`ModelConfig.to_toml`, :meth:`ModelConfig.from_toml`); a bad key or value is a
+``ValueError`` that names it, e.g. ``prior.kappa: expected a number, got 'abc'``.
+
+A TOML variant (every key optional; these are the defaults)::
+
+    max_skills = 8
+
+    [emission]
+    name = "reward"            # or "subgoal", "autoregressive", "single", "policy", a registered name
+
+    [emission.options]         # keyword options of the emission's from_mdp
+    # prior_scale = 10.0
+
+    [prior]
+    alpha = 1.0                # a fixed value ...
+    gamma = 1.0
+    [prior.kappa]              # ... or sampled: Gamma(shape, rate) hyperprior, value = initial value
+    value = 10.0
+    shape = 2.0
+    rate = 0.2
+
+    [sampler]
+    chains = 4
+    samples = 200
+    warmup = 200
+    seed = 0
+    chain_method = "vectorized"   # or "sequential", "parallel"
+    init_window = 25
+    # init_skills = 4             # default: (max_skills + 1) // 2
+
+    [sampler.moves]            # the kernel's trans-dimensional moves (BPHMMKernel's ``moves``)
+    # birth_death = 2          # e.g. birth/death trials per sweep
+    # window = [10, 50]
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import os
+import tempfile
+from dataclasses import dataclass, field
+from typing import Any, Dict, Optional, Union
+
+__all__ = ["ModelConfig", "EmissionConfig", "PriorConfig", "SamplerConfig", "Hyperparameter", "CHAIN_METHODS"]
+
+CHAIN_METHODS = ("vectorized", "sequential", "parallel")
+
+
+# ------------------------------------------------------------------------------------ checks
+def _describe(value) -> str:
+    return repr(value) if isinstance(value, str) else f"{value!r} ({type(value).__name__})"
+
+
+def _number(key: str, value, *, minimum: Optional[float] = None, positive: bool = False) -> float:
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or hasattr(value, "shape"):
+        try:  # numpy scalars
+            import numpy as np
+
+            if isinstance(value, (np.integer, np.floating)) and not isinstance(value, np.bool_):
+                value = float(value)
+            else:
+                raise TypeError
+        except TypeError:
+            raise ValueError(f"{key}: expected a number, got {_describe(value)}") from None
+    value = float(value)
+    if not math.isfinite(value):
+        raise ValueError(f"{key}: expected a finite number, got {value}")
+    if positive and not value > 0:
+        raise ValueError(f"{key}: expected a positive number, got {value}")
+    if minimum is not None and value < minimum:
+        raise ValueError(f"{key}: expected a number >= {minimum}, got {value}")
+    return value
+
+
+def _integer(key: str, value, minimum: Optional[int] = None) -> int:
+    try:
+        import numpy as np
+
+        if isinstance(value, np.integer):
+            value = int(value)
+    except ImportError:  # pragma: no cover
+        pass
+    if isinstance(value, bool) or not isinstance(value, int):
+        raise ValueError(f"{key}: expected an integer, got {_describe(value)}")
+    if minimum is not None and value < minimum:
+        raise ValueError(f"{key}: expected an integer >= {minimum}, got {value}")
+    return int(value)
+
+
+def _table(key: str, value) -> dict:
+    if not isinstance(value, dict):
+        raise ValueError(f"{key}: expected a table (dict), got {_describe(value)}")
+    for k in value:
+        if not isinstance(k, str):
+            raise ValueError(f"{key}: keys must be strings, got {k!r}")
+    return value
+
+
+def _known(key: str, data: dict, allowed) -> None:
+    for k in data:
+        if k not in allowed:
+            raise ValueError(f"{key + '.' if key else ''}{k}: unknown key; expected one of {', '.join(allowed)}")
+
+
+def _plain(key: str, value):
+    """A copy of ``value`` made of TOML-writable data (str, bool, int, float, lists, tables)."""
+    if isinstance(value, (bool, str)):
+        return value
+    if isinstance(value, (int, float)):
+        return value
+    try:
+        import numpy as np
+
+        if isinstance(value, np.bool_):
+            return bool(value)
+        if isinstance(value, np.integer):
+            return int(value)
+        if isinstance(value, np.floating):
+            return float(value)
+        if isinstance(value, np.ndarray):
+            return [_plain(f"{key}[{i}]", v) for i, v in enumerate(value.tolist())]
+    except ImportError:  # pragma: no cover
+        pass
+    if isinstance(value, (list, tuple)):
+        return [_plain(f"{key}[{i}]", v) for i, v in enumerate(value)]
+    if isinstance(value, dict):
+        return {k: _plain(f"{key}.{k}", v) for k, v in _table(key, value).items()}
+    raise ValueError(f"{key}: expected plain data (a number, string, boolean, list or table), got {_describe(value)}")
+
+
+def _check_moves(moves: dict) -> None:
+    """The kernel's own check of its move options, as a ValueError naming ``sampler.moves``."""
+    from .kernel import BPHMMKernel
+
+    check = getattr(BPHMMKernel, "check_moves", None) or getattr(BPHMMKernel, "_check_moves", None)
+    if check is None:
+        return
+    try:
+        check(moves)
+    except (ValueError, TypeError) as e:
+        message = str(e)
+        if message.startswith("moves."):
+            message = "sampler." + message
+        raise ValueError(message if message.startswith("sampler.") else f"sampler.moves: {message}") from None
+
+
+# ----------------------------------------------------------------------------- the parts
+@dataclass
+class EmissionConfig:
+    """The emission model: a registered name and the keyword options of its ``from_mdp``.
+
+    ``name`` may also be a registered Emission class; it is stored as its registered name.
+    """
+
+    name: str = "reward"
+    options: Dict[str, Any] = field(default_factory=dict)
+
+    def __post_init__(self):
+        if isinstance(self.name, type):
+            from npbrs.models.emissions import EMISSIONS
+
+            registered = [n for n, c in EMISSIONS.items() if c is self.name]
+            if not registered:
+                raise ValueError(f"emission.name: class {self.name.__name__} is not registered; decorate it with "
+                                 f"npbrs.models.emissions.register_emission(name)")
+            self.name = registered[0]
+        if not isinstance(self.name, str) or not self.name:
+            raise ValueError(f"emission.name: expected a non-empty string, got {_describe(self.name)}")
+        self.options = _plain("emission.options", _table("emission.options", self.options))
+
+    @classmethod
+    def from_dict(cls, data) -> "EmissionConfig":
+        if isinstance(data, str):
+            return cls(data)
+        data = _table("emission", data)
+        _known("emission", data, ("name", "options"))
+        return cls(**data)
+
+    def to_dict(self) -> dict:
+        return {"name": self.name, "options": _plain("emission.options", self.options)}
+
+
+@dataclass
+class Hyperparameter:
+    """A BP-HMM hyperparameter: fixed at ``value``, or sampled under a Gamma(shape, rate)
+    hyperprior starting from ``value`` (when ``shape`` and ``rate`` are given)."""
+
+    value: float
+    shape: Optional[float] = None
+    rate: Optional[float] = None
+
+    @property
+    def sampled(self) -> bool:
+        return self.shape is not None
+
+    def _check(self, key: str, allow_zero: bool) -> "Hyperparameter":
+        if (self.shape is None) != (self.rate is None):
+            raise ValueError(f"{key}: a hyperprior needs both shape and rate")
+        self.value = _number(f"{key}.value" if self.sampled else key, self.value, minimum=0.0)
+        if self.sampled:
+            self.shape = _number(f"{key}.shape", self.shape, positive=True)
+            self.rate = _number(f"{key}.rate", self.rate, positive=True)
+        if not (self.value > 0 or (allow_zero and not self.sampled)):
+            raise ValueError(f"{key}{'.value' if self.sampled else ''}: expected a positive number, got {self.value}")
+        return self
+
+    @classmethod
+    def parse(cls, key: str, data, allow_zero: bool = False) -> "Hyperparameter":
+        """From a number (fixed), a {value, shape, rate} table, or a Hyperparameter."""
+        if isinstance(data, Hyperparameter):
+            return cls(data.value, data.shape, data.rate)._check(key, allow_zero)
+        if isinstance(data, dict):
+            _known(key, data, ("value", "shape", "rate"))
+            if ("shape" in data) != ("rate" in data):
+                raise ValueError(f"{key}: a hyperprior needs both shape and rate")
+            if "value" not in data and "shape" in data and "rate" in data:
+                shape = _number(f"{key}.shape", data["shape"], positive=True)
+                rate = _number(f"{key}.rate", data["rate"], positive=True)
+                data = {**data, "value": shape / rate}  # start at the hyperprior's mean
+            if "value" not in data:
+                raise ValueError(f"{key}.value: missing")
+            return cls(data["value"], data.get("shape"), data.get("rate"))._check(key, allow_zero)
+        return cls(_number(key, data))._check(key, allow_zero)
+
+    def to_data(self):
+        return self.value if not self.sampled else {"value": self.value, "shape": self.shape, "rate": self.rate}
+
+
+@dataclass
+class PriorConfig:
+    """BP-HMM hyperparameters: IBP mass ``alpha``, stickiness ``kappa`` (0 allowed when fixed),
+    transition concentration ``gamma``; each a number (fixed) or a :class:`Hyperparameter`."""
+
+    alpha: Union[float, Hyperparameter] = 1.0
+    kappa: Union[float, Hyperparameter] = 10.0
+    gamma: Union[float, Hyperparameter] = 1.0
+
+    NAMES = ("alpha", "kappa", "gamma")
+
+    def __post_init__(self):
+        for name in self.NAMES:
+            setattr(self, name, Hyperparameter.parse(f"prior.{name}", getattr(self, name), allow_zero=name == "kappa"))
+
+    @property
+    def hyperpriors(self) -> Dict[str, tuple]:
+        """{name: (shape, rate)} of the sampled hyperparameters."""
+        return {n: (getattr(self, n).shape, getattr(self, n).rate) for n in self.NAMES if getattr(self, n).sampled}
+
+    @classmethod
+    def from_dict(cls, data) -> "PriorConfig":
+        data = _table("prior", data)
+        _known("prior", data, cls.NAMES)
+        return cls(**data)
+
+    def to_dict(self) -> dict:
+        return {n: getattr(self, n).to_data() for n in self.NAMES}
+
+
+@dataclass
+class SamplerConfig:
+    """MCMC settings.
+
+    chains, samples, warmup: number of chains and of sweeps per chain kept / discarded;
+    seed: the random seed; chain_method: "vectorized", "sequential" or "parallel";
+    init_skills, init_window: the initial segmentation (skills used; window length);
+    moves: options of the kernel's trans-dimensional moves, passed to ``BPHMMKernel(moves=...)``
+    and checked by it.
+    """
+
+    chains: int = 4
+    samples: int = 200
+    warmup: int = 200
+    seed: int = 0
+    chain_method: str = "vectorized"
+    init_skills: Optional[int] = None
+    init_window: int = 25
+    moves: Dict[str, Any] = field(default_factory=dict)
+
+    def __post_init__(self):
+        self.chains = _integer("sampler.chains", self.chains, 1)
+        self.samples = _integer("sampler.samples", self.samples, 1)
+        self.warmup = _integer("sampler.warmup", self.warmup, 0)
+        self.seed = _integer("sampler.seed", self.seed, 0)
+        if self.chain_method not in CHAIN_METHODS:
+            raise ValueError(f"sampler.chain_method: expected one of {', '.join(CHAIN_METHODS)}, "
+                             f"got {_describe(self.chain_method)}")
+        if self.init_skills is not None:
+            self.init_skills = _integer("sampler.init_skills", self.init_skills, 1)
+        self.init_window = _integer("sampler.init_window", self.init_window, 1)
+        self.moves = _plain("sampler.moves", _table("sampler.moves", self.moves))
+        _check_moves(self.moves)
+
+    @classmethod
+    def from_dict(cls, data) -> "SamplerConfig":
+        data = _table("sampler", data)
+        _known("sampler", data, [f.name for f in dataclasses.fields(cls)])
+        return cls(**data)
+
+    def to_dict(self) -> dict:
+        return {f.name: (dict(self.moves) if f.name == "moves" else getattr(self, f.name))
+                for f in dataclasses.fields(self)}
+
+
+# ----------------------------------------------------------------------------- the whole
+@dataclass
+class ModelConfig:
+    """A model variant and how to sample it.
+
+    Args:
+        emission: an :class:`EmissionConfig` (or a registered name, or a dict).
+        prior: a :class:`PriorConfig` (or a dict).
+        max_skills: truncation K of the beta process (skill slots), at least 1.
+        sampler: a :class:`SamplerConfig` (or a dict).
+
+    Example:
+        >>> cfg = ModelConfig(emission=EmissionConfig("policy", {"concentration": 0.5}),
+        ...                   prior=PriorConfig(kappa=Hyperparameter(10.0, shape=2.0, rate=0.2)),
+        ...                   max_skills=6, sampler=SamplerConfig(chains=2, samples=100))
+        >>> ModelConfig.from_dict(cfg.to_dict()) == cfg
+        True
+    """
+
+    emission: EmissionConfig = field(default_factory=EmissionConfig)
+    prior: PriorConfig = field(default_factory=PriorConfig)
+    max_skills: int = 8
+    sampler: SamplerConfig = field(default_factory=SamplerConfig)
+
+    def __post_init__(self):
+        if isinstance(self.emission, (str, type)):
+            self.emission = EmissionConfig(self.emission)
+        elif isinstance(self.emission, dict):
+            self.emission = EmissionConfig.from_dict(self.emission)
+        elif not isinstance(self.emission, EmissionConfig):
+            raise ValueError(f"emission: expected an EmissionConfig, a name or a table, got {_describe(self.emission)}")
+        for name, cls in (("prior", PriorConfig), ("sampler", SamplerConfig)):
+            value = getattr(self, name)
+            if isinstance(value, dict):
+                setattr(self, name, cls.from_dict(value))
+            elif not isinstance(value, cls):
+                raise ValueError(f"{name}: expected a {cls.__name__} or a table, got {_describe(value)}")
+        self.max_skills = _integer("max_skills", self.max_skills, 1)
+        if self.sampler.init_skills is not None and self.sampler.init_skills > self.max_skills:
+            raise ValueError(f"sampler.init_skills: {self.sampler.init_skills} exceeds max_skills ({self.max_skills})")
+
+    # ------------------------------------------------------------------ dicts
+    @classmethod
+    def from_dict(cls, data: dict) -> "ModelConfig":
+        """From nested plain data (as written by :meth:`to_dict` or read from TOML); keys may be omitted."""
+        data = _table("", data) if isinstance(data, dict) else _table("config", data)
+        _known("", data, ("emission", "prior", "max_skills", "sampler"))
+        return cls(emission=EmissionConfig.from_dict(data.get("emission", {})),
+                   prior=PriorConfig.from_dict(data.get("prior", {})),
+                   max_skills=data.get("max_skills", 8),
+                   sampler=SamplerConfig.from_dict(data.get("sampler", {})))
+
+    def to_dict(self) -> dict:
+        """Nested plain data (JSON-serialisable)."""
+        return {"emission": self.emission.to_dict(), "prior": self.prior.to_dict(), "max_skills": self.max_skills,
+                "sampler": self.sampler.to_dict()}
+
+    def replace(self, **changes) -> "ModelConfig":
+        """A copy with some parts replaced, e.g. ``cfg.replace(sampler=dataclasses.replace(cfg.sampler, seed=1))``."""
+        return ModelConfig.from_dict({**self.to_dict(), **{k: (v.to_dict() if hasattr(v, "to_dict") else v)
+                                                            for k, v in changes.items()}})
+
+    # ------------------------------------------------------------------ TOML
+    @classmethod
+    def from_toml(cls, path) -> "ModelConfig":
+        """Read a TOML file (see the module docstring for its keys)."""
+        import tomllib
+
+        try:
+            with open(path, "rb") as f:
+                data = tomllib.load(f)
+        except tomllib.TOMLDecodeError as e:
+            raise ValueError(f"{path}: not valid TOML: {e}") from None
+        try:
+            return cls.from_dict(data)
+        except ValueError as e:
+            raise ValueError(f"{path}: {e}") from None
+
+    @classmethod
+    def from_toml_string(cls, text: str) -> "ModelConfig":
+        import tomllib
+
+        try:
+            data = tomllib.loads(text)
+        except tomllib.TOMLDecodeError as e:
+            raise ValueError(f"not valid TOML: {e}") from None
+        return cls.from_dict(data)
+
+    def to_toml(self, path=None) -> str:
+        """This config as TOML text; also written (atomically) to ``path`` when given."""
+        text = _toml_document(self.to_dict())
+        if path is not None:
+            path = os.fspath(path)
+            fd, tmp = tempfile.mkstemp(dir=os.path.dirname(os.path.abspath(path)), prefix=".config-", suffix=".tmp")
+            try:
+                with os.fdopen(fd, "w", encoding="utf-8") as f:
+                    f.write(text)
+                os.replace(tmp, path)
+            except BaseException:
+                if os.path.exists(tmp):
+                    os.remove(tmp)
+                raise
+        return text
+
+
+# ------------------------------------------------------------------------- a TOML writer
+def _toml_key(key: str) -> str:
+    if key and all(c.isalnum() or c in "-_" for c in key) and key.isascii():
+        return key
+    return _toml_string(key)
+
+
+def _toml_string(s: str) -> str:
+    out = ['"']
+    for c in s:
+        if c == '"':
+            out.append('\\"')
+        elif c == "\\":
+            out.append("\\\\")
+        elif c == "\n":
+            out.append("\\n")
+        elif c == "\t":
+            out.append("\\t")
+        elif ord(c) < 0x20 or ord(c) == 0x7F:
+            out.append(f"\\u{ord(c):04x}")
+        else:
+            out.append(c)
+    out.append('"')
+    return "".join(out)
+
+
+def _toml_value(key: str, value) -> str:
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, int):
+        return str(value)
+    if isinstance(value, float):
+        if math.isnan(value):
+            return "nan"
+        if math.isinf(value):
+            return "inf" if value > 0 else "-inf"
+        return repr(value)  # shortest round-tripping form, always with '.' or 'e'
+    if isinstance(value, str):
+        return _toml_string(value)
+    if isinstance(value, list):
+        return "[" + ", ".join(_toml_value(f"{key}[{i}]", v) for i, v in enumerate(value)) + "]"
+    if isinstance(value, dict):  # a table inside a list: inline
+        return "{" + ", ".join(f"{_toml_key(k)} = {_toml_value(f'{key}.{k}', v)}"
+                               for k, v in value.items() if v is not None) + "}"
+    raise ValueError(f"{key}: cannot be written as TOML: {_describe(value)}")
+
+
+def _toml_document(data: dict) -> str:
+    lines = []
+
+    def table(prefix: str, d: dict):
+        scalars = {k: v for k, v in d.items() if not isinstance(v, dict) and v is not None}
+        tables = {k: v for k, v in d.items() if isinstance(v, dict)}
+        if prefix and (scalars or not tables):
+            if lines:
+                lines.append("")
+            lines.append(f"[{prefix}]")
+        for k, v in scalars.items():
+            lines.append(f"{_toml_key(k)} = {_toml_value(f'{prefix}.{k}' if prefix else k, v)}")
+        for k, v in tables.items():
+            table(f"{prefix}.{_toml_key(k)}" if prefix else _toml_key(k), v)
+
+    table("", data)
+    return "\n".join(lines) + "\n"

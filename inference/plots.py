@@ -1,0 +1,261 @@
+"""Figures: segmentations in the style of the paper's Figures 4 and 9, trace plots of the
+label-invariant diagnostics, and the skills' reward weights.
+
+Figures are drawn on matplotlib ``Figure`` objects with the Agg canvas (no pyplot, so the
+caller's backend is left alone) and written as PNG files atomically (a temporary file, then a
+rename).
+
+Colours of a segmentation follow the paper's labelling (section IV-B): an inferred skill takes
+the label of the true skill that covers more than 50% of its steps
+(:func:`~npbrs.inference.metrics.paper_labelling`). When several inferred skills take the same
+label, the one with the most steps is named after the true skill ("B") and the others get
+numbered names ("B1", "B2", ...) in shades of the true skill's colour; inferred skills without a
+majority are grey ("unmatched").
+"""
+
+from __future__ import annotations
+
+import os
+import tempfile
+from typing import Dict, List, NamedTuple, Optional, Sequence
+
+import numpy as np
+
+from .metrics import paper_labelling
+
+__all__ = ["SkillStyle", "skill_styles", "true_styles", "plot_segmentation", "plot_trace", "plot_skill_rewards"]
+
+# tab10 without its grey, which is kept for unmatched skills
+PALETTE = ("#1f77b4", "#ff7f0e", "#2ca02c", "#d62728", "#9467bd", "#8c564b", "#e377c2", "#bcbd22", "#17becf")
+UNMATCHED = (0.62, 0.62, 0.62, 1.0)
+
+
+class SkillStyle(NamedTuple):
+    """How a skill is drawn: its displayed name, RGBA colour, and the true label it took (or None)."""
+
+    name: str
+    colour: tuple
+    true_label: Optional[int]
+
+
+def _rgba(colour) -> tuple:
+    from matplotlib.colors import to_rgba
+
+    return tuple(float(c) for c in to_rgba(colour))
+
+
+def _shade(colour, n: int) -> tuple:
+    """The n-th shade of a colour: n = 0 the colour itself, then alternately lighter and darker."""
+    r, g, b, a = _rgba(colour)
+    if n == 0:
+        return (r, g, b, a)
+    step = 0.3 * ((n + 1) // 2) / (1 + 0.3 * ((n + 1) // 2))  # 0.23, 0.375, 0.47, ... never reaching 1
+    target = 1.0 if n % 2 else 0.0  # odd: towards white, even: towards black
+    return tuple(c + step * (target - c) for c in (r, g, b)) + (a,)
+
+
+def _names(labels: Optional[Sequence[str]], count: int) -> List[str]:
+    if labels is None:
+        return [chr(ord("A") + j) if j < 26 else f"S{j}" for j in range(count)]
+    labels = [str(x) for x in labels]
+    if len(labels) < count:
+        raise ValueError(f"{len(labels)} label names for {count} true skills")
+    return labels
+
+
+def true_styles(true, labels: Optional[Sequence[str]] = None) -> Dict[int, SkillStyle]:
+    """Styles of the true skills present: label j is named ``labels[j]`` (default A, B, C, ...)."""
+    present = np.unique(np.concatenate([np.asarray(z, dtype=np.int64) for z in true]))
+    names = _names(labels, int(present.max()) + 1)
+    return {int(j): SkillStyle(names[j], _rgba(PALETTE[j % len(PALETTE)]), int(j)) for j in present}
+
+
+def skill_styles(true, inferred, labels: Optional[Sequence[str]] = None) -> Dict[int, SkillStyle]:
+    """How to draw each inferred skill, under the paper's labelling against the true skills.
+
+    Args:
+        true: per-trajectory true skill sequences, or None (then every inferred skill gets its
+            own colour and its label as its name).
+        inferred: per-trajectory inferred skill sequences (the same lengths).
+        labels: names of the true skills (default "A", "B", ...).
+    Returns:
+        {inferred label: SkillStyle} for every inferred label present.
+    """
+    z = [np.asarray(s, dtype=np.int64) for s in inferred]
+    counts = np.bincount(np.concatenate(z)) if z else np.zeros(0, int)
+    present = np.flatnonzero(counts)
+    if true is None:
+        return {int(k): SkillStyle(str(k), _rgba(PALETTE[i % len(PALETTE)]), None) for i, k in enumerate(present)}
+    base = true_styles(true, labels)
+    names = _names(labels, max(base) + 1)
+    labelling = paper_labelling(true, z)
+    styles = {}
+    for j in sorted({t for t in labelling.values() if t is not None}):
+        members = sorted((k for k, t in labelling.items() if t == j), key=lambda k: (-counts[k], k))
+        for n, k in enumerate(members):
+            colour = base[j].colour if j in base else _rgba(PALETTE[j % len(PALETTE)])
+            styles[k] = SkillStyle(names[j] if n == 0 else f"{names[j]}{n}", _shade(colour, n), j)
+    for k, t in labelling.items():
+        if t is None:
+            styles[k] = SkillStyle("unmatched", UNMATCHED, None)
+    return dict(sorted(styles.items()))
+
+
+def _save(fig, path) -> None:
+    """Write a figure as PNG atomically: a temporary file in the same folder, then a rename."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+
+    FigureCanvasAgg(fig)
+    path = os.fspath(path)
+    folder = os.path.dirname(os.path.abspath(path))
+    fd, tmp = tempfile.mkstemp(suffix=".png", prefix=".tmp-", dir=folder)
+    try:
+        with os.fdopen(fd, "wb") as f:
+            fig.savefig(f, format="png", dpi=fig.dpi, bbox_inches="tight")
+        umask = os.umask(0)
+        os.umask(umask)
+        os.chmod(tmp, 0o666 & ~umask)  # mkstemp makes the file private; a plot is not
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.remove(tmp)
+        raise
+
+
+def _check_sequences(seqs, lengths, what):
+    seqs = [np.asarray(s) for s in seqs]
+    if lengths is not None:
+        if len(seqs) != len(lengths):
+            raise ValueError(f"{what} has {len(seqs)} trajectories, expected {len(lengths)}")
+        for i, (s, n) in enumerate(zip(seqs, lengths)):
+            if s.ndim != 1 or len(s) != n:
+                raise ValueError(f"trajectory {i}: {what} has shape {s.shape}, expected ({n},)")
+    for i, s in enumerate(seqs):
+        if s.size and (s.dtype.kind not in "iu" or s.min() < 0):
+            raise ValueError(f"trajectory {i}: {what} must hold non-negative integer labels")
+    return seqs
+
+
+def plot_segmentation(true, inferred: Dict[str, Sequence], path, labels: Optional[Sequence[str]] = None,
+                      trajectories: Optional[Sequence[int]] = None, title: Optional[str] = None) -> Dict[str, Dict]:
+    """Draw segmentations as in the paper's Figures 4 and 9 and save them as a PNG.
+
+    Per trajectory, one row per method (the true sequence first), each step coloured by its
+    skill's label (see the module docstring).
+
+    Args:
+        true: per-trajectory true skill sequences, or None.
+        inferred: {method name: per-trajectory inferred skill sequences}.
+        path: the PNG file to write.
+        labels: names of the true skills (default "A", "B", ...).
+        trajectories: which trajectories to draw (default all).
+        title: optional figure title.
+    Returns:
+        {method name: {inferred label: SkillStyle}}, the styles used.
+    """
+    from matplotlib.figure import Figure
+    from matplotlib.patches import Patch
+
+    if not inferred:
+        raise ValueError("no inferred segmentations to plot")
+    first = next(iter(inferred.values()))
+    lengths = [len(s) for s in (true if true is not None else first)]
+    true = None if true is None else _check_sequences(true, None, "true")
+    methods = {name: _check_sequences(seqs, lengths, f"segmentation {name!r}") for name, seqs in inferred.items()}
+    styles = {name: skill_styles(true, seqs, labels) for name, seqs in methods.items()}
+    rows = ([("true", true, true_styles(true, labels))] if true is not None else []) + \
+        [(name, methods[name], styles[name]) for name in methods]
+    chosen = list(range(len(lengths))) if trajectories is None else [int(i) for i in trajectories]
+    for i in chosen:
+        if not 0 <= i < len(lengths):
+            raise ValueError(f"trajectory {i} is outside 0..{len(lengths) - 1}")
+    T = max(lengths[i] for i in chosen)
+    row_h = 0.22
+    fig = Figure(figsize=(10, len(chosen) * (len(rows) * row_h + 0.25) + 0.9), dpi=100)
+    axes = fig.subplots(len(chosen), 1, squeeze=False)[:, 0]
+    for ax, i in zip(axes, chosen):
+        image = np.ones((len(rows), T, 4))
+        for r, (_, seqs, style) in enumerate(rows):
+            image[r, :lengths[i]] = [style[int(k)].colour for k in seqs[i]]
+        ax.imshow(image, aspect="auto", interpolation="nearest", extent=(0, T, len(rows), 0))
+        ax.set_yticks(np.arange(len(rows)) + 0.5)
+        ax.set_yticklabels([name for name, _, _ in rows], fontsize=7)
+        ax.set_ylabel(f"{i}", rotation=0, ha="right", va="center", fontsize=8)
+        ax.tick_params(axis="x", labelsize=7, labelbottom=ax is axes[-1])
+        ax.set_xlim(0, T)
+        for r in range(1, len(rows)):
+            ax.axhline(r, color="white", linewidth=0.8)
+    axes[-1].set_xlabel("step")
+    legend = {}
+    for _, _, style in rows:
+        for s in style.values():
+            legend.setdefault(s.name, s)
+    # true skills in order, each followed by its variants (B, B1, B2), then "unmatched"
+    order = sorted(legend.values(), key=lambda s: (s.true_label is None, s.true_label or 0, len(s.name), s.name))
+    fig.legend(handles=[Patch(color=s.colour, label=s.name) for s in order], loc="upper center",
+               ncol=min(len(order), 10), fontsize=8, frameon=False, bbox_to_anchor=(0.5, 1.0))
+    if title:
+        fig.suptitle(title, y=1.03)
+    fig.subplots_adjust(hspace=0.35, top=1 - 0.6 / fig.get_figheight())
+    _save(fig, path)
+    return styles
+
+
+def plot_trace(result, path) -> None:
+    """ArviZ trace plot of the label-invariant scalars (log joint, number of skills, switches).
+
+    Args:
+        result: a :class:`~npbrs.inference.results.FitResult` (or an ArviZ InferenceData
+            holding those variables in its posterior).
+        path: the PNG file to write.
+    """
+    import arviz as az
+    from matplotlib.figure import Figure
+
+    from .results import LABEL_INVARIANT
+
+    data = result.to_arviz() if hasattr(result, "to_arviz") else result
+    fig = Figure(figsize=(10, 2.2 * len(LABEL_INVARIANT)), dpi=100)
+    axes = fig.subplots(len(LABEL_INVARIANT), 2, squeeze=False)
+    az.plot_trace(data, var_names=list(LABEL_INVARIANT), axes=axes, show=False)
+    fig.tight_layout()
+    _save(fig, path)
+
+
+def plot_skill_rewards(theta, feature_names: Sequence[str], path, skill_names: Optional[Sequence[str]] = None,
+                       title: Optional[str] = None) -> None:
+    """Bar chart of each skill's reward weights over the features.
+
+    Args:
+        theta: (K, D) reward weights.
+        feature_names: D feature names.
+        path: the PNG file to write.
+        skill_names: K names (default "skill 0", ...).
+        title: optional title.
+    """
+    from matplotlib.figure import Figure
+
+    theta = np.asarray(theta, dtype=np.float64)
+    if theta.ndim != 2:
+        raise ValueError(f"theta must have shape (K, D), got {theta.shape}")
+    K, D = theta.shape
+    if len(feature_names) != D:
+        raise ValueError(f"{len(feature_names)} feature names for {D} features")
+    names = [f"skill {k}" for k in range(K)] if skill_names is None else [str(s) for s in skill_names]
+    if len(names) != K:
+        raise ValueError(f"{len(names)} skill names for {K} skills")
+    fig = Figure(figsize=(max(5.0, 1.0 + 0.4 * K * D), 3.5), dpi=100)
+    ax = fig.subplots()
+    width = 0.8 / K
+    x = np.arange(D)
+    for k in range(K):
+        ax.bar(x - 0.4 + (k + 0.5) * width, theta[k], width, label=names[k], color=PALETTE[k % len(PALETTE)])
+    ax.axhline(0.0, color="black", linewidth=0.6)
+    ax.set_xticks(x)
+    ax.set_xticklabels(list(feature_names), rotation=20, ha="right")
+    ax.set_ylabel("reward weight")
+    ax.legend(fontsize=8, frameon=False)
+    if title:
+        ax.set_title(title)
+    fig.tight_layout()
+    _save(fig, path)

@@ -1,0 +1,402 @@
+"""The reward (Boltzmann / maximum-entropy IRL) emission's numerics.
+
+A skill is a reward r_k(s, a) = phi(s, a) . theta_k; its demonstrator acts with the Boltzmann
+policy pi_k(a | s) = exp(Q_k(s, a) - V_k(s)) of the soft Bellman equation (the inverse
+temperature is folded into theta). Because
+
+    sum_t w_t log pi(a_t | s_t) = sum_{s, a} C[s, a] log pi(a | s),
+
+with C the weighted count table of the steps, every quantity a sampler needs of a skill's
+steps (log-likelihood, its gradient, an IRL fit, a MALA move) depends on the data only through
+an (S, A) table; ``count_table`` builds it with one scatter-add.
+
+Gradients are implicit (see :mod:`npbrs.domains.solvers`): the soft fixed point is never
+unrolled, and the gradient of a log-likelihood costs one adjoint linear solve, batched over
+skills.
+
+Prior scale. Rewards are in nats per step. With ``prior_scale`` sigma = 10 (the default) a
+reward weight of one prior standard deviation makes an action whose discounted feature
+count differs by 1 from another's e^10 (about 20000) times more likely: already as
+deterministic as demonstrations from an optimal agent look. The paper's weights (+-500,
++-10) only fix a direction; a wider prior adds no likelihood (it saturates) but makes the
+posterior sharper and the sampler's moves harder. Fitted weights therefore come out at the
+scale of sigma (the maximum a posteriori norm grows only with log(number of steps * sigma)).
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple, Optional
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ..domains.solvers import SoftSolver, make_soft_solver
+
+jax.config.update("jax_enable_x64", True)
+
+__all__ = ["PRIOR_SCALE", "count_table", "log_policy", "step_log_likelihoods", "count_log_likelihood",
+           "count_log_likelihood_and_grad", "log_prior", "irl_fit", "IRLFit", "as_solver"]
+
+PRIOR_SCALE = 10.0
+
+
+# --------------------------------------------------------------------------- checking
+def _is_concrete(*xs) -> bool:
+    return not any(isinstance(x, jax.core.Tracer) for x in xs)
+
+
+def _check_steps(states, actions, S, A, mask=None):
+    """States/actions (N, T) inside 0..S-1 / 0..A-1 on real steps: ValueError naming the step."""
+    s = np.asarray(states)
+    a = np.asarray(actions)
+    if s.shape != a.shape or s.ndim != 2:
+        raise ValueError(f"states and actions must both have shape (N, T), got {s.shape} and {a.shape}")
+    real = np.ones(s.shape, bool) if mask is None else np.asarray(mask, bool)
+    if real.shape != s.shape:
+        raise ValueError(f"mask must have shape {s.shape} like the states, got {real.shape}")
+    for name, x, n in (("state", s, S), ("action", a, A)):
+        if not np.issubdtype(x.dtype, np.integer):
+            raise ValueError(f"{name}s must be integers, got dtype {x.dtype}")
+        bad = real & ((x < 0) | (x >= n))
+        if bad.any():
+            i, t = (int(v) for v in np.argwhere(bad)[0])
+            raise ValueError(f"trajectory {i}, step {t}: {name} {x[i, t]} is outside 0..{n - 1}")
+
+
+def _check_theta(theta, D):
+    t = np.asarray(theta, dtype=np.float64)
+    if t.ndim not in (1, 2) or t.shape[-1] != D:
+        raise ValueError(f"theta must have shape (D,) or (K, D) with D = {D} features, got {t.shape}")
+    if not np.all(np.isfinite(t)):
+        idx = tuple(int(i) for i in np.argwhere(~np.isfinite(t))[0])
+        raise ValueError(f"theta{list(idx)} is not finite ({t[idx]})")
+
+
+def _check_counts(counts, S, A):
+    c = np.asarray(counts, dtype=np.float64)
+    if c.ndim not in (2, 3) or c.shape[-2:] != (S, A):
+        raise ValueError(f"counts must have shape (S, A) or (K, S, A) with (S, A) = ({S}, {A}), got {c.shape}")
+    bad = ~np.isfinite(c) | (c < 0)
+    if bad.any():
+        idx = tuple(int(i) for i in np.argwhere(bad)[0])
+        raise ValueError(f"counts{list(idx)} = {c[idx]} is negative or not finite")
+
+
+def _check_prior_scale(prior_scale):
+    if _is_concrete(prior_scale) and not np.all(np.asarray(prior_scale) > 0):
+        raise ValueError(f"prior_scale must be positive, got {prior_scale}")
+
+
+def as_solver(mdp_or_solver, **options) -> SoftSolver:
+    """A SoftSolver: the argument itself, or ``make_soft_solver(mdp, **options)`` for an MDP."""
+    if isinstance(mdp_or_solver, SoftSolver):
+        return mdp_or_solver
+    return make_soft_solver(mdp_or_solver, **options)
+
+
+# ----------------------------------------------------------------------------- counts
+def count_table(states, actions, weights, num_states: int, num_actions: int, mask=None) -> jax.Array:
+    """Weighted (state, action) counts of demonstration steps, by one scatter-add.
+
+    Args:
+        states, actions: int arrays (N, T).
+        weights: (N, T) or (N, T, K) weights of the steps (e.g. one-hot skill assignments),
+            or None for ones.
+        num_states, num_actions: S and A.
+        mask: optional bool (N, T), False on padded steps (they count 0).
+    Returns:
+        (S, A) for weights (N, T) or None, (K, S, A) for weights (N, T, K).
+    """
+    S, A = int(num_states), int(num_actions)
+    if _is_concrete(states, actions, mask):
+        _check_steps(states, actions, S, A, mask)
+    states = jnp.asarray(states)
+    actions = jnp.asarray(actions)
+    w = jnp.ones(states.shape) if weights is None else jnp.asarray(weights, jnp.float64)
+    if w.shape[:2] != states.shape or w.ndim not in (2, 3):
+        raise ValueError(f"weights must have shape (N, T) or (N, T, K) with (N, T) = {states.shape}, got {w.shape}")
+    if mask is not None:
+        w = w * jnp.asarray(mask, bool).reshape(states.shape + (1,) * (w.ndim - 2))
+    flat = (states * A + actions).reshape(-1)
+    c = jax.ops.segment_sum(w.reshape(flat.shape[0], -1), flat, num_segments=S * A)  # (S*A, K')
+    if w.ndim == 2:
+        return c[:, 0].reshape(S, A)
+    return jnp.moveaxis(c, -1, 0).reshape(w.shape[2], S, A)
+
+
+# --------------------------------------------------------------------------- policies
+def log_policy(solver: SoftSolver, theta, v0=None):
+    """Boltzmann log-policies of reward weights.
+
+    Args:
+        solver: a SoftSolver (:func:`npbrs.domains.make_soft_solver`), or a TabularMDP.
+        theta: (D,) or (K, D) reward weights.
+        v0: optional warm start (K, S) (or (S,)), e.g. the V of a previous call.
+    Returns:
+        (log_pi, V): log pi(a | s), (K, S, A) (or (S, A)), and the soft values (K, S) (or (S,)).
+    """
+    solver = as_solver(solver)
+    if _is_concrete(theta):
+        _check_theta(theta, solver.num_features)
+    res = solver(solver.rewards(theta), v0)
+    return res.Q - res.V[..., None], res.V
+
+
+def step_log_likelihoods(log_pi, states, actions, mask=None) -> jax.Array:
+    """Per-step log-likelihoods log pi_k(a_t | s_t), the array the HMM consumes.
+
+    Args:
+        log_pi: (K, S, A) (or (S, A)) log-policies.
+        states, actions: int arrays (N, T).
+        mask: optional bool (N, T); padded steps get 0.
+    Returns:
+        (N, T, K) (or (N, T) for a single (S, A) log-policy).
+    """
+    log_pi = jnp.asarray(log_pi)
+    single = log_pi.ndim == 2
+    if log_pi.ndim not in (2, 3):
+        raise ValueError(f"log_pi must have shape (S, A) or (K, S, A), got {log_pi.shape}")
+    S, A = log_pi.shape[-2:]
+    if _is_concrete(states, actions, mask):
+        _check_steps(states, actions, S, A, mask)
+    lp = log_pi[None] if single else log_pi
+    ll = jnp.moveaxis(lp[:, jnp.asarray(states), jnp.asarray(actions)], 0, -1)  # (N, T, K)
+    if mask is not None:
+        ll = jnp.where(jnp.asarray(mask, bool)[..., None], ll, 0.0)
+    return ll[..., 0] if single else ll
+
+
+def count_log_likelihood(solver: SoftSolver, theta, counts, v0=None) -> jax.Array:
+    """sum_{s,a} C[s, a] log pi_theta(a | s), differentiable in theta (implicitly).
+
+    Args:
+        solver: a SoftSolver or a TabularMDP.
+        theta: (D,) or (K, D).
+        counts: (S, A) or (K, S, A) count tables (one per skill).
+        v0: optional warm start (K, S) (or (S,)).
+    Returns:
+        () for theta (D,) with counts (S, A); (K,) otherwise (broadcast over skills).
+    """
+    solver = as_solver(solver)
+    if _is_concrete(counts):
+        _check_counts(counts, solver.num_states, solver.num_actions)
+    log_pi, _ = log_policy(solver, theta, v0)
+    return jnp.sum(jnp.asarray(counts, jnp.float64) * log_pi, axis=(-2, -1))
+
+
+def log_prior(theta, prior_scale=PRIOR_SCALE) -> jax.Array:
+    """log Normal(theta; 0, prior_scale^2 I) summed over features, () or (K,)."""
+    import numpyro.distributions as dist
+
+    return jnp.sum(dist.Normal(0.0, prior_scale).log_prob(jnp.asarray(theta, jnp.float64)), axis=-1)
+
+
+def count_log_likelihood_and_grad(solver: SoftSolver, theta, counts, v0=None):
+    """Value and gradient of :func:`count_log_likelihood` per skill, and the new soft values.
+
+    Args:
+        solver: a SoftSolver or a TabularMDP.
+        theta: (K, D) (or (D,)) reward weights; counts: (K, S, A) (or (S, A)).
+        v0: optional warm start (K, S) (or (S,)).
+    Returns:
+        (log_lik (K,), grad (K, D), V (K, S)), without the K axis for theta (D,).
+    """
+    solver = as_solver(solver)
+    if _is_concrete(theta, counts):
+        _check_theta(theta, solver.num_features)
+        _check_counts(counts, solver.num_states, solver.num_actions)
+    theta = jnp.asarray(theta, jnp.float64)
+    counts = jnp.asarray(counts, jnp.float64)
+    if theta.ndim == 1:
+        if counts.ndim != 2:
+            raise ValueError(f"theta (D,) needs counts (S, A), got {counts.shape}")
+        ll, g, V = count_log_likelihood_and_grad(solver, theta[None], counts[None],
+                                                 None if v0 is None else jnp.asarray(v0)[None])
+        return ll[0], g[0], V[0]
+    K = theta.shape[0]
+    counts = jnp.broadcast_to(counts, (K,) + counts.shape[-2:])
+    if v0 is None:
+        v0 = jnp.zeros((K, solver.num_states))
+    return _LL_AND_GRAD(solver, theta, counts, v0)
+
+
+def _ll_one(solver, theta, counts, v0):
+    res = solver(solver.rewards(theta), v0)
+    return jnp.sum(counts * (res.Q - res.V[..., None])), res.V
+
+
+def _ll_and_grad(solver, theta, counts, v0):
+    """(K,) log-likelihoods, (K, D) gradients and (K, S) values; pure, vmapped over skills."""
+
+    def one(t, c, v):
+        (ll, V), g = jax.value_and_grad(lambda t_: _ll_one(solver, t_, c, v), has_aux=True)(t)
+        return ll, g, V
+
+    return jax.vmap(one)(theta, counts, v0)
+
+
+_LL_AND_GRAD = jax.jit(_ll_and_grad, static_argnums=0)
+
+
+# ----------------------------------------------------------------------------- IRL fit
+class IRLFit(NamedTuple):
+    """Result of :func:`irl_fit`.
+
+    theta: (D,) or (K, D) maximum a posteriori reward weights.
+    log_lik: () or (K,) count log-likelihood at theta (without the prior).
+    """
+
+    theta: jax.Array
+    log_lik: jax.Array
+
+
+def _two_loop(g, S_hist, Y_hist, rho, count, newest, history):
+    """L-BFGS direction -H g from a circular history (masked: the first ``count`` entries)."""
+    q = g
+    alphas = jnp.zeros(history, g.dtype)
+
+    def first(i, c):
+        q, alphas = c
+        j = (newest - i) % history
+        valid = i < count
+        a = jnp.where(valid, rho[j] * jnp.dot(S_hist[j], q), 0.0)
+        return q - a * Y_hist[j], alphas.at[j].set(a)
+
+    q, alphas = jax.lax.fori_loop(0, history, first, (q, alphas))
+    yy = jnp.dot(Y_hist[newest], Y_hist[newest])
+    scale = jnp.where(count > 0, 1.0 / (rho[newest] * jnp.where(yy > 0, yy, 1.0)), 1.0)
+    z = scale * q
+
+    def second(i, z):
+        j = (newest - (history - 1 - i)) % history
+        valid = (history - 1 - i) < count
+        b = rho[j] * jnp.dot(Y_hist[j], z)
+        return z + jnp.where(valid, alphas[j] - b, 0.0) * S_hist[j]
+
+    return -jax.lax.fori_loop(0, history, second, z)
+
+
+def _fit_one(solver, counts, theta0, v0, prior_scale, num_steps, history, max_backtracks):
+    """L-BFGS with a backtracking (Armijo) line search on -(log-lik + log-prior) of one skill,
+    every solve warm-started from the last accepted values. A fixed number of steps: jit-able."""
+
+    def objective(theta, v):
+        (ll, V), g = jax.value_and_grad(lambda t: _ll_one(solver, t, counts, v), has_aux=True)(theta)
+        lp, gp = jax.value_and_grad(log_prior)(theta, prior_scale)
+        return -(ll + lp), -(g + gp), ll, V
+
+    D = theta0.shape[0]
+    f0, g0, ll0, V0 = objective(theta0, v0)
+    Sh = jnp.zeros((history, D))
+    Yh = jnp.zeros((history, D))
+    rho = jnp.zeros(history)
+
+    def step(k, c):
+        theta, f, g, ll, V, Sh, Yh, rho, count, newest, evals = c
+        d = _two_loop(g, Sh, Yh, rho, count, newest, history)
+        # before any curvature pair: a first step of one prior scale along -g
+        gnorm = jnp.linalg.norm(g)
+        d = jnp.where(count > 0, d, -g * prior_scale / jnp.where(gnorm > 0, gnorm, 1.0))
+        slope = jnp.dot(g, d)
+        d = jnp.where(slope < 0, d, -g * prior_scale / jnp.where(gnorm > 0, gnorm, 1.0))
+        slope = jnp.dot(g, d)
+
+        def ls_cond(s):
+            alpha, f_new, *_, n = s
+            return (n < max_backtracks) & ~(f_new <= f + 1e-4 * alpha * slope)
+
+        def ls_body(s):
+            alpha, _, _, _, _, n = s
+            alpha = alpha * 0.5
+            f_new, g_new, ll_new, V_new = objective(theta + alpha * d, V)
+            return alpha, f_new, g_new, ll_new, V_new, n + 1
+
+        f1, g1, ll1, V1 = objective(theta + d, V)
+        alpha, f_new, g_new, ll_new, V_new, n = jax.lax.while_loop(ls_cond, ls_body, (1.0, f1, g1, ll1, V1, 0))
+        ok = f_new <= f + 1e-4 * alpha * slope
+        s_vec = alpha * d
+        y_vec = g_new - g
+        sy = jnp.dot(s_vec, y_vec)
+        store = ok & (sy > 1e-10 * jnp.linalg.norm(s_vec) * jnp.linalg.norm(y_vec))
+        slot = jnp.where(store, (newest + 1) % history, newest)
+        Sh = jnp.where(store, Sh.at[slot].set(s_vec), Sh)
+        Yh = jnp.where(store, Yh.at[slot].set(y_vec), Yh)
+        rho = jnp.where(store, rho.at[slot].set(1.0 / jnp.where(sy != 0, sy, 1.0)), rho)
+        count = jnp.where(store, jnp.minimum(count + 1, history), count)
+        theta = jnp.where(ok, theta + s_vec, theta)
+        f, g, ll, V = (jnp.where(ok, a, b) for a, b in ((f_new, f), (g_new, g), (ll_new, ll), (V_new, V)))
+        return theta, f, g, ll, V, Sh, Yh, rho, count, slot, evals + n + 1
+
+    init = (theta0, f0, g0, ll0, V0, Sh, Yh, rho, jnp.asarray(0), jnp.asarray(history - 1), jnp.asarray(1))
+    theta, f, g, ll, V, *_, evals = jax.lax.fori_loop(0, num_steps, step, init)
+    return theta, ll, V, jnp.linalg.norm(g), evals
+
+
+def fit_reward(solver: SoftSolver, counts, theta0, v0, prior_scale=PRIOR_SCALE, num_steps: int = 30,
+               history: int = 10, max_backtracks: int = 20):
+    """The jit-able core of :func:`irl_fit` for K skills: static shapes, no input checks.
+
+    Args:
+        solver: a SoftSolver.
+        counts: (K, S, A); theta0: (K, D); v0: (K, S); prior_scale: scalar or (K,).
+    Returns:
+        (theta (K, D), log_lik (K,), V (K, S), norm of the log-posterior's gradient (K,),
+        number of value-and-gradient evaluations (K,)).
+    """
+    K = theta0.shape[0]
+    scale = jnp.broadcast_to(jnp.asarray(prior_scale, jnp.float64), (K,))
+    return jax.vmap(lambda c, t, v, s: _fit_one(solver, c, t, v, s, num_steps, history, max_backtracks))(
+        counts, theta0, v0, scale)
+
+
+def irl_fit(solver, counts, theta0=None, *, prior_scale=PRIOR_SCALE, num_steps: int = 30, v0=None,
+            history: int = 10) -> IRLFit:
+    """Maximum a posteriori maximum-entropy IRL: argmax_theta sum C log pi_theta + log N(theta; 0, sigma^2 I).
+
+    A fixed number of L-BFGS steps with a backtracking line search, every soft solve
+    warm-started from the previous one; pure and jit-able with static shapes (``fit_reward``
+    is the same without input checks), batched over skills.
+
+    Args:
+        solver: a SoftSolver or a TabularMDP.
+        counts: (S, A) or (K, S, A) weighted counts of the skill's steps (:func:`count_table`).
+        theta0: optional starting weights (D,) or (K, D) (zeros by default): warm-start from a
+            previous fit.
+        prior_scale: sigma of the Gaussian prior (see the module docstring for the default).
+        num_steps: L-BFGS steps.
+        v0: optional warm start of the soft values (K, S) (or (S,)).
+        history: L-BFGS memory.
+    Returns:
+        IRLFit(theta (D,) or (K, D), log_lik () or (K,)).
+    """
+    solver = as_solver(solver)
+    S, D = solver.num_states, solver.num_features
+    if _is_concrete(counts):
+        _check_counts(counts, S, solver.num_actions)
+    _check_prior_scale(prior_scale)
+    if int(num_steps) < 0 or int(history) < 1:
+        raise ValueError(f"num_steps must be >= 0 and history >= 1, got {num_steps}, {history}")
+    counts = jnp.asarray(counts, jnp.float64)
+    single = counts.ndim == 2
+    C = counts[None] if single else counts
+    K = C.shape[0]
+    if theta0 is None:
+        theta0 = jnp.zeros((K, D))
+    else:
+        if _is_concrete(theta0):
+            _check_theta(theta0, D)
+        theta0 = jnp.broadcast_to(jnp.asarray(theta0, jnp.float64), (K, D))
+    if v0 is None:
+        v0 = jnp.zeros((K, S))
+    else:
+        v0 = jnp.broadcast_to(jnp.asarray(v0, jnp.float64), (K, S))
+    theta, ll, *_ = _fit_jit(solver, C, theta0, v0, prior_scale, int(num_steps), int(history))
+    return IRLFit(theta[0], ll[0]) if single else IRLFit(theta, ll)
+
+
+def _fit_jit(solver, counts, theta0, v0, prior_scale, num_steps, history):
+    return _FIT_JIT(solver, counts, theta0, v0, jnp.asarray(prior_scale, jnp.float64), num_steps, history)
+
+
+_FIT_JIT = jax.jit(fit_reward, static_argnums=(0, 5, 6))

@@ -1,0 +1,241 @@
+"""The reward emission: each skill is a reward r_k = phi . theta_k, and a step is emitted by the
+Boltzmann (maximum-entropy) policy of that reward, pi_k(a | s) = exp(Q_k(s, a) - V_k(s)).
+
+Prior theta_k ~ Normal(0, prior_scale^2 I). The conditional of theta_k given its steps
+depends on the steps only through their (S, A) count table (:mod:`npbrs.models.reward`).
+
+Moves on theta_k (``update``):
+
+- ``"mala"`` (default): Metropolis-adjusted Langevin steps with the implicit gradient of the
+  soft Bellman fixed point, a diagonal preconditioner from the Fisher information and a step
+  size per skill, both tuned during warmup only (then frozen, so the chain is a valid MCMC).
+  A skill with no steps is drawn exactly from the prior.
+- ``"map"``: the paper's maximum a posteriori IRL step (warm-started L-BFGS). This makes the
+  sampler a *stochastic EM*, not MCMC: its draws are not posterior samples.
+
+The data-driven proposal of a new skill from weighted steps (a birth's window) fits IRL from
+theta = 0 with a fixed number of L-BFGS steps (deterministic in the steps, so its density can
+be evaluated in the reverse move) and draws theta from a Gaussian around the fit whose
+covariance is the inverse Fisher information plus prior precision (a Laplace approximation),
+inflated by ``proposal_inflation``.
+"""
+
+from __future__ import annotations
+
+from typing import Optional
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import numpyro
+import numpyro.distributions as dist
+
+from ..domains.solvers import make_soft_solver
+from .emissions import Emission, register_emission
+from .reward import count_log_likelihood_and_grad, count_table, fit_reward, step_log_likelihoods
+
+jax.config.update("jax_enable_x64", True)
+
+__all__ = ["RewardEmission", "SingleRewardEmission", "fisher_information"]
+
+_UPDATES = ("mala", "map")
+
+
+def fisher_information(solver, theta, counts, v0=None):
+    """Fisher information of theta (D,) for steps with count table ``counts`` (S, A):
+    sum_s n_s Cov_{a ~ pi(.|s)}[d log pi(a|s) / d theta], (D, D)."""
+
+    def log_pi(t):
+        res = solver(solver.rewards(t), v0)
+        return res.Q - res.V[..., None]
+
+    lp = log_pi(theta)
+    J = jax.jacfwd(log_pi)(theta)  # (S, A, D)
+    pi = jnp.exp(lp)
+    n_s = jnp.sum(counts, axis=-1)
+    mean = jnp.einsum("sa,sad->sd", pi, J)
+    return (jnp.einsum("s,sa,sad,sae->de", n_s, pi, J, J) - jnp.einsum("s,sd,se->de", n_s, mean, mean))
+
+
+@register_emission("reward")
+class RewardEmission(Emission):
+    """Boltzmann policies of linear rewards (maximum-entropy IRL).
+
+    Args:
+        mdp: the TabularMDP (its features define the rewards).
+        prior_scale: sigma of the Gaussian prior on reward weights (see npbrs.models.reward).
+        temperature: inverse temperature tau of the Boltzmann policy, pi ~ exp(tau Q); the
+            rewards are tau * phi . theta (tau = 1: folded into theta).
+        discount: the discount of the skills' soft value iteration (default: the MDP's).
+        update: "mala" (valid MCMC) or "map" (stochastic EM, as in the paper).
+        mala_steps: MALA steps per sweep; step_size: initial MALA step size.
+        target_accept: the acceptance rate the step size is tuned to during warmup.
+        map_steps: L-BFGS steps of a "map" update.
+        fit_steps: L-BFGS steps of the data-driven proposal's IRL fit (from theta = 0).
+        proposal_inflation: factor on the proposal's standard deviations.
+        solver_options: keyword options of :func:`npbrs.domains.make_soft_solver`.
+    """
+
+    def __init__(self, mdp, prior_scale: float = 10.0, temperature: float = 1.0, discount: Optional[float] = None,
+                 update: str = "mala", mala_steps: int = 3, step_size: float = 0.5, target_accept: float = 0.6,
+                 map_steps: int = 5, fit_steps: int = 20, proposal_inflation: float = 1.5,
+                 solver_options: Optional[dict] = None):
+        if update not in _UPDATES:
+            raise ValueError(f"unknown reward update {update!r}; expected one of {_UPDATES}")
+        for name, value in [("prior_scale", prior_scale), ("temperature", temperature), ("step_size", step_size),
+                            ("proposal_inflation", proposal_inflation)]:
+            if not (np.isfinite(value) and value > 0):
+                raise ValueError(f"{name} must be a positive number, got {value!r}")
+        if not 0 < target_accept < 1:
+            raise ValueError(f"target_accept must lie in (0, 1), got {target_accept!r}")
+        for name, value in [("mala_steps", mala_steps), ("map_steps", map_steps), ("fit_steps", fit_steps)]:
+            if not isinstance(value, (int, np.integer)) or value < 1:
+                raise ValueError(f"{name} must be an integer >= 1, got {value!r}")
+        if discount is not None:
+            mdp = mdp.with_discount(discount)
+        self.mdp = mdp
+        self.prior_scale = float(prior_scale)
+        self.temperature = float(temperature)
+        self.discount = float(mdp.discount)
+        self.update_kind = update
+        self.mala_steps = int(mala_steps)
+        self.step_size = float(step_size)
+        self.target_accept = float(target_accept)
+        self.map_steps = int(map_steps)
+        self.fit_steps = int(fit_steps)
+        self.proposal_inflation = float(proposal_inflation)
+        self.solver_options = dict(solver_options or {})
+        self.solver = make_soft_solver(mdp, **self.solver_options)
+        self.num_states, self.num_actions = mdp.num_states, mdp.num_actions
+        self.num_features = mdp.num_features
+
+    def describe(self):
+        return {"name": self.name, "prior_scale": self.prior_scale, "temperature": self.temperature,
+                "discount": self.discount, "update": self.update_kind, "mala_steps": self.mala_steps,
+                "step_size": self.step_size, "target_accept": self.target_accept, "map_steps": self.map_steps,
+                "fit_steps": self.fit_steps, "proposal_inflation": self.proposal_inflation}
+
+    # ------------------------------------------------------------------ prior
+    def _prior(self):
+        return dist.Normal(0.0, self.prior_scale)
+
+    def sample_params(self, K):
+        theta = numpyro.sample("theta", self._prior().expand([K, self.num_features]).to_event(2))
+        return {"theta": theta}
+
+    def log_prior(self, params):
+        return jnp.sum(self._prior().log_prob(params["theta"]), axis=-1)
+
+    # ------------------------------------------------------------------ likelihood
+    def init_cache(self, K):
+        return {"V": jnp.zeros((K, self.num_states)), "log_step": jnp.full((K,), np.log(self.step_size)),
+                "scale": jnp.full((K, self.num_features), self.prior_scale)}
+
+    def _scaled(self, theta):
+        return theta * self.temperature
+
+    def _counts(self, data, weights):
+        return count_table(data.states, data.actions, weights, self.num_states, self.num_actions, data.mask)
+
+    def log_likelihoods(self, params, data, cache=()):
+        theta = params["theta"]
+        K = theta.shape[0]
+        v0 = cache["V"] if isinstance(cache, dict) and cache["V"].shape[0] == K else None
+        res = self.solver(self.solver.rewards(self._scaled(theta)), v0)
+        ll = step_log_likelihoods(res.Q - res.V[..., None], data.states, data.actions, data.mask)
+        new_cache = dict(cache) if isinstance(cache, dict) else self.init_cache(K)
+        new_cache["V"] = res.V
+        return ll, new_cache
+
+    def _log_post_and_grad(self, theta, counts, V):
+        ll, g, V = count_log_likelihood_and_grad(self.solver, self._scaled(theta), counts, V)
+        lp = ll + self.log_prior({"theta": theta})
+        grad = g * self.temperature - theta / self.prior_scale ** 2
+        return lp, grad, V
+
+    # ------------------------------------------------------------------ moves
+    def update(self, key, params, cache, data, weights, adapt):
+        theta = params["theta"]
+        K, D = theta.shape
+        counts = self._counts(data, weights)  # (K, S, A)
+        has_steps = jnp.sum(counts, axis=(1, 2)) > 0
+        k_prior, k_move = jax.random.split(key)
+        if self.update_kind == "map":
+            new, _, V, _, _ = fit_reward(self.solver, counts, self._scaled(theta), cache["V"], self.prior_scale,
+                                         self.map_steps)
+            new = new / self.temperature
+            accept = jnp.ones(K)
+            cache = {**cache, "V": V}
+        else:
+            new, cache, accept = self._mala(k_move, theta, counts, cache, adapt)
+        prior_draw = self.prior_scale * jax.random.normal(k_prior, (K, D))
+        new = jnp.where(has_steps[:, None], new, prior_draw)
+        return {"theta": new}, cache, {"accept": jnp.sum(jnp.where(has_steps, accept, 0.0)) /
+                                       jnp.maximum(jnp.sum(has_steps), 1)}
+
+    def _mala(self, key, theta, counts, cache, adapt):
+        K, D = theta.shape
+
+        def fisher_scale(_):
+            fisher = jax.vmap(lambda t, c, v: jnp.diag(fisher_information(self.solver, self._scaled(t), c, v)))(
+                theta, counts, cache["V"]) * self.temperature ** 2
+            return 1.0 / jnp.sqrt(jnp.maximum(fisher, 0.0) + 1.0 / self.prior_scale ** 2)
+
+        # the preconditioner follows the Fisher information during warmup only
+        scale = jax.lax.cond(adapt, fisher_scale, lambda _: cache["scale"], None)
+        lp, grad, V = self._log_post_and_grad(theta, counts, cache["V"])
+
+        def step(carry, key):
+            theta, lp, grad, V, log_step, acc_sum = carry
+            h = jnp.exp(log_step)[:, None] * scale  # (K, D) per-coordinate step
+            k1, k2 = jax.random.split(key)
+            mean_fwd = theta + 0.5 * h ** 2 * grad
+            prop = mean_fwd + h * jax.random.normal(k1, theta.shape)
+            lp_p, grad_p, V_p = self._log_post_and_grad(prop, counts, V)
+            mean_bwd = prop + 0.5 * h ** 2 * grad_p
+            log_q_fwd = -jnp.sum((prop - mean_fwd) ** 2 / (2 * h ** 2), -1)
+            log_q_bwd = -jnp.sum((theta - mean_bwd) ** 2 / (2 * h ** 2), -1)
+            log_ratio = lp_p - lp + log_q_bwd - log_q_fwd
+            log_ratio = jnp.where(jnp.isfinite(log_ratio), log_ratio, -jnp.inf)
+            acc_prob = jnp.exp(jnp.minimum(log_ratio, 0.0))
+            ok = jax.random.uniform(k2, (K,)) < acc_prob
+            theta = jnp.where(ok[:, None], prop, theta)
+            lp = jnp.where(ok, lp_p, lp)
+            grad = jnp.where(ok[:, None], grad_p, grad)
+            V = jnp.where(ok[:, None], V_p, V)
+            log_step = jnp.where(adapt, log_step + 0.3 * (acc_prob - self.target_accept), log_step)
+            return (theta, lp, grad, V, log_step, acc_sum + acc_prob), None
+
+        init = (theta, lp, grad, V, cache["log_step"], jnp.zeros(K))
+        (theta, lp, grad, V, log_step, acc_sum), _ = jax.lax.scan(step, init, jax.random.split(key, self.mala_steps))
+        return theta, {**cache, "V": V, "log_step": log_step, "scale": scale}, acc_sum / self.mala_steps
+
+    # ------------------------------------------------------------------ data-driven proposal
+    def _proposal(self, data, weights):
+        """Mean (D,) and Cholesky factor (D, D) of the proposal fitted to weighted steps."""
+        counts = self._counts(data, weights)  # (S, A)
+        D = self.num_features
+        fit, _, V, _, _ = fit_reward(self.solver, counts[None], jnp.zeros((1, D)), jnp.zeros((1, self.num_states)),
+                                     self.prior_scale, self.fit_steps)
+        mean = fit[0] / self.temperature
+        F = fisher_information(self.solver, self._scaled(mean), counts, V[0]) * self.temperature ** 2
+        precision = F + jnp.eye(D) / self.prior_scale ** 2
+        cov = jnp.linalg.inv(0.5 * (precision + precision.T)) * self.proposal_inflation ** 2
+        chol = jnp.linalg.cholesky(0.5 * (cov + cov.T) + 1e-12 * jnp.eye(D))
+        return mean, chol
+
+    def propose(self, key, data, weights):
+        mean, chol = self._proposal(data, weights)
+        theta = mean + chol @ jax.random.normal(key, mean.shape)
+        return {"theta": theta}, dist.MultivariateNormal(mean, scale_tril=chol).log_prob(theta)
+
+    def log_proposal(self, params_one, data, weights):
+        mean, chol = self._proposal(data, weights)
+        return dist.MultivariateNormal(mean, scale_tril=chol).log_prob(params_one["theta"])
+
+
+@register_emission("single")
+class SingleRewardEmission(RewardEmission):
+    """Unsegmented IRL: one reward for every step (``fit`` runs it with one skill slot)."""
+
+    fixed_max_skills = 1

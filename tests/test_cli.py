@@ -1,0 +1,99 @@
+"""The ``npbrs`` command line: every command has --help; the demo runs end to end; ``fit`` on the
+demo's files reproduces the demo's run; ``report`` prints R-hat and ESS and writes plots."""
+
+import contextlib
+import io
+import os
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from npbrs.domains.mdp import TabularMDP
+from npbrs.inference import ModelConfig, load, save_mdp
+from npbrs.inference.cli import main
+
+
+def run_main(argv):
+    """(exit code, stdout, stderr) of ``npbrs ARGV``, in this process (compiled kernels are shared)."""
+    out, err = io.StringIO(), io.StringIO()
+    with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+        try:
+            code = main([str(a) for a in argv])
+        except SystemExit as e:
+            code = e.code
+    return code, out.getvalue(), err.getvalue()
+
+
+@pytest.mark.parametrize("command", ["generate", "fit", "report", "demo"])
+def test_every_command_has_help(command):
+    code, out, _ = run_main([command, "--help"])
+    assert code == 0
+    assert out.startswith(f"usage: npbrs {command}")
+
+
+def test_the_console_entry_point_lists_the_commands():
+    out = subprocess.run([sys.executable, "-m", "npbrs.inference.cli", "--help"], capture_output=True, text=True,
+                         timeout=120)
+    assert out.returncode == 0
+    for command in ("generate", "fit", "report", "demo"):
+        assert command in out.stdout
+
+
+@pytest.fixture(scope="module")
+def demo(tmp_path_factory):
+    out = tmp_path_factory.mktemp("demo")
+    code, stdout, stderr = run_main(["demo", "--quick", "--emission", "policy", "--out", out, "--no-progress"])
+    assert code == 0, stderr
+    return out, stdout
+
+
+def test_the_quick_demo_segments_scores_and_plots(demo):
+    out, stdout = demo
+    assert {"demos.npz", "config.toml", "run.nc", "segmentation.png"} <= set(os.listdir(out))
+    assert "accuracy" in stdout and "one-to-one" in stdout
+    assert "expert" in stdout and "npbrs" in stdout  # the control table
+    assert ModelConfig.from_toml(out / "config.toml").emission.name == "policy"
+
+
+def test_fit_on_the_demos_files_reproduces_the_demos_run(demo):
+    out, _ = demo
+    code, stdout, stderr = run_main(["fit", out / "demos.npz", "--domain", "highway", "--config", out / "config.toml",
+                                     "-o", out / "again.nc", "--checkpoint-every", "3", "--no-progress"])
+    assert code == 0, stderr
+    assert "skills in 3 trajectories" in stdout
+    assert not (out / "again.nc.checkpoint.npz").exists()  # removed once the run is saved
+    assert load(out / "again.nc").equals(load(out / "run.nc"))
+    # options override the config
+    code, _, stderr = run_main(["fit", out / "demos.npz", "--domain", "highway", "--config", out / "config.toml",
+                                "--samples", "2", "--seed", "5", "-o", out / "short.nc", "--no-progress"])
+    assert code == 0, stderr
+    short = load(out / "short.nc")
+    assert short.num_draws == 2 and short.model_config.sampler.seed == 5
+
+
+def test_report_prints_label_invariant_convergence_and_writes_plots(demo):
+    out, _ = demo
+    code, stdout, stderr = run_main(["report", out / "run.nc", "--plots", out / "plots"])
+    assert code == 0, stderr
+    assert "r_hat" in stdout and "ess_bulk" in stdout and "num_switches" in stdout
+    for name in ("trace.png", "segmentation.png"):
+        assert (out / "plots" / name).stat().st_size > 1000
+
+
+def test_fit_errors_name_what_is_wrong(demo, tmp_path):
+    out, _ = demo
+    (tmp_path / "bad.toml").write_text('[sampler]\nchainz = 2\n')
+    code, _, err = run_main(["fit", out / "demos.npz", "--domain", "highway", "--config", tmp_path / "bad.toml",
+                             "-o", tmp_path / "x.nc"])
+    assert code == 2 and "sampler.chainz: unknown key" in err
+    tiny = TabularMDP.from_dense(np.full((2, 3, 2), 0.5))
+    save_mdp(tiny, tmp_path / "tiny.npz")
+    code, _, err = run_main(["fit", out / "demos.npz", "--mdp", tmp_path / "tiny.npz", "-o", tmp_path / "x.nc"])
+    assert code == 2 and "trajectory 0, step 0: state" in err
+    code, _, err = run_main(["fit", tmp_path / "missing.npz", "--domain", "highway", "-o", tmp_path / "x.nc"])
+    assert code == 2 and "missing.npz" in err
+    code, _, err = run_main(["report", tmp_path / "missing.nc"])
+    assert code == 2 and "missing.nc" in err
+    assert not (tmp_path / "x.nc").exists()

@@ -1,0 +1,202 @@
+"""A model variant is plain data: a TOML file and its Python twin are the same model, a bad key
+is named in the error, and a user's registered emission fits through the config by name."""
+
+import dataclasses
+import importlib
+
+import numpy as np
+import pytest
+
+from npbrs.domains.demos import Demonstrations
+from npbrs.domains.mdp import TabularMDP
+from npbrs.inference import EmissionConfig, Hyperparameter, ModelConfig, PriorConfig, SamplerConfig, fit
+from npbrs.models.emissions import EMISSIONS, PolicyEmission, register_emission
+
+fit_module = importlib.import_module("npbrs.inference.fit")  # the module, not the function it exports
+
+VARIANT = """
+max_skills = 5
+
+[emission]
+name = "policy"
+
+[emission.options]
+concentration = 0.25
+
+[prior]
+alpha = 2.0
+gamma = 0.5
+
+[prior.kappa]
+value = 8.0
+shape = 2.0
+rate = 0.25
+
+[sampler]
+chains = 3
+samples = 50
+warmup = 10
+seed = 7
+chain_method = "sequential"
+init_skills = 2
+init_window = 12
+
+[sampler.moves]
+birth_death = 1
+"""
+
+TWIN = ModelConfig(
+    emission=EmissionConfig("policy", {"concentration": 0.25}),
+    prior=PriorConfig(alpha=2.0, kappa=Hyperparameter(8.0, shape=2.0, rate=0.25), gamma=0.5),
+    max_skills=5,
+    sampler=SamplerConfig(chains=3, samples=50, warmup=10, seed=7, chain_method="sequential", init_skills=2,
+                          init_window=12, moves={"birth_death": 1}))
+
+
+def test_a_toml_variant_equals_its_python_twin(tmp_path):
+    path = tmp_path / "variant.toml"
+    path.write_text(VARIANT)
+    cfg = ModelConfig.from_toml(path)
+    assert cfg == TWIN
+    assert cfg.prior.hyperpriors == {"kappa": (2.0, 0.25)}
+    # and back: to_toml, to_dict and from_dict lose nothing
+    assert ModelConfig.from_toml_string(TWIN.to_toml()) == TWIN
+    assert ModelConfig.from_dict(TWIN.to_dict()) == TWIN
+    TWIN.to_toml(tmp_path / "written.toml")
+    assert ModelConfig.from_toml(tmp_path / "written.toml") == TWIN
+
+
+def test_defaults_fill_missing_keys_and_nested_options_survive_toml():
+    cfg = ModelConfig.from_toml_string('[emission]\nname = "policy"\n')
+    assert cfg == ModelConfig(emission="policy")
+    options = {"weights": [1.5, -2.0], "solver": {"tol": 1e-8, "name": 'a"b'}, "flag": True, "big": float("inf")}
+    odd = ModelConfig(emission=EmissionConfig("policy", options))
+    assert ModelConfig.from_toml_string(odd.to_toml()) == odd
+
+
+@pytest.mark.parametrize("text, message", [
+    ('[prior]\nkappa = "abc"', "prior.kappa: expected a number, got 'abc'"),
+    ("[sampler]\nchainz = 3", "sampler.chainz: unknown key"),
+    ("[sampler]\nsamples = 2.5", "sampler.samples: expected an integer"),
+    ("[sampler]\nwarmup = -1", "sampler.warmup: expected an integer >= 0"),
+    ('[sampler]\nchain_method = "threads"', "sampler.chain_method"),
+    ("max_skills = 0", "max_skills: expected an integer >= 1"),
+    ("[prior]\nalpha = 0.0", "prior.alpha: expected a positive number"),
+    ("[prior.gamma]\nshape = 2.0", "prior.gamma: a hyperprior needs both shape and rate"),
+    ("[prior]\nbeta = 1.0", "prior.beta: unknown key"),
+    ("emission = 3", "emission: expected a table"),
+    ("[emission]\nname = 3", "emission.name: expected a non-empty string"),
+    ("[sampler]\ninit_skills = 9", "sampler.init_skills: 9 exceeds max_skills"),
+    ("[sampler.moves]\nteleport = true", "teleport"),
+    ("max_skills = [", "not valid TOML"),
+])
+def test_bad_toml_is_rejected_naming_the_key(tmp_path, text, message):
+    path = tmp_path / "bad.toml"
+    path.write_text(text)
+    with pytest.raises(ValueError, match=message.replace("[", r"\[").replace("(", r"\(")) as info:
+        ModelConfig.from_toml(path)
+    assert str(path) in str(info.value)
+
+
+def test_python_configs_are_validated_too():
+    with pytest.raises(ValueError, match="prior.kappa: expected a number"):
+        PriorConfig(kappa="abc")
+    with pytest.raises(ValueError, match="sampler.chains: expected an integer >= 1"):
+        SamplerConfig(chains=0)
+    with pytest.raises(ValueError, match="emission.options.f"):
+        EmissionConfig("policy", {"f": object()})
+    assert PriorConfig(kappa=0.0).kappa == Hyperparameter(0.0)  # no stickiness is allowed
+    assert PriorConfig(alpha={"shape": 2.0, "rate": 4.0}).alpha == Hyperparameter(0.5, 2.0, 4.0)
+
+
+# ------------------------------------------------------------------------------ fitting
+@register_emission("toy_policy")
+class ToyPolicy(PolicyEmission):
+    """A user's emission: the conjugate policy emission under another name, with its own option."""
+
+    def __init__(self, num_states, num_actions, concentration=0.5, note="toy"):
+        super().__init__(num_states, num_actions, concentration)
+        self.note = note
+
+    def describe(self):
+        return {**super().describe(), "note": self.note}
+
+
+@pytest.fixture(scope="module", autouse=True)
+def _unregister_toy():
+    yield
+    EMISSIONS.pop("toy_policy", None)
+
+
+def small_problem(seed=0, N=3, T=20, S=4, A=3):
+    rng = np.random.default_rng(seed)
+    mdp = TabularMDP.from_dense(rng.dirichlet(np.ones(S), (S, A)))
+    states = [rng.integers(0, S, T) for _ in range(N)]
+    actions = [(np.arange(T) // 7 + i) % A for i in range(N)]  # skills that prefer one action each
+    return mdp, Demonstrations(states, actions)
+
+
+def test_a_registered_class_stands_for_its_name():
+    assert EmissionConfig(ToyPolicy).name == "toy_policy"
+    assert ModelConfig(emission=ToyPolicy).emission == EmissionConfig("toy_policy")
+
+    class Unregistered(PolicyEmission):
+        pass
+
+    with pytest.raises(ValueError, match="emission.name: class Unregistered is not registered"):
+        EmissionConfig(Unregistered)
+
+
+TOY = ModelConfig(emission=EmissionConfig("toy_policy", {"concentration": 0.3, "note": "mine"}), max_skills=3,
+                  sampler=SamplerConfig(chains=1, warmup=2, samples=4, init_window=5))
+
+
+def test_a_registered_toy_emission_fits_through_the_config_by_name(tmp_path):
+    mdp, demos = small_problem()
+    path = tmp_path / "toy.toml"
+    TOY.to_toml(path)
+    result = fit(mdp, demos, path, progress_bar=False)
+    assert result.emission == {"name": "toy_policy", "concentration": 0.3, "note": "mine"}
+    assert result.model_config == TOY
+    assert result.samples["policy"].shape == (1, 4, 3, 4, 3)
+    # keyword arguments override the config (same model, so no new compilation)
+    again = fit(mdp, demos, TOY, num_samples=6, seed=3, progress_bar=False)
+    assert again.model_config == TOY.replace(sampler=dataclasses.replace(TOY.sampler, samples=6, seed=3))
+    assert again.stats["log_joint"].shape == (1, 6)
+    assert not np.array_equal(again.stats["log_joint"][:, :4], result.stats["log_joint"])
+
+
+@pytest.fixture
+def no_compilation(monkeypatch):
+    """Fail if fit gets as far as compiling anything."""
+    def refuse(*args, **kwargs):
+        raise AssertionError("compiled before validating the input")
+
+    monkeypatch.setattr(fit_module._Compiled, "init", refuse)
+    monkeypatch.setattr(fit_module._Compiled, "step", refuse)
+
+
+@pytest.mark.parametrize("change, message", [
+    (dict(emission="no_such_emission"), "unknown emission 'no_such_emission'"),
+    (dict(max_skills=0), "max_skills: expected an integer >= 1"),
+    (dict(config={"sampler": {"chainz": 2}}), "sampler.chainz: unknown key"),
+    (dict(config={"prior": {"kappa": "abc"}}), "prior.kappa: expected a number, got 'abc'"),
+    (dict(emission_options={"concentration": 0.3, "colour": "red"}), "emission.options"),
+    (dict(init_skills=5), "sampler.init_skills: 5 exceeds max_skills"),
+    (dict(hyperpriors={"kappa": (1.0,)}), "prior.kappa: a hyperprior is"),
+    (dict(moves={"birth_death": -1}), "sampler.moves.birth_death"),
+    (dict(checkpoint_every=5), "checkpoint_every given without checkpoint_path"),
+])
+def test_bad_input_is_a_value_error_before_compilation(no_compilation, change, message):
+    mdp, demos = small_problem()
+    kwargs = dict(config=TOY, progress_bar=False)
+    kwargs.update(change)
+    with pytest.raises(ValueError, match=message):
+        fit(mdp, demos, **kwargs)
+
+
+def test_demonstrations_outside_the_mdp_are_a_value_error_before_compilation(no_compilation):
+    mdp, demos = small_problem()
+    bad = Demonstrations([s for s in demos.states], [a for a in demos.actions[:2]] + [np.full(20, 3)])
+    with pytest.raises(ValueError, match="trajectory 2, step 0: action 3"):
+        fit(mdp, bad, TOY, progress_bar=False)

@@ -1,0 +1,73 @@
+"""Figures: the paper's colour labelling of inferred skills, and PNG files written."""
+
+import numpy as np
+import pytest
+
+from npbrs.inference.plots import (UNMATCHED, plot_segmentation, plot_skill_rewards, plot_trace, skill_styles,
+                                   true_styles)
+from npbrs.inference.results import FitResult
+
+TRUE = [np.array([0, 0, 0, 0, 1, 1, 1, 1, 1, 1]), np.array([2, 2, 2, 2, 1, 1, 1, 1, 0, 0])]
+# inferred 7 is mostly true 0; 3 (7 steps) and 5 (2 steps) are mostly true 1; 4 has true 2 only;
+# 9 covers one step of true 1 and one of true 2: no majority
+INFERRED = [np.array([7, 7, 7, 7, 3, 3, 3, 3, 5, 5]), np.array([4, 4, 4, 9, 9, 3, 3, 3, 7, 7])]
+
+
+def test_inferred_skills_take_the_true_label_of_their_majority():
+    styles = skill_styles(TRUE, INFERRED, labels=("A", "B", "C"))
+    assert {k: s.name for k, s in styles.items()} == {3: "B", 4: "C", 5: "B1", 7: "A", 9: "unmatched"}
+    assert {k: s.true_label for k, s in styles.items()} == {3: 1, 4: 2, 5: 1, 7: 0, 9: None}
+    base = true_styles(TRUE, ("A", "B", "C"))
+    assert styles[3].colour == base[1].colour and styles[7].colour == base[0].colour
+    assert styles[9].colour == UNMATCHED
+    # B1 is a lighter shade of B's colour: same hue, different from every other colour
+    b, b1 = np.array(styles[3].colour[:3]), np.array(styles[5].colour[:3])
+    assert np.all(b1 >= b) and not np.allclose(b, b1)
+    room = b < 1
+    fraction = (b1 - b)[room] / (1 - b)[room]  # the same blend towards white in every channel
+    assert np.allclose(fraction, fraction[0])
+    assert len({s.colour for s in styles.values()}) == 5
+
+
+def test_without_true_skills_every_inferred_skill_has_its_own_colour():
+    styles = skill_styles(None, INFERRED)
+    assert [s.name for s in styles.values()] == ["3", "4", "5", "7", "9"]
+    assert len({s.colour for s in styles.values()}) == 5
+
+
+def is_png(path):
+    with open(path, "rb") as f:
+        head = f.read(8)
+    from matplotlib.image import imread
+
+    return head == b"\x89PNG\r\n\x1a\n" and imread(str(path)).ndim == 3
+
+
+def test_plot_segmentation_writes_a_png(tmp_path):
+    path = tmp_path / "segmentation.png"
+    other = [np.zeros(10, int), np.ones(10, int)]
+    styles = plot_segmentation(TRUE, {"NPBRS": INFERRED, "subgoal": other}, path, labels=("A", "B", "C"),
+                               title="two methods")
+    assert is_png(path) and styles["NPBRS"][5].name == "B1"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["segmentation.png"]  # no temporary left behind
+    plot_segmentation(None, {"NPBRS": INFERRED}, tmp_path / "alone.png", trajectories=[1])
+    assert is_png(tmp_path / "alone.png")
+    with pytest.raises(ValueError, match="trajectory 1: segmentation 'NPBRS' has shape \\(3,\\), expected \\(10,\\)"):
+        plot_segmentation(TRUE, {"NPBRS": [INFERRED[0], np.zeros(3, int)]}, tmp_path / "bad.png")
+
+
+def test_plot_trace_and_skill_rewards_write_pngs(tmp_path):
+    rng = np.random.default_rng(0)
+    C, D = 2, 30
+    stats = {"log_joint": rng.normal(size=(C, D)), "num_skills": rng.integers(2, 5, (C, D)),
+             "num_switches": rng.random((C, D)) * 5, "accept": np.ones((C, D))}
+    result = FitResult(segmentation=TRUE, num_skills=3, skill_params={}, skill_slots=np.arange(3), best_chain=0,
+                       best_log_joint=0.0, stats=stats, samples={})
+    plot_trace(result, tmp_path / "trace.png")
+    assert is_png(tmp_path / "trace.png")
+    theta = np.array([[500.0, 0.0, 0.0, 0.0], [-500.0, 0.0, 10.0, 0.0], [-500.0, 10.0, 0.0, 0.0]])
+    plot_skill_rewards(theta, ["collision", "left_lane", "right_lane", "on_verge"], tmp_path / "rewards.png",
+                       skill_names=["A", "B", "C"])
+    assert is_png(tmp_path / "rewards.png")
+    with pytest.raises(ValueError, match="3 feature names for 4 features"):
+        plot_skill_rewards(theta, ["a", "b", "c"], tmp_path / "bad.png")
