@@ -45,6 +45,7 @@ _METHODS_SOFT = ("newton", "vi")
 _METHODS_HARD = ("policy", "vi")
 _KINDS = ("auto", "sparse", "dense", "factored")
 _FORCING_FACTOR = 0.1
+_MAX_UNROLLED_GATHERS = 32
 
 
 class SolveResult(NamedTuple):
@@ -98,7 +99,18 @@ class _Columns:
         A = self.num_actions
         if self.kind == "sparse":
             nb = self._succ.shape[1]
-            return tuple(sum(V[self._succ[a, b]] * self._prob[a, b] for b in range(nb)) for a in range(A))
+            if A * nb <= _MAX_UNROLLED_GATHERS:
+                # one gather per (action, slot), unrolled: XLA fuses them into one pass; a
+                # reduction over a gathered axis compiles to code an order of magnitude slower
+                return tuple(sum(V[self._succ[a, b]] * self._prob[a, b] for b in range(nb)) for a in range(A))
+
+            def slot(b, acc):  # many successors: a loop keeps the program small
+                idx = jax.lax.dynamic_index_in_dim(self._succ, b, 1, keepdims=False)
+                p = jax.lax.dynamic_index_in_dim(self._prob, b, 1, keepdims=False)
+                return acc + V[idx] * p
+
+            E = jax.lax.fori_loop(0, nb, slot, jnp.zeros((A,) + V.shape, V.dtype))
+            return tuple(E[a] for a in range(A))
         if self.kind == "dense":
             return tuple(self._P[a] @ V for a in range(A))
         E = self._fn(V)

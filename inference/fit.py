@@ -12,6 +12,7 @@ the sampled hyperparameters.
 from __future__ import annotations
 
 import hashlib
+import dataclasses
 import json
 import os
 import signal
@@ -363,6 +364,10 @@ def fit(mdp, demos: Demonstrations, config: Union[ModelConfig, dict, str, os.Pat
         em = make_emission(cfg.emission.name, mdp, **cfg.emission.options)
         em_key = json.dumps([cfg.emission.to_dict(), type(em).__module__ + "." + type(em).__qualname__, _mdp_key(mdp)],
                             sort_keys=True)
+    fixed = getattr(em, "fixed_max_skills", None)
+    if fixed is not None and cfg.max_skills != fixed:
+        # e.g. unsegmented IRL ("single"): one skill slot for every step
+        cfg = cfg.replace(max_skills=int(fixed), sampler=dataclasses.replace(cfg.sampler, init_skills=None))
     compiled = _compiled(cfg, em, em_key, demos)
     kernel = compiled.kernel
     sampler = cfg.sampler

@@ -6,3 +6,4 @@ from .emissions import EMISSIONS, Emission, HMMData, PolicyEmission, get_emissio
 from .bphmm import Hyper, bphmm_model
 from .subgoal import SubgoalEmission, visited_states
 from .autoregressive import AutoregressiveEmission
+from .reward_emission import RewardEmission, SingleRewardEmission

@@ -1,0 +1,170 @@
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from npbrs.domains import TabularMDP, greedy_policy, make_soft_solver
+from npbrs.models.reward import (count_log_likelihood, count_log_likelihood_and_grad, count_table, fit_reward,
+                                 irl_fit, log_policy, step_log_likelihoods)
+
+
+def random_mdp(seed, S=8, A=3, D=4, gamma=0.9):
+    rng = np.random.default_rng(seed)
+    P = rng.random((S, A, S)) * (rng.random((S, A, S)) < 0.5)
+    P[np.arange(S), :, rng.integers(0, S, S)] += 0.05
+    P /= P.sum(-1, keepdims=True)
+    return TabularMDP.from_dense(P, features=rng.normal(size=(S, A, D)), discount=gamma)
+
+
+@pytest.fixture(scope="module")
+def small():
+    mdp = random_mdp(0)
+    solver = make_soft_solver(mdp, tol=1e-13, grad_tol=1e-13)
+    rng = np.random.default_rng(1)
+    theta = 2.0 * rng.normal(size=(2, mdp.num_features))
+    counts = rng.integers(0, 6, size=(2, mdp.num_states, mdp.num_actions)).astype(float)
+    return mdp, solver, theta, counts
+
+
+def test_count_table_is_a_weighted_histogram_of_the_steps():
+    rng = np.random.default_rng(0)
+    S, A, N, T, K = 5, 3, 4, 7, 2
+    states, actions = rng.integers(0, S, (N, T)), rng.integers(0, A, (N, T))
+    weights = rng.random((N, T, K))
+    mask = rng.random((N, T)) < 0.8
+    expected = np.zeros((K, S, A))
+    for i in range(N):
+        for t in range(T):
+            if mask[i, t]:
+                expected[:, states[i, t], actions[i, t]] += weights[i, t]
+    np.testing.assert_allclose(count_table(states, actions, weights, S, A, mask=mask), expected, atol=1e-12)
+    unweighted = np.zeros((S, A))
+    np.add.at(unweighted, (states[mask], actions[mask]), 1.0)
+    np.testing.assert_allclose(count_table(states, actions, None, S, A, mask=mask), unweighted, atol=1e-12)
+    with pytest.raises(ValueError, match="trajectory 1, step 2: action 7 is outside 0..2"):
+        bad = actions.copy()
+        bad[1, 2] = 7
+        count_table(states, bad, None, S, A)
+
+
+def test_sum_of_step_log_likelihoods_equals_the_count_log_likelihood(small):
+    mdp, solver, theta, _ = small
+    rng = np.random.default_rng(2)
+    states = rng.integers(0, mdp.num_states, (3, 10))
+    actions = rng.integers(0, mdp.num_actions, (3, 10))
+    mask = np.arange(10)[None, :] < np.array([[10], [6], [3]])
+    log_pi, V = log_policy(solver, theta)
+    steps = step_log_likelihoods(log_pi, states, actions, mask=mask)  # (N, T, K)
+    assert steps.shape == (3, 10, 2)
+    assert np.all(np.asarray(steps)[~mask] == 0.0)
+    for k in range(2):
+        np.testing.assert_allclose(steps[..., k], np.where(mask, np.asarray(log_pi)[k][states, actions], 0.0))
+    counts = count_table(states, actions, None, mdp.num_states, mdp.num_actions, mask=mask)
+    np.testing.assert_allclose(steps.sum((0, 1)), count_log_likelihood(solver, theta, counts), rtol=1e-12)
+
+
+def test_gradient_equals_central_finite_differences(small):
+    _, solver, theta, counts = small
+    ll, grad, _ = count_log_likelihood_and_grad(solver, theta, counts)
+    eps = 1e-5
+    fd = np.zeros_like(theta)
+    for k in range(theta.shape[0]):
+        for d in range(theta.shape[1]):
+            e = np.zeros(theta.shape[1])
+            e[d] = eps
+            fd[k, d] = (count_log_likelihood(solver, theta[k] + e, counts[k]) -
+                        count_log_likelihood(solver, theta[k] - e, counts[k])) / (2 * eps)
+    np.testing.assert_allclose(grad, fd, rtol=1e-7, atol=1e-7 * np.abs(fd).max())
+    np.testing.assert_allclose(ll, [count_log_likelihood(solver, theta[k], counts[k]) for k in range(2)], rtol=1e-12)
+
+
+def test_implicit_gradient_equals_differentiating_an_unrolled_loop(small):
+    mdp, solver, theta, counts = small
+    P = jnp.asarray(mdp.dense_transitions())
+    phi = jnp.asarray(mdp.features)
+    gamma = mdp.discount
+
+    def unrolled(t, c):
+        r = phi @ t
+        V = jax.lax.fori_loop(0, 800, lambda _, V: jax.nn.logsumexp(r + gamma * P @ V, axis=-1),
+                              jnp.zeros(mdp.num_states))
+        Q = r + gamma * P @ V
+        return jnp.sum(c * jax.nn.log_softmax(Q, axis=-1))
+
+    ref = jax.jit(jax.vmap(jax.grad(unrolled)))(jnp.asarray(theta), jnp.asarray(counts))
+    _, grad, _ = count_log_likelihood_and_grad(solver, theta, counts)
+    np.testing.assert_allclose(grad, ref, rtol=1e-9, atol=1e-9 * np.abs(ref).max())
+    # forward mode works too (the implicit tangent solve), so Hessians are available
+    hess = jax.hessian(lambda t: count_log_likelihood(solver, t, counts[0]))(jnp.asarray(theta[0]))
+    hess_ref = jax.hessian(lambda t: unrolled(t, jnp.asarray(counts[0])))(jnp.asarray(theta[0]))
+    np.testing.assert_allclose(hess, hess_ref, rtol=1e-7, atol=1e-7 * np.abs(hess_ref).max())
+
+
+def test_irl_fit_reaches_a_stationary_point_and_runs_inside_jit(small):
+    mdp, solver, _, counts = small
+    fit = irl_fit(solver, counts, prior_scale=3.0, num_steps=40)
+    _, grad, V = count_log_likelihood_and_grad(solver, fit.theta, counts)
+    np.testing.assert_allclose(grad - fit.theta / 9.0, 0.0, atol=1e-6)
+    # the same computation inside jit with static shapes, batched, warm-started
+    jitted = jax.jit(lambda c, t0, v0: fit_reward(solver, c, t0, v0, 3.0, 5)[0])
+    again = jitted(jnp.asarray(counts), fit.theta, V)
+    np.testing.assert_allclose(again, fit.theta, atol=1e-6)
+
+
+def _rollout(mdp, policy, rng, N=16, T=200):
+    s = rng.choice(mdp.num_states, size=N, p=mdp.initial)
+    states, actions = np.zeros((N, T), int), np.zeros((N, T), int)
+    for t in range(T):
+        states[:, t], actions[:, t] = s, policy[s]
+        s = mdp.sample_next(rng, s, policy[s])
+    return states, actions
+
+
+@pytest.mark.parametrize("name", ["highway", "quadcopter"])
+def test_irl_recovers_each_skill_from_its_demonstrations(name):
+    """16 x 200 steps of one expert: the fitted reward's optimal policy takes an optimal action of
+    the expert's own reward on >= 95% of the visited states, and on held-out demonstrations its
+    Boltzmann policy beats a uniform policy by a wide margin."""
+    from npbrs.domains import get_domain
+
+    dom = get_domain(name)
+    mdp = dom.mdp
+    q_expert = dom.expert_q()  # (3, S, A)
+    policies = greedy_policy(q_expert)
+    rng = np.random.default_rng(0)
+    demos = [_rollout(mdp, policies[k], rng) for k in range(3)]
+    held_out = [_rollout(mdp, policies[k], rng) for k in range(3)]
+    counts = np.stack([np.asarray(count_table(s, a, None, mdp.num_states, mdp.num_actions)) for s, a in demos])
+    solver = make_soft_solver(mdp)
+    fit = irl_fit(solver, counts, num_steps=30)
+    log_pi, _ = log_policy(solver, fit.theta)
+    greedy = greedy_policy(log_pi)
+    for k in range(3):
+        visited = np.unique(demos[k][0])
+        q = q_expert[k][visited]
+        # actions that are optimal for the expert's reward (the expert breaks exact ties by index,
+        # which no reward on these features can express)
+        optimal = q >= q.max(-1, keepdims=True) - 1e-9 * np.abs(q_expert[k]).max()
+        assert optimal[np.arange(len(visited)), greedy[k][visited]].mean() >= 0.95, (name, k)
+        s, a = held_out[k]
+        per_step = float(step_log_likelihoods(log_pi[k], s, a).mean())
+        assert per_step > -np.log(mdp.num_actions) + 0.5, (name, k, per_step)
+
+
+def test_bad_input_names_the_problem(small):
+    mdp, solver, theta, counts = small
+    with pytest.raises(ValueError, match="theta"):
+        log_policy(solver, np.zeros(mdp.num_features + 1))
+    bad = theta.copy()
+    bad[1, 2] = np.nan
+    with pytest.raises(ValueError, match=r"theta\[1, 2\] is not finite"):
+        log_policy(solver, bad)
+    with pytest.raises(ValueError, match="counts"):
+        count_log_likelihood(solver, theta, counts[:, :3])
+    with pytest.raises(ValueError, match="counts"):
+        count_log_likelihood(solver, theta, -counts)
+    with pytest.raises(ValueError, match="prior_scale"):
+        irl_fit(solver, counts, prior_scale=0.0)
+    with pytest.raises(ValueError, match="features"):
+        TabularMDP(successors=mdp.successors, probs=mdp.probs,
+                   features=np.where(np.arange(4) == 1, np.nan, mdp.features))
