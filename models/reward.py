@@ -278,8 +278,14 @@ def _two_loop(g, S_hist, Y_hist, rho, count, newest, history):
 
 
 def _fit_one(solver, counts, theta0, v0, prior_scale, num_steps, history, max_backtracks):
-    """L-BFGS with a backtracking (Armijo) line search on -(log-lik + log-prior) of one skill,
-    every solve warm-started from the last accepted values. A fixed number of steps: jit-able."""
+    """L-BFGS with a backtracking (Armijo) line search on -(log-lik + log-prior) of one skill.
+
+    Written as one loop that evaluates the objective once per iteration (the start, a trial
+    step, or a backtrack), so the program holds a single copy of the solve and its gradient;
+    every solve is warm-started from the last accepted values. It stops after ``num_steps``
+    steps, or earlier when two line searches in a row find no decrease (converged to
+    rounding): jit-able, with at most ``num_steps * (max_backtracks + 1) + 1`` evaluations.
+    """
 
     def objective(theta, v):
         (ll, V), g = jax.value_and_grad(lambda t: _ll_one(solver, t, counts, v), has_aux=True)(theta)
@@ -287,54 +293,66 @@ def _fit_one(solver, counts, theta0, v0, prior_scale, num_steps, history, max_ba
         return -(ll + lp), -(g + gp), ll, V
 
     D = theta0.shape[0]
-    f0, g0, ll0, V0 = objective(theta0, v0)
-    Sh = jnp.zeros((history, D))
-    Yh = jnp.zeros((history, D))
-    rho = jnp.zeros(history)
+    zeros = jnp.zeros(D)
 
-    def step(k, c):
-        theta, f, g, ll, V, Sh, Yh, rho, count, newest, evals = c
+    def direction(g, Sh, Yh, rho, count, newest):
         d = _two_loop(g, Sh, Yh, rho, count, newest, history)
-        # before any curvature pair: a first step of one prior scale along -g
         gnorm = jnp.linalg.norm(g)
-        d = jnp.where(count > 0, d, -g * prior_scale / jnp.where(gnorm > 0, gnorm, 1.0))
-        slope = jnp.dot(g, d)
-        d = jnp.where(slope < 0, d, -g * prior_scale / jnp.where(gnorm > 0, gnorm, 1.0))
-        slope = jnp.dot(g, d)
+        # before any curvature pair, or if the quasi-Newton direction is not a descent
+        # direction: a step of one prior scale along -g
+        fallback = -g * prior_scale / jnp.where(gnorm > 0, gnorm, 1.0)
+        return jnp.where((count > 0) & (jnp.dot(g, d) < 0), d, fallback)
 
-        def ls_cond(s):
-            alpha, f_new, *_, n = s
-            return (n < max_backtracks) & ~(f_new <= f + 1e-4 * alpha * slope)
+    def cond(c):
+        # a second failed line search in a row (the first one resets the history and tries the
+        # gradient direction) means no decrease is measurable any more: converged
+        return (c["steps"] < num_steps) & (c["failures"] < 2) & ~c["converged"]
 
-        def ls_body(s):
-            alpha, _, _, _, _, n = s
-            alpha = alpha * 0.5
-            f_new, g_new, ll_new, V_new = objective(theta + alpha * d, V)
-            return alpha, f_new, g_new, ll_new, V_new, n + 1
-
-        f1, g1, ll1, V1 = objective(theta + d, V)
-        alpha, f_new, g_new, ll_new, V_new, n = jax.lax.while_loop(ls_cond, ls_body, (1.0, f1, g1, ll1, V1, 0))
-        ok = f_new <= f + 1e-4 * alpha * slope
-        s_vec = alpha * d
-        y_vec = g_new - g
+    def body(c):
+        first = c["evals"] == 0
+        trial = c["theta"] + c["alpha"] * c["d"]
+        f_new, g_new, ll_new, V_new = objective(trial, c["V"])
+        slope = jnp.dot(c["g"], c["d"])
+        armijo = jnp.isfinite(f_new) & (f_new <= c["f"] + 1e-4 * c["alpha"] * slope)
+        exhausted = c["backtracks"] >= max_backtracks
+        accept = first | armijo
+        done_step = first | armijo | exhausted  # move on to a new direction
+        # curvature pair of an accepted step
+        s_vec = c["alpha"] * c["d"]
+        y_vec = g_new - c["g"]
         sy = jnp.dot(s_vec, y_vec)
-        store = ok & (sy > 1e-10 * jnp.linalg.norm(s_vec) * jnp.linalg.norm(y_vec))
-        slot = jnp.where(store, (newest + 1) % history, newest)
-        Sh = jnp.where(store, Sh.at[slot].set(s_vec), Sh)
-        Yh = jnp.where(store, Yh.at[slot].set(y_vec), Yh)
-        rho = jnp.where(store, rho.at[slot].set(1.0 / jnp.where(sy != 0, sy, 1.0)), rho)
-        count = jnp.where(store, jnp.minimum(count + 1, history), count)
-        theta = jnp.where(ok, theta + s_vec, theta)
-        f, g, ll, V = (jnp.where(ok, a, b) for a, b in ((f_new, f), (g_new, g), (ll_new, ll), (V_new, V)))
-        return theta, f, g, ll, V, Sh, Yh, rho, count, slot, evals + n + 1
+        store = ~first & armijo & (sy > 1e-10 * jnp.linalg.norm(s_vec) * jnp.linalg.norm(y_vec))
+        slot = jnp.where(store, (c["newest"] + 1) % history, c["newest"])
+        Sh = jnp.where(store, c["S"].at[slot].set(s_vec), c["S"])
+        Yh = jnp.where(store, c["Y"].at[slot].set(y_vec), c["Y"])
+        rho = jnp.where(store, c["rho"].at[slot].set(1.0 / jnp.where(sy != 0, sy, 1.0)), c["rho"])
+        count = jnp.where(store, jnp.minimum(c["count"] + 1, history), c["count"])
+        failed = exhausted & ~accept
+        count = jnp.where(failed, 0, count)  # a failed line search forgets the history
+        pick = lambda new, old: jnp.where(accept, new, old)
+        theta, f, g, ll, V = (pick(trial, c["theta"]), pick(f_new, c["f"]), pick(g_new, c["g"]),
+                              pick(ll_new, c["ll"]), pick(V_new, c["V"]))
+        d = jnp.where(done_step, direction(g, Sh, Yh, rho, count, slot), c["d"])
+        # nothing left to gain that rounding would not hide
+        converged = done_step & (jnp.abs(jnp.dot(g, d)) <= 1e-11 * (1.0 + jnp.abs(f)))
+        return dict(theta=theta, f=f, g=g, ll=ll, V=V, S=Sh, Y=Yh, rho=rho, count=count, newest=slot, d=d,
+                    alpha=jnp.where(done_step, 1.0, 0.5 * c["alpha"]),
+                    backtracks=jnp.where(done_step, 0, c["backtracks"] + 1),
+                    steps=c["steps"] + (done_step & ~first), evals=c["evals"] + 1,
+                    failures=jnp.where(failed, c["failures"] + 1, jnp.where(accept, 0, c["failures"])),
+                    converged=converged)
 
-    init = (theta0, f0, g0, ll0, V0, Sh, Yh, rho, jnp.asarray(0), jnp.asarray(history - 1), jnp.asarray(1))
-    theta, f, g, ll, V, *_, evals = jax.lax.fori_loop(0, num_steps, step, init)
-    return theta, ll, V, jnp.linalg.norm(g), evals
+    init = dict(theta=theta0, f=jnp.asarray(jnp.inf), g=zeros, ll=jnp.asarray(0.0), V=v0,
+                S=jnp.zeros((history, D)), Y=jnp.zeros((history, D)), rho=jnp.zeros(history),
+                count=jnp.asarray(0), newest=jnp.asarray(history - 1), d=zeros, alpha=jnp.asarray(0.0),
+                backtracks=jnp.asarray(0), steps=jnp.asarray(0), evals=jnp.asarray(0), failures=jnp.asarray(0),
+                converged=jnp.asarray(False))
+    c = jax.lax.while_loop(cond, body, init)
+    return c["theta"], c["ll"], c["V"], jnp.linalg.norm(c["g"]), c["evals"]
 
 
 def fit_reward(solver: SoftSolver, counts, theta0, v0, prior_scale=PRIOR_SCALE, num_steps: int = 30,
-               history: int = 10, max_backtracks: int = 20):
+               history: int = 10, max_backtracks: int = 10):
     """The jit-able core of :func:`irl_fit` for K skills: static shapes, no input checks.
 
     Args:

@@ -70,7 +70,7 @@ def check_emission(emission: Emission, data: HMMData, max_skills: int = 3, seed:
     sweep = jax.jit(kernel.sweep)
     for _ in range(sweeps):
         state = sweep(state)
-    model_lp, _ = log_density(kernel.model, (), {}, {"omega": state.omega, "features": state.features,
-                                                      "eta": state.eta, **state.params})
+    model_lp = jax.jit(lambda p: log_density(kernel.model, (), {}, p)[0])(
+        {"omega": state.omega, "features": state.features, "eta": state.eta, **state.params})
     np.testing.assert_allclose(float(state.log_joint), float(model_lp), rtol=1e-7)
     return state

@@ -165,6 +165,6 @@ def test_bad_input_names_the_problem(small):
         count_log_likelihood(solver, theta, -counts)
     with pytest.raises(ValueError, match="prior_scale"):
         irl_fit(solver, counts, prior_scale=0.0)
-    with pytest.raises(ValueError, match="features"):
+    with pytest.raises(ValueError, match="feature 1 of state 0, action 0 is not finite"):
         TabularMDP(successors=mdp.successors, probs=mdp.probs,
                    features=np.where(np.arange(4) == 1, np.nan, mdp.features))

@@ -1,0 +1,86 @@
+"""The reward emission: protocol, a valid MCMC move on a known posterior, and the sampler
+recovering planted reward skills."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from scipy import integrate
+from scipy.special import expit
+
+from emission_suite import check_emission
+from gridworld import gridworld
+from npbrs.domains import Demonstrations, TabularMDP, generate_demonstrations
+from npbrs.inference import fit
+from npbrs.inference.metrics import paper_accuracy
+from npbrs.models.emissions import HMMData
+from npbrs.models.reward_emission import RewardEmission, fisher_information
+
+
+def test_reward_emission_follows_the_protocol():
+    dom = gridworld(size=3)
+    demos = generate_demonstrations(dom, num_trajectories=3, length=12, seed=1)
+    check_emission(RewardEmission(dom.mdp), HMMData.from_demonstrations(demos))
+
+
+def one_state_mdp():
+    # one state, two actions, phi(s, a) = [a == 1]: pi(1) = sigmoid(theta), a logistic regression
+    return TabularMDP.from_dense(np.ones((1, 2, 1)), features=np.array([[[0.0], [1.0]]]), discount=0.5)
+
+
+def test_fisher_information_of_a_logistic_policy():
+    em = RewardEmission(one_state_mdp())
+    counts = jnp.array([[3.0, 5.0]])
+    p = expit(0.7)
+    F = fisher_information(em.solver, jnp.array([0.7]), counts)
+    np.testing.assert_allclose(float(F[0, 0]), 8 * p * (1 - p), rtol=1e-8)
+
+
+def test_mala_move_leaves_the_logistic_posterior_invariant():
+    from numpyro.diagnostics import effective_sample_size
+
+    n0, n1, sigma = 3, 9, 2.0
+    em = RewardEmission(one_state_mdp(), prior_scale=sigma, mala_steps=2)
+    T = n0 + n1
+    data = HMMData(jnp.zeros((1, T), jnp.int32), jnp.asarray([[0] * n0 + [1] * n1], jnp.int32), jnp.ones((1, T), bool))
+    weights = jnp.ones((1, T, 1))
+
+    def log_post(t):
+        return -0.5 * t ** 2 / sigma ** 2 + n1 * np.log(expit(t)) + n0 * np.log(expit(-t))
+
+    Z = integrate.quad(lambda t: np.exp(log_post(t)), -30, 30)[0]
+    mean = integrate.quad(lambda t: t * np.exp(log_post(t)), -30, 30)[0] / Z
+    var = integrate.quad(lambda t: (t - mean) ** 2 * np.exp(log_post(t)), -30, 30)[0] / Z
+
+    chains, warmup, draws = 8, 100, 1500
+    update = jax.jit(lambda k, p, c, adapt: em.update(k, p, c, data, weights, adapt))
+
+    def run(key):
+        params, cache = {"theta": jnp.zeros((1, 1))}, em.init_cache(1)
+
+        def body(carry, xs):
+            params, cache = carry
+            key, adapt = xs
+            params, cache, info = em.update(key, params, cache, data, weights, adapt)
+            return (params, cache), params["theta"][0, 0]
+
+        adapt = jnp.arange(warmup + draws) < warmup
+        _, thetas = jax.lax.scan(body, (params, cache), (jax.random.split(key, warmup + draws), adapt))
+        return thetas[warmup:]
+
+    thetas = np.asarray(jax.jit(jax.vmap(run))(jax.random.split(jax.random.PRNGKey(0), chains)))
+    ess = float(effective_sample_size(thetas))
+    assert ess > 500
+    assert abs(thetas.mean() - mean) < 4 * np.sqrt(var / ess)
+    # the variance's standard error: var * sqrt(2 / ess) for a near-Gaussian posterior
+    assert abs(thetas.var() - var) < 4 * var * np.sqrt(2 / ess)
+
+
+def test_the_sampler_recovers_planted_reward_skills_in_a_gridworld():
+    dom = gridworld()
+    demos = generate_demonstrations(dom, num_trajectories=6, length=60, switch_prob=0.05, seed=0)
+    result = fit(dom.mdp, demos, emission="reward", num_chains=4, num_samples=60, num_warmup=60, max_skills=5,
+                 progress_bar=False)
+    assert result.num_skills == 3
+    assert paper_accuracy(demos.skills, result.segmentation) >= 0.9
+    assert result.rhat["log_joint"] < 1.1
