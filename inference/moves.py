@@ -85,10 +85,12 @@ def _one_log_lik(emission, data, one):
     return ll[..., 0]
 
 
-def birth_death_log_ratio(emission, data, hyper, features, eta, params, log_lik, i, k, new_one, window, is_birth):
+def birth_death_log_ratio(emission, data, hyper, features, eta, params, log_lik, i, k, new_one, window, is_birth,
+                          log_q=None):
     """log acceptance ratio of a birth (``is_birth``) of slot k in trajectory i with parameters
     ``new_one``, or of the death of slot k in trajectory i (``new_one``: the prior draw that
-    replaces its parameters); ``window`` (N, T) are the proposal's weights.
+    replaces its parameters); ``window`` (N, T) are the proposal's weights; ``log_q``: the
+    proposal's density of the born (or dying) skill's parameters, if already known.
 
     Returns (log_ratio, features', params', log_lik')."""
     N, K = features.shape
@@ -102,7 +104,8 @@ def birth_death_log_ratio(emission, data, hyper, features, eta, params, log_lik,
     # the skill that is (or becomes) used: its parameters, prior and proposal density
     used = jax.tree.map(lambda n, o: jnp.where(is_birth, n, o), new_one, old_one)
     log_p0 = emission.log_prior(jax.tree.map(lambda x: x[None], used))[0]
-    log_q = emission.log_proposal(used, data, window)
+    if log_q is None:
+        log_q = emission.log_proposal(used, data, window)
     m = features.sum(0)
     m_new = new_features.sum(0)
     n_free_before_birth = jnp.where(is_birth, jnp.sum(m == 0), jnp.sum(m_new == 0))
@@ -133,11 +136,13 @@ def birth_death(key, emission, data, hyper, features, eta, params, log_lik, min_
     possible = jnp.any(candidates) & (is_birth | (features[i].sum() >= 2))
     k = jax.random.categorical(k_slot, jnp.where(candidates, 0.0, -jnp.inf))
     k = jnp.where(possible, k, 0)
-    proposed, _ = emission.propose(k_prop, data, window)
+    old_one = _get_slot(params, k)
+    proposed, log_q_new, log_q_old = emission.propose_and_score(k_prop, data, window, old_one)
     with_prior = emission.sample_prior_one(k_prior)
     new_one = jax.tree.map(lambda b, d: jnp.where(is_birth, b, d), proposed, with_prior)
     log_ratio, f2, p2, ll2 = birth_death_log_ratio(emission, data, hyper, features, eta, params, log_lik, i, k,
-                                                   new_one, window, is_birth)
+                                                   new_one, window, is_birth,
+                                                   log_q=jnp.where(is_birth, log_q_new, log_q_old))
     accept = possible & (jnp.log(jax.random.uniform(k_acc)) < log_ratio)
     pick = lambda a, b: jax.tree.map(lambda x, y: jnp.where(accept, x, y), a, b)  # noqa: E731
     info = BirthDeathInfo(is_birth, possible, accept, jnp.where(possible, log_ratio, -jnp.inf))

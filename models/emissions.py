@@ -81,6 +81,12 @@ class Emission:
     def log_proposal(self, params_one, data: HMMData, weights):
         raise NotImplementedError
 
+    def propose_and_score(self, key, data: HMMData, weights, other_one):
+        """``(new_one, log q(new_one), log q(other_one))`` under one data-driven proposal
+        (a birth needs the first two, the matching death the last); override to share work."""
+        new, log_q = self.propose(key, data, weights)
+        return new, log_q, self.log_proposal(other_one, data, weights)
+
     def sample_prior_one(self, key):
         """One skill's parameters drawn from the prior (the sites of ``sample_params(1)``)."""
         from numpyro import handlers

@@ -229,6 +229,12 @@ class RewardEmission(Emission):
         theta = mean + chol @ jax.random.normal(key, mean.shape)
         return {"theta": theta}, dist.MultivariateNormal(mean, scale_tril=chol).log_prob(theta)
 
+    def propose_and_score(self, key, data, weights, other_one):
+        mean, chol = self._proposal(data, weights)
+        q = dist.MultivariateNormal(mean, scale_tril=chol)
+        theta = mean + chol @ jax.random.normal(key, mean.shape)
+        return {"theta": theta}, q.log_prob(theta), q.log_prob(other_one["theta"])
+
     def log_proposal(self, params_one, data, weights):
         mean, chol = self._proposal(data, weights)
         return dist.MultivariateNormal(mean, scale_tril=chol).log_prob(params_one["theta"])

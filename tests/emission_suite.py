@@ -63,6 +63,11 @@ def check_emission(emission: Emission, data: HMMData, max_skills: int = 3, seed:
     np.testing.assert_allclose(float(log_q), float(emission.log_proposal(one, data, w_one)), rtol=1e-8, atol=1e-8)
     for name, value in one.items():
         assert value.shape == params[name].shape[1:]
+    other = jax.tree.map(lambda x: x[1], params)
+    new2, lq_new, lq_other = jax.jit(emission.propose_and_score)(key, data, w_one, other)
+    _tree_close(new2, one, rtol=1e-8, atol=1e-10)
+    np.testing.assert_allclose(float(lq_new), float(log_q), rtol=1e-8, atol=1e-8)
+    np.testing.assert_allclose(float(lq_other), float(emission.log_proposal(other, data, w_one)), rtol=1e-8, atol=1e-8)
 
     # the sampler runs with it, and its log joint is the model's
     kernel = BPHMMKernel(emission, data, max_skills=K)
