@@ -137,11 +137,8 @@ def _check_moves(moves: dict) -> None:
     """The kernel's own check of its move options, as a ValueError naming ``sampler.moves``."""
     from .kernel import BPHMMKernel
 
-    check = getattr(BPHMMKernel, "check_moves", None) or getattr(BPHMMKernel, "_check_moves", None)
-    if check is None:
-        return
     try:
-        check(moves)
+        BPHMMKernel.check_moves(moves)
     except (ValueError, TypeError) as e:
         message = str(e)
         if message.startswith("moves."):

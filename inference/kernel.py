@@ -111,13 +111,15 @@ class BPHMMKernel(MCMCKernel):
         self.init_skills = int(init_skills if init_skills is not None else max(1, (self.max_skills + 1) // 2))
         self.init_window = int(init_window)
         self.sample_features = bool(sample_features)
-        self.moves = self._check_moves(moves)
+        self.moves = self.check_moves(moves)
         self._num_warmup = 0
+        self._init_fns = {}
 
     _MOVE_DEFAULTS = {"birth_death": 0, "window": (10, 50)}
 
     @classmethod
-    def _check_moves(cls, moves):
+    def check_moves(cls, moves):
+        """Validated move options with defaults filled in; ValueError naming a bad option."""
         out = dict(cls._MOVE_DEFAULTS)
         for name, value in (moves or {}).items():
             if name not in out:
@@ -146,10 +148,12 @@ class BPHMMKernel(MCMCKernel):
 
     def init(self, rng_key, num_warmup, init_params, model_args, model_kwargs):
         self._num_warmup = int(num_warmup)
-        if jnp.ndim(rng_key) > 1 or (jax.dtypes.issubdtype(rng_key.dtype, jax.dtypes.prng_key)
-                                     and jnp.ndim(rng_key) > 0):
-            return jax.jit(jax.vmap(self._init))(rng_key)
-        return jax.jit(self._init)(rng_key)
+        batched = jnp.ndim(rng_key) > 1 or (jax.dtypes.issubdtype(rng_key.dtype, jax.dtypes.prng_key)
+                                            and jnp.ndim(rng_key) > 0)
+        if (batched, self._num_warmup) not in self._init_fns:
+            # compiled once per kernel (the warmup length is baked into the initial state)
+            self._init_fns[(batched, self._num_warmup)] = jax.jit(jax.vmap(self._init) if batched else self._init)
+        return self._init_fns[(batched, self._num_warmup)](rng_key)
 
     def sample(self, state, model_args, model_kwargs):
         if jnp.ndim(state.step) > 0:
