@@ -1,0 +1,78 @@
+"""The notebooks run from top to bottom without an error, under their tiny settings
+(``NPBRS_NOTEBOOK_QUICK=1``: a few short trajectories, one chain, a few sweeps).
+
+Both notebooks run at once, each in its own kernel: nearly all of their time is the sampler's
+compilation, which uses one core, so two kernels take the time of one. XLA's backend
+optimisation is turned off in the kernels for the same reason (it cuts the compile time by a
+third and only slows the few sweeps a tiny run makes), and the kernels share the test session's
+persistent compilation cache (``conftest.py``), so a second run compiles nothing.
+"""
+
+import asyncio
+import os
+from pathlib import Path
+
+import jax
+import nbformat
+import pytest
+from nbclient import NotebookClient
+
+NOTEBOOKS = ("quickstart.ipynb", "bring_your_own_mdp.ipynb")
+FOLDER = Path(__file__).resolve().parent.parent / "notebooks"
+TIMEOUT = 300  # seconds for a whole notebook (and for any one cell)
+
+
+def _kernel_env(tmp: Path) -> dict:
+    env = dict(os.environ, NPBRS_NOTEBOOK_QUICK="1", TMPDIR=str(tmp), MPLBACKEND="Agg")
+    env["XLA_FLAGS"] = (env.get("XLA_FLAGS", "") + " --xla_backend_optimization_level=0").strip()
+    cache = jax.config.jax_compilation_cache_dir
+    if cache:
+        env.update(JAX_COMPILATION_CACHE_DIR=cache, JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS="0.5",
+                   JAX_PERSISTENT_CACHE_MIN_ENTRY_SIZE_BYTES="0")
+    return env
+
+
+async def _execute(name: str, tmp: Path):
+    """The executed notebook, or the exception that stopped it."""
+    work = tmp / name.removesuffix(".ipynb")
+    work.mkdir()
+    nb = nbformat.read(FOLDER / name, as_version=4)
+    client = NotebookClient(nb, timeout=TIMEOUT, kernel_name="python3", resources={"metadata": {"path": str(work)}})
+    try:
+        await asyncio.wait_for(client.async_execute(env=_kernel_env(work)), TIMEOUT)
+    except asyncio.TimeoutError:
+        return TimeoutError(f"{name} did not finish in {TIMEOUT} s")
+    except Exception as e:  # a cell's error (CellExecutionError) or a kernel that died
+        return e
+    return nb
+
+
+@pytest.fixture(scope="module")
+def executed(tmp_path_factory):
+    tmp = tmp_path_factory.mktemp("notebooks")
+
+    async def both():
+        return await asyncio.gather(*(_execute(name, tmp) for name in NOTEBOOKS))
+
+    return dict(zip(NOTEBOOKS, asyncio.run(both())))
+
+
+def test_the_notebooks_are_committed_without_outputs():
+    for name in NOTEBOOKS:
+        nb = nbformat.read(FOLDER / name, as_version=4)
+        nbformat.validate(nb)
+        for cell in nb.cells:
+            if cell.cell_type == "code":
+                assert not cell.outputs and cell.execution_count is None, f"{name}: outputs not cleared"
+
+
+@pytest.mark.parametrize("name", NOTEBOOKS)
+def test_the_notebook_runs_without_error(executed, name):
+    nb = executed[name]
+    if isinstance(nb, BaseException):
+        raise nb
+    errors = [out for cell in nb.cells if cell.cell_type == "code" for out in cell.outputs
+              if out.output_type == "error"]
+    assert not errors, f"{name}: {errors[0].ename}: {errors[0].evalue}"
+    last = nb.cells[-1] if nb.cells[-1].cell_type == "code" else [c for c in nb.cells if c.cell_type == "code"][-1]
+    assert last.execution_count is not None  # every cell ran

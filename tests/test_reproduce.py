@@ -1,0 +1,160 @@
+"""The reproduction of the paper's Figures 7 and 10: every cell of the table is filled, the
+expert's score is what a method gets back with the true skills, the JSON round trips, the
+plots are written, a stopped reproduction resumes, and the command line writes its files.
+
+The fast tests replace ``fit`` by an oracle that returns the true segmentation and rewards
+(compiling four samplers per run takes minutes on two cores); the slow test runs the real
+samplers of ``--quick``."""
+
+import argparse
+import importlib.util
+import json
+import os
+import sys
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+from npbrs.domains.registry import get_domain
+from npbrs.inference import reproduce as rep
+from npbrs.inference.reproduce import (COLUMNS, METHODS, ROWS, format_markdown, load_json, reproduce,
+                                       save_json)
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+
+
+@pytest.fixture
+def oracle_fit(monkeypatch):
+    """``fit`` replaced by the truth: the true segmentation and skill rewards ("single": one
+    skill with skill A's reward; "subgoal": every skill aims at the first candidate goal)."""
+    calls = []
+    domain = get_domain("highway")
+
+    def fake(mdp, demos, config=None, *, emission=None, max_skills=None, seed=None, **kwargs):
+        name = emission if isinstance(emission, str) else emission.name
+        calls.append((name, seed, max_skills))
+        true = [np.asarray(z) for z in demos.skills]
+        if name == "single":
+            seg, params = [np.zeros_like(z) for z in true], {"theta": domain.skill_weights[:1]}
+        elif name == "subgoal":
+            seg, params = true, {"goal": np.repeat(np.asarray(emission.candidates[:1]), domain.num_skills)}
+        elif name == "reward":
+            seg, params = true, {"theta": np.array(domain.skill_weights)}
+        else:
+            seg, params = true, {}
+        return SimpleNamespace(segmentation=seg, num_skills=len(np.unique(np.concatenate(seg))),
+                               skill_params=params, best_log_joint=0.0, wall_time=0.0)
+
+    monkeypatch.setattr(sys.modules["npbrs.inference.fit"], "fit", fake)
+    return calls
+
+
+def check_table(result, runs):
+    columns = ["expert", *METHODS]
+    assert set(result["table"]) == {row for row, _ in ROWS}
+    for row, _ in ROWS:
+        assert list(result["table"][row]) == columns
+        for col in columns:
+            cell = result["table"][row][col]
+            if (row == "reward" and col == "lds") or (row == "wall_time" and col == "expert"):
+                assert cell is None  # LDS has no policy; the expert is not fitted
+                continue
+            assert cell["n"] == runs and np.isfinite(cell["mean"])
+            assert (cell["sd"] is None) == (runs == 1)
+    assert result["runs_done"] == runs and len(result["per_run"]) == runs
+    assert [t["met"] is not None for t in result["targets"]] == [True] * 5
+
+
+def test_a_reproduction_with_the_true_skills_scores_as_the_expert(oracle_fit, tmp_path):
+    result = reproduce("highway", 40, runs=2, num_trajectories=2, quick=True, plots_dir=tmp_path, progress=False)
+    check_table(result, runs=2)
+    table = result["table"]
+    # common random numbers: the true segmentation with the true rewards replays the expert exactly
+    assert table["reward"]["npbrs"]["mean"] == table["reward"]["expert"]["mean"]
+    for run in result["per_run"]:
+        assert run["methods"]["npbrs"]["rewards"] == run["expert"]["rewards"]
+    assert table["paper_accuracy"]["npbrs"]["mean"] == table["hungarian_accuracy"]["npbrs"]["mean"] == 1.0
+    assert table["switches"]["irl"]["mean"] == 0 and table["skills"]["irl"]["mean"] == 1
+    assert table["switches"]["npbrs"]["mean"] == table["switches"]["expert"]["mean"]
+    # run r uses seed r for the demonstrations and the sampler; every method and run is fitted once
+    assert [r["seed"] for r in result["per_run"]] == [0, 1]
+    assert sorted(oracle_fit) == sorted((rep.EMISSIONS[m], r, result["settings"][m]["max_skills"])
+                                        for r in (0, 1) for m in METHODS)
+    assert sorted(os.listdir(tmp_path)) == ["highway-40-run0.png", "highway-40-run1.png"]
+
+    path = tmp_path / "result.json"
+    save_json(result, path)
+    assert load_json(path) == result
+    text = format_markdown(result)
+    for _, label in ROWS:
+        assert f"| {label} |" in text
+    assert "| | Expert | NPBRS | Subgoal | IRL | LDS |" in text
+    assert "2 of 2 runs" in text and "Targets:" in text
+
+
+def test_a_stopped_reproduction_resumes_with_its_finished_runs(oracle_fit):
+    first = reproduce("highway", 30, runs=1, num_trajectories=2, quick=True, progress=False,
+                      methods=("npbrs", "lds"))
+    oracle_fit.clear()
+    seen = []
+    both = reproduce("highway", 30, runs=2, num_trajectories=2, quick=True, progress=False, methods=("npbrs", "lds"),
+                     previous=json.loads(json.dumps(first)), on_run=seen.append)
+    assert [seed for _, seed, _ in oracle_fit] == [1, 1]  # only run 1 is fitted
+    assert both["per_run"][0] == first["per_run"][0] and both["runs_done"] == 2
+    assert [r["runs_done"] for r in seen] == [2]
+    with pytest.raises(ValueError, match="differs in settings"):
+        reproduce("highway", 30, runs=2, num_trajectories=2, progress=False, methods=("npbrs", "lds"), previous=first)
+
+
+def test_bad_methods_and_settings_are_refused():
+    with pytest.raises(ValueError, match="methods must be distinct names"):
+        reproduce("highway", 30, methods=("npbrs", "hmm"))
+    with pytest.raises(ValueError, match="settings.npbrs.sweeps: unknown setting"):
+        reproduce("highway", 30, settings={"npbrs": {"sweeps": 3}})
+
+
+def test_the_quadcopter_subgoal_baseline_bounds_its_candidates():
+    assert rep.default_settings("quadcopter")["subgoal"]["emission_options"]["max_candidates"] >= 1
+    assert "max_candidates" not in rep.default_settings("highway")["subgoal"]["emission_options"]
+
+
+def parse(argv):
+    parser = argparse.ArgumentParser(prog="npbrs")
+    rep.add_parser(parser.add_subparsers(dest="command", required=True))
+    return parser.parse_args(argv)
+
+
+def test_the_reproduce_command_writes_json_markdown_and_plots(oracle_fit, tmp_path, capsys):
+    args = parse(["reproduce", "--quick", "--json", str(tmp_path / "r.json"), "--markdown", str(tmp_path / "r.md"),
+                  "--plots", str(tmp_path / "plots"), "--no-progress"])
+    assert args.func(args) == 0
+    result = load_json(tmp_path / "r.json")
+    check_table(result, runs=1)
+    assert (result["length"], result["num_trajectories"]) == (40, 2)
+    assert (tmp_path / "r.md").read_text() == format_markdown(result)
+    assert os.listdir(tmp_path / "plots") == ["highway-40-run0.png"]
+    assert "| Reward |" in capsys.readouterr().out
+
+
+def test_the_benchmark_script_defaults_to_the_results_folder():
+    spec = importlib.util.spec_from_file_location("bench_reproduce", os.path.join(ROOT, "benchmarks", "reproduce.py"))
+    script = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(script)
+    assert script.RESULTS == os.path.join(ROOT, "benchmarks", "results")
+    with pytest.raises(SystemExit) as e:
+        script.main(["--help"])
+    assert e.value.code == 0
+
+
+@pytest.mark.slow
+def test_the_quick_reproduction_runs_the_real_samplers(tmp_path):
+    args = parse(["reproduce", "--quick", "--json", str(tmp_path / "r.json"), "--plots", str(tmp_path / "plots"),
+                  "--no-progress"])
+    assert args.func(args) == 0
+    result = load_json(tmp_path / "r.json")
+    check_table(result, runs=1)
+    for method in METHODS:
+        assert result["table"]["wall_time"][method]["mean"] > 0
+    assert COLUMNS["lds"] in format_markdown(result)
+    assert os.listdir(tmp_path / "plots") == ["highway-40-run0.png"]
