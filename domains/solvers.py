@@ -18,8 +18,8 @@ takes one or two Newton steps.
 
 Derivatives are implicit: the fixed point's tangent solves (I - gamma P_pi) dV = sum_a pi dr
 with the same GMRES (``jax.lax.custom_linear_solve``, whose transpose is the adjoint solve
-(I - gamma P_pi)^T lambda = g for reverse mode), so no loop is differentiated. Q and
-V = logsumexp(Q) are then recomputed from the fixed point with ordinary autodiff.
+(I - gamma P_pi)^T lambda = g for reverse mode), and dQ = dr + gamma E[dV]; no loop is
+differentiated. Forward and reverse mode both work (so do Hessians, forward over reverse).
 
 Layout: inside the loops a Q-table is a tuple of A arrays of shape (S,) rather than an
 (S, A) array: XLA on CPU fuses element-wise work over separate columns far better than
@@ -44,7 +44,6 @@ __all__ = ["next_value_operator", "soft_value_iteration", "value_iteration", "So
 _METHODS_SOFT = ("newton", "vi")
 _METHODS_HARD = ("policy", "vi")
 _KINDS = ("auto", "sparse", "dense", "factored")
-_FORCING_FACTOR = 0.1
 _MAX_UNROLLED_GATHERS = 32
 
 
@@ -67,11 +66,10 @@ class SolveResult(NamedTuple):
 
 # ------------------------------------------------------------------ next-value operators
 class _Columns:
-    """E[V(s') | s, a] as A columns of shape (S,), and its transpose.
+    """E[V(s') | s, a] as A columns, and its transpose, for a batch of value vectors.
 
-    ``apply(V)`` maps V (S,) to a tuple of A arrays (S,); ``transpose(cols)`` maps A arrays
-    (S,) to sum_a P_a^T col_a, shape (S,). Both are linear and written for one value vector;
-    batches are vmapped.
+    ``apply(V)`` maps V (K, S) to a tuple of A arrays (K, S); ``transpose(cols)`` maps A
+    arrays (K, S) to sum_a P_a^T col_a, shape (K, S). Both are linear.
     """
 
     def __init__(self, mdp, kind: str):
@@ -102,31 +100,32 @@ class _Columns:
             if A * nb <= _MAX_UNROLLED_GATHERS:
                 # one gather per (action, slot), unrolled: XLA fuses them into one pass; a
                 # reduction over a gathered axis compiles to code an order of magnitude slower
-                return tuple(sum(V[self._succ[a, b]] * self._prob[a, b] for b in range(nb)) for a in range(A))
+                return tuple(sum(V[..., self._succ[a, b]] * self._prob[a, b] for b in range(nb))
+                             for a in range(A))
 
             def slot(b, acc):  # many successors: a loop keeps the program small
                 idx = jax.lax.dynamic_index_in_dim(self._succ, b, 1, keepdims=False)
                 p = jax.lax.dynamic_index_in_dim(self._prob, b, 1, keepdims=False)
-                return acc + V[idx] * p
+                return acc + jnp.moveaxis(V[..., idx], -2, 0) * p[(slice(None),) + (None,) * (V.ndim - 1)]
 
             E = jax.lax.fori_loop(0, nb, slot, jnp.zeros((A,) + V.shape, V.dtype))
             return tuple(E[a] for a in range(A))
         if self.kind == "dense":
-            return tuple(self._P[a] @ V for a in range(A))
+            return tuple(V @ self._P[a].T for a in range(A))
         E = self._fn(V)
         return tuple(E[..., a] for a in range(A))
 
     def transpose(self, cols) -> jax.Array:
-        S, A = self.num_states, self.num_actions
+        A = self.num_actions
         if self.kind == "sparse":
-            out = jnp.zeros(S, cols[0].dtype)
+            out = jnp.zeros(cols[0].shape, cols[0].dtype)
             for a in range(A):
                 for b in range(self._succ.shape[1]):
-                    out = out.at[self._succ[a, b]].add(self._prob[a, b] * cols[a])
+                    out = out.at[..., self._succ[a, b]].add(self._prob[a, b] * cols[a])
             return out
         if self.kind == "dense":
             return sum(cols[a] @ self._P[a] for a in range(A))
-        transposed = jax.linear_transpose(self._fn, jnp.zeros(S, cols[0].dtype))
+        transposed = jax.linear_transpose(self._fn, jnp.zeros(cols[0].shape, cols[0].dtype))
         return transposed(jnp.stack(cols, -1))[0]
 
 
@@ -143,92 +142,116 @@ def next_value_operator(mdp, kind: str = "auto") -> Callable:
 
     def op(V):
         V = jnp.asarray(V)
-        f = cols.apply
-        for _ in range(V.ndim - 1):
-            f = jax.vmap(f)
-        return jnp.stack(f(V), -1)
+        flat = V.reshape((-1, V.shape[-1]))
+        return jnp.stack(cols.apply(flat), -1).reshape(V.shape + (cols.num_actions,))
 
     return op
 
 
 # ----------------------------------------------------------------------------- Krylov
-def _gmres(matvec, b, rtol, dim: int, max_cycles: int, reorthogonalize: bool = False):
-    """Restarted GMRES(dim) from x = 0 until ||b - A x|| <= rtol ||b|| (2-norm).
+def _gmres(matvec, b, rtol, dim: int, max_cycles: int, basis=None):
+    """Restarted GMRES(dim) from x = 0 for K systems at once: ||b_k - A_k x_k|| <= rtol ||b_k||.
 
-    Givens rotations are accumulated in a small orthogonal matrix Omega, so the residual
-    norm of every Arnoldi step is |beta * Omega[j, 0]| without a loop over past rotations.
-    Orthogonalisation is classical Gram-Schmidt as two matrix-vector products (one pass; a
-    second with ``reorthogonalize``): on CPU the basis is read from memory at each step and
-    that, not the operator, is the cost of a step. A restart continues from the residual the
-    Arnoldi relation gives (no extra matvec). Returns (x, number of matvecs, relative residual
-    estimate).
+    ``matvec`` maps (K, n) to (K, n) row by row; b is (K, n), rtol a scalar or (K,). The K
+    systems iterate in lock-step with one shared step counter (under ``vmap`` a per-system
+    counter would turn every basis update into a scatter), each freezing once converged.
+
+    Givens rotations are accumulated in a small orthogonal matrix Omega per system, so the
+    residual norm after Arnoldi step j is |beta * Omega[j, 0]| without a loop over past
+    rotations. Orthogonalisation is one pass of classical Gram-Schmidt as two batched
+    matrix-vector products: on CPU the basis is read from memory at each step and that, not
+    the operator, is the cost of a step. A restart continues from the residual the Arnoldi
+    relation gives (no extra matvec).
+
+    ``basis`` is an optional (K, dim + 1, n) work array with finite entries, returned for
+    reuse by the next call (rows not yet written in a cycle are masked out, so it needs no
+    zeroing: allocating and clearing it costs as much as a few Arnoldi steps).
+    Returns (x (K, n), matvecs (K,), relative residual estimates (K,), basis).
     """
     m = dim
-    bnorm = jnp.linalg.norm(b)
-    target = rtol * bnorm
+    K, n = b.shape
     dtype = b.dtype
+    bnorm = jnp.linalg.norm(b, axis=-1)
+    target = rtol * bnorm
+    rows = jnp.arange(m + 1)
+    ks = jnp.arange(K)
+    if basis is None:
+        basis = jnp.zeros((K, m + 1, n), dtype)
 
-    def arnoldi(r, beta):
-        # Each step first stores the vector made by the previous one and only then reads the
-        # basis: with the opposite order XLA copies the whole basis every step.
-        Vb = jnp.zeros((m + 1,) + r.shape, dtype)
-        R = jnp.zeros((m + 1, m), dtype)
-        Om = jnp.eye(m + 1, dtype=dtype)
-        v0 = r / jnp.where(beta > 0, beta, 1.0)
+    def arnoldi(Vb, r, beta, live):
+        R = jnp.zeros((K, m + 1, m), dtype)
+        Om = jnp.broadcast_to(jnp.eye(m + 1, dtype=dtype), (K, m + 1, m + 1))
+        v0 = r / jnp.where(beta > 0, beta, 1.0)[:, None]
+        live = live & (beta > target)
 
         def cond(c):
-            _, _, Om, j, _ = c
-            return (j < m) & (beta * jnp.abs(Om[j, 0]) > target)
+            return (c[3] < m) & jnp.any(c[6])
 
         def body(c):
-            Vb, R, Om, j, v = c
-            Vb = Vb.at[j].set(v)
+            # each step first stores the vector made by the previous one and only then reads
+            # the basis: with the opposite order XLA copies the whole basis every step
+            Vb, R, Om, j, v, steps, live = c
+            Vb = Vb.at[:, j].set(v)
             w = matvec(v)
-            h = jnp.einsum("js,s->j", Vb, w)
-            w = w - jnp.einsum("j,js->s", h, Vb)
-            if reorthogonalize:
-                h2 = jnp.einsum("js,s->j", Vb, w)
-                w = w - jnp.einsum("j,js->s", h2, Vb)
-                h = h + h2
-            hn = jnp.linalg.norm(w)
-            col = Om @ h.at[j + 1].set(hn)
-            x1, x2 = col[j], col[j + 1]
+            h = jnp.where(rows <= j, jnp.einsum("kjs,ks->kj", Vb, w), 0.0)
+            w = w - jnp.einsum("kj,kjs->ks", h, Vb)
+            hn = jnp.linalg.norm(w, axis=-1)
+            col = jnp.einsum("kij,kj->ki", Om, h.at[:, j + 1].set(hn))
+            x1, x2 = col[:, j], col[:, j + 1]
             rho = jnp.hypot(x1, x2)
             safe = jnp.where(rho > 0, rho, 1.0)
-            cs = jnp.where(rho > 0, x1 / safe, 1.0)
-            sn = jnp.where(rho > 0, x2 / safe, 0.0)
-            row_j, row_j1 = Om[j], Om[j + 1]
-            Om = Om.at[j].set(cs * row_j + sn * row_j1).at[j + 1].set(cs * row_j1 - sn * row_j)
-            R = R.at[:, j].set(col.at[j].set(rho).at[j + 1].set(0.0))
-            return Vb, R, Om, j + 1, w / jnp.where(hn > 0, hn, 1.0)
+            cs = jnp.where(rho > 0, x1 / safe, 1.0)[:, None]
+            sn = jnp.where(rho > 0, x2 / safe, 0.0)[:, None]
+            row_j, row_j1 = Om[:, j], Om[:, j + 1]
+            Om_new = Om.at[:, j].set(cs * row_j + sn * row_j1).at[:, j + 1].set(cs * row_j1 - sn * row_j)
+            R_new = R.at[:, :, j].set(col.at[:, j].set(rho).at[:, j + 1].set(0.0))
+            Om = jnp.where(live[:, None, None], Om_new, Om)
+            R = jnp.where(live[:, None, None], R_new, R)
+            steps = steps + live
+            live = live & (beta * jnp.abs(Om[:, j + 1, 0]) > target)
+            return Vb, R, Om, j + 1, w / jnp.where(hn > 0, hn, 1.0)[:, None], steps, live
 
-        Vb, R, Om, j, v = jax.lax.while_loop(cond, body, (Vb, R, Om, jnp.asarray(0), v0))
-        used = jnp.arange(m) < j
-        Rm = jnp.where(used[:, None] & used[None, :], R[:m], jnp.eye(m, dtype=dtype))
-        g = jnp.where(used, beta * Om[:m, 0], 0.0)
-        y = jax.scipy.linalg.solve_triangular(Rm, g, lower=False)
-        dx = jnp.einsum("j,js->s", jnp.append(y, 0.0), Vb)
-        # the residual of this cycle without another matvec: b - A x = V (beta e1 - H y)
-        # = g_j * sum_i Omega[j, i] v_i over the j + 1 basis vectors (v_j not yet stored)
-        g_j = beta * Om[j, 0]
-        r = g_j * (jnp.einsum("i,is->s", Om[j], Vb) + Om[j, j] * v)
-        return dx, j, r, jnp.abs(g_j)
+        init = (Vb, R, Om, jnp.asarray(0), v0, jnp.zeros(K, jnp.int32), live)
+        Vb, R, Om, j, v, steps, _ = jax.lax.while_loop(cond, body, init)
+        Vb = Vb.at[:, jnp.minimum(j, m)].set(v)  # row steps_k of a system that stopped last
+        used = jnp.arange(m)[None, :] < steps[:, None]  # (K, m)
+        Rm = jnp.where(used[:, :, None] & used[:, None, :], R[:, :m], jnp.eye(m, dtype=dtype))
+        g = jnp.where(used, beta[:, None] * Om[:, :m, 0], 0.0)
+        y = jax.scipy.linalg.solve_triangular(Rm, g[..., None], lower=False)[..., 0]
+        dx = jnp.einsum("kj,kjs->ks", jnp.pad(y, ((0, 0), (0, 1))), Vb)
+        # the residual without another matvec: b - A x = V (beta e1 - H y)
+        # = g_j * sum_i Omega[j, i] v_i over the first j + 1 basis vectors, j = steps
+        om_j = Om[ks, steps]  # (K, m + 1), zero beyond column j
+        g_j = beta * om_j[:, 0]
+        r = g_j[:, None] * jnp.einsum("ki,kis->ks", jnp.where(rows[None, :] <= steps[:, None], om_j, 0.0), Vb)
+        return Vb, dx, steps, r, jnp.abs(g_j)
 
     def cond(c):
-        _, _, rnorm, cyc, _ = c
-        return (cyc < max_cycles) & (rnorm > target)
+        return (c[4] < max_cycles) & jnp.any(c[3] > target)
 
     def body(c):
-        x, r, rnorm, cyc, nmv = c
-        dx, j, r, rnorm = arnoldi(r, rnorm)
-        return x + dx, r, rnorm, cyc + 1, nmv + j
+        Vb, x, r, rnorm, cyc, nmv = c
+        active = rnorm > target
+        Vb, dx, steps, r_new, est = arnoldi(Vb, r, rnorm, active)
+        return (Vb, x + dx, jnp.where(active[:, None], r_new, r), jnp.where(active, est, rnorm), cyc + 1,
+                nmv + steps)
 
-    x0 = jnp.zeros_like(b)
-    x, _, rnorm, _, nmv = jax.lax.while_loop(cond, body, (x0, b, bnorm, jnp.asarray(0), jnp.asarray(0)))
-    return x, nmv, rnorm / jnp.where(bnorm > 0, bnorm, 1.0)
+    init = (basis, jnp.zeros_like(b), b, bnorm, jnp.asarray(0), jnp.zeros(K, jnp.int32))
+    basis, x, _, rnorm, _, nmv = jax.lax.while_loop(cond, body, init)
+    return x, nmv, rnorm / jnp.where(bnorm > 0, bnorm, 1.0), basis
 
 
 # ----------------------------------------------------------------------- soft backups
+def _log_1_to_A(t):
+    """log t for t in [1, A] (a sum of exponentials with a largest term of 1), to rounding.
+
+    float32 log (several times faster than float64 on CPU) and one Newton step of
+    exp(y) = t in float64, whose error is the square of float32's.
+    """
+    y = jnp.log(t.astype(jnp.float32)).astype(t.dtype)
+    return y + (t * jnp.exp(-y) - 1.0)
+
+
 def _soft_backup(r_cols, E_cols, gamma):
     """Q columns, V = logsumexp_a Q and the Boltzmann policy columns."""
     Q = tuple(r + gamma * e for r, e in zip(r_cols, E_cols))
@@ -237,37 +260,40 @@ def _soft_backup(r_cols, E_cols, gamma):
         m = jnp.maximum(m, q)
     ex = tuple(jnp.exp(q - m) for q in Q)
     total = sum(ex)
-    return Q, m + jnp.log(total), tuple(e / total for e in ex)
+    inv = 1.0 / total
+    return Q, m + _log_1_to_A(total), tuple(e * inv for e in ex)
 
 
 def _relative(diff, V):
-    return jnp.max(jnp.abs(diff)) / jnp.maximum(1.0, jnp.max(jnp.abs(V)))
+    """Max-norm of diff relative to max(1, max |V|), per system: (K, S) -> (K,)."""
+    return jnp.max(jnp.abs(diff), axis=-1) / jnp.maximum(1.0, jnp.max(jnp.abs(V), axis=-1))
 
 
 def _policy_apply(op: _Columns, pi, transpose: bool = False):
-    """x -> P_pi x = sum_a pi_a E[x](., a), or x -> P_pi^T x."""
+    """x -> P_pi x = sum_a pi_a E[x](., a), or x -> P_pi^T x; x (K, S)."""
     if transpose:
         return lambda x: op.transpose(tuple(p * x for p in pi))
     return lambda x: sum(p * e for p, e in zip(pi, op.apply(x)))
 
 
 def _policy_solve(op: _Columns, gamma, pi, b, rtol, degree: int, dim: int, max_cycles: int,
-                  transpose: bool = False):
-    """Solve (I - gamma P_pi) x = b (or its transpose) by GMRES, right-preconditioned with the
-    truncated Neumann series M^-1 = sum_{k<degree} (gamma P_pi)^k.
+                  transpose: bool = False, basis=None):
+    """Solve (I - gamma P_pi) x = b (or its transpose) for K systems by GMRES,
+    right-preconditioned with the truncated Neumann series M^-1 = sum_{k<degree} (gamma P_pi)^k.
 
     The preconditioned operator is I - (gamma P_pi)^degree: the bulk of the spectrum shrinks
-    to (gamma |lambda|)^degree around 1, so GMRES needs several times fewer steps (and fewer
-    orthogonalisations, which cost more than an operator application). The powers are taken
-    in a ``fori_loop`` so that XLA materialises each application instead of fusing chains of
-    them (which it compiles badly). Returns (x, number of operator applications).
+    to (gamma |lambda|)^degree around 1, so GMRES needs fewer steps (and fewer
+    orthogonalisations, which cost about as much as an operator application). The powers
+    are taken in a ``fori_loop`` so that XLA materialises each application instead of fusing
+    chains of them (which it compiles badly). Returns (x (K, S), operator applications (K,),
+    the GMRES work array for reuse).
     """
     P = _policy_apply(op, pi, transpose)
 
     def power(y):
         return jax.lax.fori_loop(0, degree, lambda _, z: gamma * P(z), y)
 
-    y, k, _ = _gmres(lambda y: y - power(y), b, rtol, dim, max_cycles)
+    y, k, _, basis = _gmres(lambda y: y - power(y), b, rtol, dim, max_cycles, basis)
 
     def series(_, c):
         z, acc = c
@@ -275,46 +301,69 @@ def _policy_solve(op: _Columns, gamma, pi, b, rtol, degree: int, dim: int, max_c
         return z, acc + z
 
     x = jax.lax.fori_loop(0, degree - 1, series, (y, y))[1]
-    return x, k * degree + degree - 1
+    return x, k * degree + degree - 1, basis
 
 
 def _soft_newton(op, gamma, r_cols, v0, tol, max_iter, degree, dim, max_cycles, eta):
-    """Inexact Newton (soft policy iteration) for one reward table. Returns the last iterate's
-    Q columns, its backup T(V), number of steps, residual and matvec count."""
+    """Inexact Newton (soft policy iteration) for K reward tables in lock-step. Returns the
+    last iterates' Q columns, their backups T(V) = logsumexp(Q) (K, S), and per system the
+    number of steps, the residual and the operator applications.
+
+    The linear solves' tolerances follow Eisenstat and Walker's second choice,
+    eta_k = 0.9 (res_k / res_k-1)^2 (capped at ``eta``, safeguarded against dropping
+    abruptly): a loose solve while the policy is still changing (then a Newton step gains
+    only a constant factor whatever the solve's accuracy), a tight one once convergence is
+    quadratic, and never tighter than reaching ``tol`` needs. A converged system gets a zero
+    right-hand side, which GMRES skips.
+    """
+    K = v0.shape[0]
     Q, TV, pi = _soft_backup(r_cols, op.apply(v0), gamma)
     res = _relative(TV - v0, TV)
 
     def cond(c):
-        return (c[4] < max_iter) & (c[5] > tol)
+        return (c[10] < max_iter) & jnp.any(c[5] > tol)
 
     def body(c):
-        V, Q, TV, pi, it, res, nmv = c
-        # forcing term: loose while far away, tightening with the residual (superlinear), but
-        # never tighter than the final tolerance needs
-        rtol = jnp.clip(jnp.maximum(_FORCING_FACTOR * res, 0.1 * tol / jnp.maximum(res, 1e-300)), 1e-14, eta)
-        step, k = _policy_solve(op, gamma, pi, V - TV, rtol, degree, dim, max_cycles)
+        V, Q, TV, pi, it, res, nmv, res_prev, eta_prev, basis, n = c
+        active = res > tol
+        ew = 0.9 * (res / res_prev) ** 2
+        ew = jnp.where(0.9 * eta_prev ** 2 > 0.1, jnp.maximum(ew, 0.9 * eta_prev ** 2), ew)
+        rtol = jnp.where(it == 0, eta, jnp.minimum(eta, ew))
+        rtol = jnp.clip(jnp.maximum(rtol, 0.1 * tol / jnp.maximum(res, 1e-300)), 1e-14, eta)
+        rhs = jnp.where(active[:, None], V - TV, 0.0)
+        step, k, basis = _policy_solve(op, gamma, pi, rhs, rtol, degree, dim, max_cycles, basis=basis)
         V = V - step
-        Q, TV, pi = _soft_backup(r_cols, op.apply(V), gamma)
-        return V, Q, TV, pi, it + 1, _relative(TV - V, TV), nmv + k
+        Q, TV_new, pi = _soft_backup(r_cols, op.apply(V), gamma)
+        res_new = jnp.where(active, _relative(TV_new - V, TV_new), res)
+        return (V, Q, TV_new, pi, it + active, res_new, nmv + jnp.where(active, k, 0), jnp.where(active, res, res_prev),
+                jnp.where(active, rtol, eta_prev), basis, n + 1)
 
-    init = (v0, Q, TV, pi, jnp.asarray(0), res, jnp.asarray(0))
-    _, Q, TV, _, it, res, nmv = jax.lax.while_loop(cond, body, init)
+    basis = jnp.zeros((K, dim + 1) + v0.shape[1:], v0.dtype)
+    zeros = jnp.zeros(K, jnp.int32)
+    init = (v0, Q, TV, pi, zeros, res, zeros, res, jnp.full(K, eta, res.dtype), basis, jnp.asarray(0))
+    _, Q, TV, _, it, res, nmv, *_ = jax.lax.while_loop(cond, body, init)
     return Q, TV, it, res, nmv
 
 
 def _soft_vi(op, gamma, r_cols, v0, tol, max_iter):
+    """Plain soft value iteration for K reward tables (a reference; slow)."""
+    K = v0.shape[0]
     Q, TV, _ = _soft_backup(r_cols, op.apply(v0), gamma)
 
     def cond(c):
-        return (c[3] < max_iter) & (c[4] > tol)
+        return (c[5] < max_iter) & jnp.any(c[4] > tol)
 
     def body(c):
-        V, Q, TV, it, res = c
-        Q, TV_new, _ = _soft_backup(r_cols, op.apply(TV), gamma)
-        return TV, Q, TV_new, it + 1, _relative(TV_new - TV, TV_new)
+        V, Q, TV, it, res, n = c
+        active = res > tol
+        Q_new, TV_new, _ = _soft_backup(r_cols, op.apply(TV), gamma)
+        keep = lambda new, old: jnp.where(active[:, None], new, old)
+        return (keep(TV, V), tuple(keep(a, b) for a, b in zip(Q_new, Q)), keep(TV_new, TV), it + active,
+                jnp.where(active, _relative(TV_new - TV, TV_new), res), n + 1)
 
-    _, Q, TV, it, res = jax.lax.while_loop(cond, body, (v0, Q, TV, jnp.asarray(0), _relative(TV - v0, TV)))
-    return Q, TV, it, res, jnp.asarray(0)
+    init = (v0, Q, TV, jnp.zeros(K, jnp.int32), _relative(TV - v0, TV), jnp.asarray(0))
+    _, Q, TV, it, res, _ = jax.lax.while_loop(cond, body, init)
+    return Q, TV, it, res, jnp.zeros(K, jnp.int32)
 
 
 # ------------------------------------------------------------------- input checking
@@ -358,14 +407,36 @@ def _check_options(tol, max_iter, krylov_dim, max_restarts, degree):
 
 
 # ------------------------------------------------------------------------ soft solver
+def _call_flat(solve, r, v0, S, A):
+    """Call a jitted solve on K = prod(batch) systems and restore the batch shape, so that every
+    batch shape with the same number of systems shares one compiled program."""
+    batch = r.shape[:-2]
+    K = int(np.prod(batch, dtype=int))
+    res = solve(r.reshape(K, S, A), None if v0 is None else v0.reshape(K, S))
+    return SolveResult(res.V.reshape(batch + (S,)), res.Q.reshape(batch + (S, A)), res.num_iter.reshape(batch),
+                       res.residual.reshape(batch), res.num_matvec.reshape(batch))
+
+
+def _flattened(core, r, v0, S, A):
+    """Run a batched core on r (..., S, A) and v0 (..., S) or None, flattened to K systems."""
+    batch = r.shape[:-2]
+    K = int(np.prod(batch, dtype=int))
+    v = jnp.zeros((K, S), r.dtype) if v0 is None else v0.reshape(K, S)
+    V, Q, it, res, nmv = core(r.reshape(K, S, A), v)
+    return SolveResult(V.reshape(batch + (S,)), Q.reshape(batch + (S, A)), it.reshape(batch), res.reshape(batch),
+                       nmv.reshape(batch))
+
+
 class SoftSolver:
     """Soft value iteration for one MDP as a pure, jit-able, differentiable function.
 
     ``solver(rewards, v0)`` maps reward tables (..., S, A) and a warm start (..., S) (or None:
-    zeros) to a :class:`SolveResult`; batches are vmapped. It can be called inside
-    ``jax.jit``, ``vmap`` and ``lax`` loops, and differentiated (forward or reverse) with
-    respect to the rewards by implicit differentiation at the fixed point. Outside a trace
-    the inputs are checked (shape, finiteness) and a ValueError names what is wrong.
+    zeros) to a :class:`SolveResult`. Leading axes are solved together, in lock-step (pass a
+    batch rather than ``vmap`` the solver: under ``vmap`` every loop counter becomes per-system
+    and costs about twice as much). It can be called inside ``jax.jit``, ``vmap`` and ``lax``
+    loops, and differentiated (forward or reverse) with respect to the rewards by implicit
+    differentiation at the fixed point. Outside a trace the inputs are checked (shape,
+    finiteness) and a ValueError names what is wrong.
 
     Build one with :func:`make_soft_solver`; its attributes ``mdp``, ``discount``,
     ``features`` (S, A, D) and ``num_states``/``num_actions``/``num_features`` describe the
@@ -373,8 +444,8 @@ class SoftSolver:
     """
 
     def __init__(self, mdp, *, tol: float = 1e-10, max_iter: Optional[int] = None, method: str = "newton",
-                 operator: str = "auto", krylov_dim: int = 12, max_restarts: int = 10, precondition_degree: int = 4,
-                 forcing: float = 0.1, grad_tol: float = 1e-11):
+                 operator: str = "auto", krylov_dim: int = 8, max_restarts: int = 20, precondition_degree: int = 2,
+                 forcing: float = 0.3, grad_tol: float = 1e-11):
         if method not in _METHODS_SOFT:
             raise ValueError(f"unknown soft solver method {method!r}; expected one of {_METHODS_SOFT}")
         if max_iter is None:
@@ -405,9 +476,9 @@ class SoftSolver:
         return (f"SoftSolver(mdp={self.mdp.name!r}, method={self.method!r}, operator={self.operator!r}, "
                 f"tol={self.tol:g}, max_iter={self.max_iter})")
 
-    # -- the fixed point of one reward table, with its implicit derivative
+    # -- the fixed points of K reward tables (K, S, A), with their implicit derivative
     def _core(self, r, v0):
-        r_cols = tuple(r[:, a] for a in range(self.num_actions))
+        r_cols = tuple(r[..., a] for a in range(self.num_actions))
         if self.method == "newton":
             return _soft_newton(self._op, self.discount, r_cols, v0, self.tol, self.max_iter,
                                 self.precondition_degree, self.krylov_dim, self.max_restarts, self.forcing)
@@ -419,42 +490,30 @@ class SoftSolver:
 
         @jax.custom_jvp
         def fixed_point(r, v0):
-            _, TV, it, res, nmv = self._core(r, v0)
-            return TV, it, res, nmv
+            Q, V, it, res, nmv = self._core(r, v0)
+            # V = logsumexp(Q) exactly (same Q columns), so Q - V is a normalised log-policy
+            return V, jnp.stack(Q, -1), it, res, nmv
 
         @fixed_point.defjvp
         def fixed_point_jvp(primals, tangents):
             r, v0 = primals
             dr, _ = tangents
-            V, it, res, nmv = fixed_point(r, v0)
-            _, _, pi = _soft_backup(tuple(r[:, a] for a in range(A)), op.apply(V), gamma)
-            rhs = sum(p * dr[:, a] for a, p in enumerate(pi))
+            V, Q, it, res, nmv = fixed_point(r, v0)
+            pi = tuple(jnp.exp(Q[..., a] - V) for a in range(A))
+            rhs = sum(p * dr[..., a] for a, p in enumerate(pi))
             dV = jax.lax.custom_linear_solve(
                 lambda x: x - gamma * _policy_apply(op, pi)(x), rhs,
                 solve=lambda _, b: _policy_solve(op, gamma, pi, b, gtol, degree, dim, cycles)[0],
                 transpose_solve=lambda _, b: _policy_solve(op, gamma, pi, b, gtol, degree, dim, cycles,
                                                            transpose=True)[0])
-            zero_int = np.zeros((), dtype=jax.dtypes.float0)
-            return (V, it, res, nmv), (dV, zero_int, jnp.zeros_like(res), zero_int)
+            dQ = dr + gamma * jnp.stack(op.apply(dV), -1)
+            zero_int = np.zeros(it.shape, dtype=jax.dtypes.float0)
+            return (V, Q, it, res, nmv), (dV, dQ, zero_int, jnp.zeros_like(res), zero_int)
 
         return fixed_point
 
-    def _solve_one(self, r, v0):
-        V, it, res, nmv = self._fixed_point(r, v0)
-        E = self._op.apply(V)
-        Q = jnp.stack([r[:, a] + self.discount * E[a] for a in range(self.num_actions)], -1)
-        # V = logsumexp(Q) exactly, so Q - V is a normalised log-policy
-        return SolveResult(jax.nn.logsumexp(Q, axis=-1), Q, it, res, nmv)
-
     def _solve_batch(self, r, v0):
-        S, A = self.num_states, self.num_actions
-        batch = r.shape[:-2]
-        if v0 is None:
-            v0 = jnp.zeros(batch + (S,), r.dtype)
-        f = self._solve_one
-        for _ in batch:
-            f = jax.vmap(f)
-        return f(r, v0)
+        return _flattened(self._fixed_point, r, v0, self.num_states, self.num_actions)
 
     def __call__(self, rewards, v0=None) -> SolveResult:
         """Solve for reward tables (..., S, A), warm-started from v0 (..., S) or zeros."""
@@ -471,7 +530,7 @@ class SoftSolver:
             _check_v0(v0, shape[:-2], S)
         rewards = jnp.asarray(rewards, jnp.float64)
         v0 = None if v0 is None else jnp.asarray(v0, jnp.float64)
-        return self._solve(rewards, v0)
+        return _call_flat(self._solve, rewards, v0, S, A)
 
     def rewards(self, theta) -> jax.Array:
         """Reward tables r = phi . theta, (..., S, A) for theta (..., D)."""
@@ -483,15 +542,14 @@ class SoftSolver:
 
     def expected_next_value(self, V) -> jax.Array:
         """E[V(s') | s, a], (..., S, A) for V (..., S)."""
-        f = self._op.apply
-        for _ in range(jnp.ndim(V) - 1):
-            f = jax.vmap(f)
-        return jnp.stack(f(V), -1)
+        V = jnp.asarray(V)
+        flat = V.reshape((-1, V.shape[-1]))
+        return jnp.stack(self._op.apply(flat), -1).reshape(V.shape + (self.num_actions,))
 
 
 def make_soft_solver(mdp, *, tol: float = 1e-10, max_iter: Optional[int] = None, method: str = "newton",
-                     operator: str = "auto", krylov_dim: int = 12, max_restarts: int = 10,
-                     precondition_degree: int = 4, forcing: float = 0.1, grad_tol: float = 1e-11) -> SoftSolver:
+                     operator: str = "auto", krylov_dim: int = 8, max_restarts: int = 20,
+                     precondition_degree: int = 2, forcing: float = 0.3, grad_tol: float = 1e-11) -> SoftSolver:
     """A pure, jit-able soft value iteration for ``mdp``: ``solve(rewards, v0) -> SolveResult``.
 
     Args:
@@ -504,8 +562,8 @@ def make_soft_solver(mdp, *, tol: float = 1e-10, max_iter: Optional[int] = None,
         krylov_dim: GMRES restart length; max_restarts: GMRES cycles per linear solve.
         precondition_degree: degree of the truncated Neumann-series preconditioner of each
             policy evaluation (1: none; see the module docstring).
-        forcing: the Newton forcing factor eta: each linear solve stops at relative residual
-            min(eta, eta * Bellman residual).
+        forcing: the largest relative residual a Newton step's linear solve may stop at (the
+            Eisenstat-Walker forcing terms are capped by it; see ``_soft_newton``).
         grad_tol: relative tolerance of the linear solves of derivatives.
     Returns:
         A :class:`SoftSolver`; ``solver(rewards (..., S, A), v0 (..., S) or None)``.
@@ -517,64 +575,69 @@ def make_soft_solver(mdp, *, tol: float = 1e-10, max_iter: Optional[int] = None,
 
 # ------------------------------------------------------------------------ hard solver
 def _hard_policy_iteration(op, gamma, r_cols, v0, tol, max_iter, degree, dim, max_cycles):
-    """Howard's policy iteration; evaluation by GMRES, improvement keeps the current action
-    unless another is better by more than rounding (so ties cannot make it cycle)."""
+    """Howard's policy iteration for K reward tables in lock-step; evaluation by GMRES to
+    rounding, improvement keeps the current action unless another is better by more than
+    rounding (so ties cannot make it cycle). ``tol`` is unused: it stops when no policy
+    changes."""
     A = len(r_cols)
+    K = v0.shape[0]
 
     def greedy(Q, current, V):
-        best = jnp.argmax(jnp.stack(Q, 0), axis=0)
-        Qs = jnp.stack(Q, 0)
+        Qs = jnp.stack(Q, 0)  # (A, K, S)
+        best = jnp.argmax(Qs, axis=0)
         q_best = jnp.max(Qs, 0)
         q_cur = jnp.take_along_axis(Qs, current[None], 0)[0]
-        margin = 1e-12 * jnp.maximum(1.0, jnp.max(jnp.abs(V)))
+        margin = 1e-12 * jnp.maximum(1.0, jnp.max(jnp.abs(V), axis=-1, keepdims=True))
         return jnp.where(q_best > q_cur + margin, best, current)
-
-    def evaluate(policy, V):
-        onehot = tuple((policy == a).astype(V.dtype) for a in range(A))
-        r_pi = sum(o * r for o, r in zip(onehot, r_cols))
-        residual = r_pi - V + gamma * _policy_apply(op, onehot)(V)
-        step, k = _policy_solve(op, gamma, onehot, residual, 1e-14, degree, dim, max_cycles)
-        return V + step, k + 1
 
     def qcols(V):
         return tuple(r + gamma * e for r, e in zip(r_cols, op.apply(V)))
 
-    Q0 = qcols(v0)
-    pol0 = jnp.argmax(jnp.stack(Q0, 0), axis=0)
-
     def cond(c):
-        return (c[3] < max_iter) & c[4]
+        return (c[6] < max_iter) & jnp.any(c[4])
 
     def body(c):
-        policy, V, _, it, _, nmv = c
-        V, k = evaluate(policy, V)
+        policy, V, _, it, changed, nmv, n = c
+        onehot = tuple((policy == a).astype(V.dtype) for a in range(A))
+        r_pi = sum(o * r for o, r in zip(onehot, r_cols))
+        residual = jnp.where(changed[:, None], r_pi - V + gamma * _policy_apply(op, onehot)(V), 0.0)
+        step, k, _ = _policy_solve(op, gamma, onehot, residual, 1e-14, degree, dim, max_cycles)
+        V = V + step
         Q = qcols(V)
         new = greedy(Q, policy, V)
-        return new, V, Q, it + 1, jnp.any(new != policy), nmv + k
+        return new, V, Q, it + changed, jnp.any(new != policy, axis=-1), nmv + jnp.where(changed, k + 1, 0), n + 1
 
-    _, V, Q, it, _, nmv = jax.lax.while_loop(cond, body, (pol0, v0, Q0, jnp.asarray(0), jnp.asarray(True),
-                                                           jnp.asarray(0)))
+    Q0 = qcols(v0)
+    pol0 = jnp.argmax(jnp.stack(Q0, 0), axis=0)
+    zeros = jnp.zeros(K, jnp.int32)
+    init = (pol0, v0, Q0, zeros, jnp.ones(K, bool), zeros, jnp.asarray(0))
+    _, V, Q, it, _, nmv, _ = jax.lax.while_loop(cond, body, init)
     Vmax = jnp.max(jnp.stack(Q, 0), 0)
     return Q, Vmax, it, _relative(Vmax - V, Vmax), nmv
 
 
 def _hard_vi(op, gamma, r_cols, v0, tol, max_iter):
+    K = v0.shape[0]
+
     def backup(V):
         Q = tuple(r + gamma * e for r, e in zip(r_cols, op.apply(V)))
         return Q, jnp.max(jnp.stack(Q, 0), 0)
 
-    Q, TV = backup(v0)
-
     def cond(c):
-        return (c[3] < max_iter) & (c[4] > tol)
+        return (c[5] < max_iter) & jnp.any(c[4] > tol)
 
     def body(c):
-        V, Q, TV, it, res = c
-        Q, TV_new = backup(TV)
-        return TV, Q, TV_new, it + 1, _relative(TV_new - TV, TV_new)
+        V, Q, TV, it, res, n = c
+        active = res > tol
+        Q_new, TV_new = backup(TV)
+        keep = lambda new, old: jnp.where(active[:, None], new, old)
+        return (keep(TV, V), tuple(keep(a, b) for a, b in zip(Q_new, Q)), keep(TV_new, TV), it + active,
+                jnp.where(active, _relative(TV_new - TV, TV_new), res), n + 1)
 
-    _, Q, TV, it, res = jax.lax.while_loop(cond, body, (v0, Q, TV, jnp.asarray(0), _relative(TV - v0, TV)))
-    return Q, TV, it, res, jnp.asarray(0)
+    Q, TV = backup(v0)
+    init = (v0, Q, TV, jnp.zeros(K, jnp.int32), _relative(TV - v0, TV), jnp.asarray(0))
+    _, Q, TV, it, res, _ = jax.lax.while_loop(cond, body, init)
+    return Q, TV, it, res, jnp.zeros(K, jnp.int32)
 
 
 class HardSolver:
@@ -603,24 +666,18 @@ class HardSolver:
         self.operator = self._op.kind
         self._solve = jax.jit(self._solve_batch)
 
-    def _solve_one(self, r, v0):
-        r_cols = tuple(r[:, a] for a in range(self.num_actions))
+    def _core(self, r, v0):
+        r_cols = tuple(r[..., a] for a in range(self.num_actions))
         if self.method == "policy":
             Q, V, it, res, nmv = _hard_policy_iteration(self._op, self.discount, r_cols, v0, self.tol,
                                                         self.max_iter, self.precondition_degree, self.krylov_dim,
                                                         self.max_restarts)
         else:
             Q, V, it, res, nmv = _hard_vi(self._op, self.discount, r_cols, v0, self.tol, self.max_iter)
-        return SolveResult(V, jnp.stack(Q, -1), it, res, nmv)
+        return V, jnp.stack(Q, -1), it, res, nmv
 
     def _solve_batch(self, r, v0):
-        batch = r.shape[:-2]
-        if v0 is None:
-            v0 = jnp.zeros(batch + (self.num_states,), r.dtype)
-        f = self._solve_one
-        for _ in batch:
-            f = jax.vmap(f)
-        return f(r, v0)
+        return _flattened(self._core, r, v0, self.num_states, self.num_actions)
 
     def __call__(self, rewards, v0=None) -> SolveResult:
         shape = jnp.shape(rewards)
@@ -636,7 +693,7 @@ class HardSolver:
             if _is_concrete(v0):
                 _check_v0(v0, shape[:-2], S)
             v0 = jnp.asarray(v0, jnp.float64)
-        return self._solve(jnp.asarray(rewards, jnp.float64), v0)
+        return _call_flat(self._solve, jnp.asarray(rewards, jnp.float64), v0, S, A)
 
 
 def make_hard_solver(mdp, *, tol: float = 1e-12, max_iter: Optional[int] = None, method: str = "policy",

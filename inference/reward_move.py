@@ -5,11 +5,12 @@ The target is the conditional posterior of each skill's weights,
     p(theta_k | counts_k) ∝ exp(sum_{s,a} C_k[s, a] log pi_theta_k(a | s)) N(theta_k; 0, sigma^2 I),
 
 with the Boltzmann policy of the soft Bellman equation (:mod:`npbrs.models.reward`). One step is
-a Metropolis-adjusted Langevin move per skill, batched over skills with ``vmap``: propose
+a Metropolis-adjusted Langevin move per skill, for all skills at once: propose
 theta' = theta + (eps^2 / 2) M^-1 grad log p(theta) + eps M^-1/2 xi and accept with the
 Metropolis-Hastings ratio including both proposal densities, so the conditional is left
-invariant exactly (up to the solver's tolerance). Gradients are implicit (one adjoint solve), and
-every solve is warm-started from the values of the current state.
+invariant exactly (up to the solver's tolerance). All skills' proposals are solved together
+(one batched solve and one batched adjoint solve per step), every solve warm-started from the
+values of the current state.
 
 Blackjax-style: ``init`` makes the state, ``build_kernel`` returns
 ``kernel(rng_key, state, counts, step_size, inverse_mass=None) -> (state, info)``; both are pure
@@ -62,16 +63,20 @@ class RewardMALAInfo(NamedTuple):
 
 
 def _log_density_and_grad(solver, theta, counts, v0, prior_scale):
-    """log p(theta | counts) up to a constant, its gradient, V, and whether the solve converged."""
+    """log p(theta_k | counts_k) up to a constant for K skills (one batched solve), its
+    gradient, V, and whether each solve converged."""
 
-    def f(t):
+    def total(t):
         res = solver(solver.rewards(t), v0)
-        ll = jnp.sum(counts * (res.Q - res.V[..., None]))
-        ok = (res.residual <= solver.tol) & jnp.isfinite(ll)
-        return ll + log_prior(t, prior_scale), (res.V, ok)
+        lp = jnp.sum(counts * (res.Q - res.V[..., None]), axis=(-2, -1)) + log_prior(t, prior_scale[:, None])
+        ok = (res.residual <= solver.tol) & jnp.isfinite(lp)
+        return jnp.sum(lp), (lp, res.V, ok)
 
-    (lp, (V, ok)), g = jax.value_and_grad(f, has_aux=True)(theta)
-    return lp, g, V, ok & jnp.all(jnp.isfinite(g))
+    (_, (lp, V, ok)), g = jax.value_and_grad(total, has_aux=True)(theta)
+    return lp, g, V, ok & jnp.all(jnp.isfinite(g), axis=-1)
+
+
+_LOG_DENSITY_AND_GRAD = jax.jit(_log_density_and_grad, static_argnums=0)
 
 
 def init(solver, theta, counts, prior_scale=PRIOR_SCALE, v0=None) -> RewardMALAState:
@@ -93,7 +98,7 @@ def init(solver, theta, counts, prior_scale=PRIOR_SCALE, v0=None) -> RewardMALAS
         raise ValueError(f"counts must have shape ({K}, {solver.num_states}, {solver.num_actions}), got {counts.shape}")
     v0 = jnp.zeros((K, solver.num_states)) if v0 is None else jnp.asarray(v0, jnp.float64)
     scale = jnp.broadcast_to(jnp.asarray(prior_scale, jnp.float64), (K,))
-    lp, g, V, _ = jax.vmap(lambda t, c, v, s: _log_density_and_grad(solver, t, c, v, s))(theta, counts, v0, scale)
+    lp, g, V, _ = _LOG_DENSITY_AND_GRAD(solver, theta, counts, v0, scale)
     return RewardMALAState(theta, lp, g, V)
 
 
@@ -110,36 +115,31 @@ def build_kernel(solver, prior_scale=PRIOR_SCALE) -> Callable:
     """
     solver = as_solver(solver)
 
-    def one(key, theta, lp, grad, V, counts, eps, minv, scale):
-        k_prop, k_acc = jax.random.split(key)
-        noise = jax.random.normal(k_prop, theta.shape)
-        mean_fwd = theta + 0.5 * eps ** 2 * minv * grad
-        prop = mean_fwd + eps * jnp.sqrt(minv) * noise
-        lp_new, grad_new, V_new, ok = _log_density_and_grad(solver, prop, counts, V, scale)
-        mean_bwd = prop + 0.5 * eps ** 2 * minv * grad_new
-        log_q_fwd = -0.5 * jnp.sum((prop - mean_fwd) ** 2 / minv) / eps ** 2
-        log_q_bwd = -0.5 * jnp.sum((theta - mean_bwd) ** 2 / minv) / eps ** 2
-        log_ratio = lp_new - lp + log_q_bwd - log_q_fwd
-        log_ratio = jnp.where(ok & jnp.isfinite(log_ratio), log_ratio, -jnp.inf)
-        accept = jnp.log(jax.random.uniform(k_acc)) < log_ratio
-        rate = jnp.exp(jnp.minimum(log_ratio, 0.0))
-        pick = lambda new, old: jnp.where(accept, new, old)
-        return (pick(prop, theta), pick(lp_new, lp), pick(grad_new, grad), pick(V_new, V)), \
-            (rate, accept, lp_new, ~ok)
-
     def kernel(rng_key, state: RewardMALAState, counts, step_size, inverse_mass=None):
         K, D = state.theta.shape
         counts = jnp.asarray(counts, jnp.float64)
         if counts.shape != (K, solver.num_states, solver.num_actions):
             raise ValueError(f"counts must have shape ({K}, {solver.num_states}, {solver.num_actions}), "
                              f"got {counts.shape}")
-        eps = jnp.broadcast_to(jnp.asarray(step_size, jnp.float64), (K,))
+        eps = jnp.broadcast_to(jnp.asarray(step_size, jnp.float64), (K,))[:, None]
         minv = jnp.ones((K, D)) if inverse_mass is None else \
             jnp.broadcast_to(jnp.asarray(inverse_mass, jnp.float64), (K, D))
         scale = jnp.broadcast_to(jnp.asarray(prior_scale, jnp.float64), (K,))
-        keys = jax.random.split(rng_key, K)
-        (theta, lp, grad, V), (rate, acc, lp_new, failed) = jax.vmap(one)(
-            keys, state.theta, state.log_density, state.grad, state.V, counts, eps, minv, scale)
-        return RewardMALAState(theta, lp, grad, V), RewardMALAInfo(rate, acc, lp_new, failed)
+        k_prop, k_acc = jax.random.split(rng_key)
+        theta, lp, grad, V = state
+        mean_fwd = theta + 0.5 * eps ** 2 * minv * grad
+        prop = mean_fwd + eps * jnp.sqrt(minv) * jax.random.normal(k_prop, theta.shape)
+        # all skills' proposals in one batched solve, warm-started from the current values
+        lp_new, grad_new, V_new, ok = _LOG_DENSITY_AND_GRAD(solver, prop, counts, V, scale)
+        mean_bwd = prop + 0.5 * eps ** 2 * minv * grad_new
+        log_q_fwd = -0.5 * jnp.sum((prop - mean_fwd) ** 2 / minv / eps ** 2, -1)
+        log_q_bwd = -0.5 * jnp.sum((theta - mean_bwd) ** 2 / minv / eps ** 2, -1)
+        log_ratio = lp_new - lp + log_q_bwd - log_q_fwd
+        log_ratio = jnp.where(ok & jnp.isfinite(log_ratio), log_ratio, -jnp.inf)
+        accept = jnp.log(jax.random.uniform(k_acc, (K,))) < log_ratio
+        rate = jnp.exp(jnp.minimum(log_ratio, 0.0))
+        pick = lambda new, old: jnp.where(accept.reshape((K,) + (1,) * (new.ndim - 1)), new, old)
+        new_state = RewardMALAState(pick(prop, theta), pick(lp_new, lp), pick(grad_new, grad), pick(V_new, V))
+        return new_state, RewardMALAInfo(rate, accept, lp_new, ~ok)
 
     return kernel

@@ -221,19 +221,18 @@ def count_log_likelihood_and_grad(solver: SoftSolver, theta, counts, v0=None):
     return _LL_AND_GRAD(solver, theta, counts, v0)
 
 
-def _ll_one(solver, theta, counts, v0):
-    res = solver(solver.rewards(theta), v0)
-    return jnp.sum(counts * (res.Q - res.V[..., None])), res.V
-
-
 def _ll_and_grad(solver, theta, counts, v0):
-    """(K,) log-likelihoods, (K, D) gradients and (K, S) values; pure, vmapped over skills."""
+    """(K,) log-likelihoods, (K, D) gradients and (K, S) values of K skills, by one batched
+    solve and one batched adjoint solve (skill k's log-likelihood depends on theta_k only, so
+    the gradient of their sum holds every skill's gradient)."""
 
-    def one(t, c, v):
-        (ll, V), g = jax.value_and_grad(lambda t_: _ll_one(solver, t_, c, v), has_aux=True)(t)
-        return ll, g, V
+    def total(t):
+        res = solver(solver.rewards(t), v0)
+        ll = jnp.sum(counts * (res.Q - res.V[..., None]), axis=(-2, -1))
+        return jnp.sum(ll), (ll, res.V)
 
-    return jax.vmap(one)(theta, counts, v0)
+    (_, (ll, V)), g = jax.value_and_grad(total, has_aux=True)(theta)
+    return ll, g, V
 
 
 _LL_AND_GRAD = jax.jit(_ll_and_grad, static_argnums=0)
@@ -252,120 +251,124 @@ class IRLFit(NamedTuple):
 
 
 def _two_loop(g, S_hist, Y_hist, rho, count, newest, history):
-    """L-BFGS direction -H g from a circular history (masked: the first ``count`` entries)."""
+    """L-BFGS directions -H g of K problems from circular histories (K, history, D), masked to
+    their first ``count`` (K,) entries, newest at ``newest`` (K,)."""
+    ks = jnp.arange(g.shape[0])
     q = g
-    alphas = jnp.zeros(history, g.dtype)
+    alphas = jnp.zeros(rho.shape, g.dtype)
 
     def first(i, c):
         q, alphas = c
         j = (newest - i) % history
-        valid = i < count
-        a = jnp.where(valid, rho[j] * jnp.dot(S_hist[j], q), 0.0)
-        return q - a * Y_hist[j], alphas.at[j].set(a)
+        a = jnp.where(i < count, rho[ks, j] * jnp.sum(S_hist[ks, j] * q, -1), 0.0)
+        return q - a[:, None] * Y_hist[ks, j], alphas.at[ks, j].set(a)
 
     q, alphas = jax.lax.fori_loop(0, history, first, (q, alphas))
-    yy = jnp.dot(Y_hist[newest], Y_hist[newest])
-    scale = jnp.where(count > 0, 1.0 / (rho[newest] * jnp.where(yy > 0, yy, 1.0)), 1.0)
-    z = scale * q
+    y_new = Y_hist[ks, newest]
+    yy = jnp.sum(y_new * y_new, -1)
+    scale = jnp.where(count > 0, 1.0 / (rho[ks, newest] * jnp.where(yy > 0, yy, 1.0)), 1.0)
+    z = scale[:, None] * q
 
     def second(i, z):
-        j = (newest - (history - 1 - i)) % history
-        valid = (history - 1 - i) < count
-        b = rho[j] * jnp.dot(Y_hist[j], z)
-        return z + jnp.where(valid, alphas[j] - b, 0.0) * S_hist[j]
+        age = history - 1 - i
+        j = (newest - age) % history
+        b = rho[ks, j] * jnp.sum(Y_hist[ks, j] * z, -1)
+        return z + jnp.where(age < count, alphas[ks, j] - b, 0.0)[:, None] * S_hist[ks, j]
 
     return -jax.lax.fori_loop(0, history, second, z)
-
-
-def _fit_one(solver, counts, theta0, v0, prior_scale, num_steps, history, max_backtracks):
-    """L-BFGS with a backtracking (Armijo) line search on -(log-lik + log-prior) of one skill.
-
-    Written as one loop that evaluates the objective once per iteration (the start, a trial
-    step, or a backtrack), so the program holds a single copy of the solve and its gradient;
-    every solve is warm-started from the last accepted values. It stops after ``num_steps``
-    steps, or earlier when two line searches in a row find no decrease (converged to
-    rounding): jit-able, with at most ``num_steps * (max_backtracks + 1) + 1`` evaluations.
-    """
-
-    def objective(theta, v):
-        (ll, V), g = jax.value_and_grad(lambda t: _ll_one(solver, t, counts, v), has_aux=True)(theta)
-        lp, gp = jax.value_and_grad(log_prior)(theta, prior_scale)
-        return -(ll + lp), -(g + gp), ll, V
-
-    D = theta0.shape[0]
-    zeros = jnp.zeros(D)
-
-    def direction(g, Sh, Yh, rho, count, newest):
-        d = _two_loop(g, Sh, Yh, rho, count, newest, history)
-        gnorm = jnp.linalg.norm(g)
-        # before any curvature pair, or if the quasi-Newton direction is not a descent
-        # direction: a step of one prior scale along -g
-        fallback = -g * prior_scale / jnp.where(gnorm > 0, gnorm, 1.0)
-        return jnp.where((count > 0) & (jnp.dot(g, d) < 0), d, fallback)
-
-    def cond(c):
-        # a second failed line search in a row (the first one resets the history and tries the
-        # gradient direction) means no decrease is measurable any more: converged
-        return (c["steps"] < num_steps) & (c["failures"] < 2) & ~c["converged"]
-
-    def body(c):
-        first = c["evals"] == 0
-        trial = c["theta"] + c["alpha"] * c["d"]
-        f_new, g_new, ll_new, V_new = objective(trial, c["V"])
-        slope = jnp.dot(c["g"], c["d"])
-        armijo = jnp.isfinite(f_new) & (f_new <= c["f"] + 1e-4 * c["alpha"] * slope)
-        exhausted = c["backtracks"] >= max_backtracks
-        accept = first | armijo
-        done_step = first | armijo | exhausted  # move on to a new direction
-        # curvature pair of an accepted step
-        s_vec = c["alpha"] * c["d"]
-        y_vec = g_new - c["g"]
-        sy = jnp.dot(s_vec, y_vec)
-        store = ~first & armijo & (sy > 1e-10 * jnp.linalg.norm(s_vec) * jnp.linalg.norm(y_vec))
-        slot = jnp.where(store, (c["newest"] + 1) % history, c["newest"])
-        Sh = jnp.where(store, c["S"].at[slot].set(s_vec), c["S"])
-        Yh = jnp.where(store, c["Y"].at[slot].set(y_vec), c["Y"])
-        rho = jnp.where(store, c["rho"].at[slot].set(1.0 / jnp.where(sy != 0, sy, 1.0)), c["rho"])
-        count = jnp.where(store, jnp.minimum(c["count"] + 1, history), c["count"])
-        failed = exhausted & ~accept
-        count = jnp.where(failed, 0, count)  # a failed line search forgets the history
-        pick = lambda new, old: jnp.where(accept, new, old)
-        theta, f, g, ll, V = (pick(trial, c["theta"]), pick(f_new, c["f"]), pick(g_new, c["g"]),
-                              pick(ll_new, c["ll"]), pick(V_new, c["V"]))
-        d = jnp.where(done_step, direction(g, Sh, Yh, rho, count, slot), c["d"])
-        # nothing left to gain that rounding would not hide
-        converged = done_step & (jnp.abs(jnp.dot(g, d)) <= 1e-11 * (1.0 + jnp.abs(f)))
-        return dict(theta=theta, f=f, g=g, ll=ll, V=V, S=Sh, Y=Yh, rho=rho, count=count, newest=slot, d=d,
-                    alpha=jnp.where(done_step, 1.0, 0.5 * c["alpha"]),
-                    backtracks=jnp.where(done_step, 0, c["backtracks"] + 1),
-                    steps=c["steps"] + (done_step & ~first), evals=c["evals"] + 1,
-                    failures=jnp.where(failed, c["failures"] + 1, jnp.where(accept, 0, c["failures"])),
-                    converged=converged)
-
-    init = dict(theta=theta0, f=jnp.asarray(jnp.inf), g=zeros, ll=jnp.asarray(0.0), V=v0,
-                S=jnp.zeros((history, D)), Y=jnp.zeros((history, D)), rho=jnp.zeros(history),
-                count=jnp.asarray(0), newest=jnp.asarray(history - 1), d=zeros, alpha=jnp.asarray(0.0),
-                backtracks=jnp.asarray(0), steps=jnp.asarray(0), evals=jnp.asarray(0), failures=jnp.asarray(0),
-                converged=jnp.asarray(False))
-    c = jax.lax.while_loop(cond, body, init)
-    return c["theta"], c["ll"], c["V"], jnp.linalg.norm(c["g"]), c["evals"]
 
 
 def fit_reward(solver: SoftSolver, counts, theta0, v0, prior_scale=PRIOR_SCALE, num_steps: int = 30,
                history: int = 10, max_backtracks: int = 10):
     """The jit-able core of :func:`irl_fit` for K skills: static shapes, no input checks.
 
+    L-BFGS with a backtracking (Armijo) line search on -(log-lik + log-prior) of every skill,
+    all skills in lock-step: each iteration evaluates the objective once per skill (its start,
+    a trial step or a backtrack) by one batched solve and one batched adjoint solve, every
+    solve warm-started from the skill's last accepted values. So the program holds a single
+    copy of the solver and no loop counter is per-skill. A skill stops after ``num_steps``
+    steps, or earlier once the predicted decrease is below the objective's accuracy (ten times
+    the solver's relative tolerance), or after two failed line searches in a row (the first one
+    resets its history and tries the scaled gradient).
+
     Args:
         solver: a SoftSolver.
         counts: (K, S, A); theta0: (K, D); v0: (K, S); prior_scale: scalar or (K,).
+        num_steps: L-BFGS steps; history: L-BFGS memory; max_backtracks: halvings per line search.
     Returns:
         (theta (K, D), log_lik (K,), V (K, S), norm of the log-posterior's gradient (K,),
         number of value-and-gradient evaluations (K,)).
     """
-    K = theta0.shape[0]
+    K, D = theta0.shape
     scale = jnp.broadcast_to(jnp.asarray(prior_scale, jnp.float64), (K,))
-    return jax.vmap(lambda c, t, v, s: _fit_one(solver, c, t, v, s, num_steps, history, max_backtracks))(
-        counts, theta0, v0, scale)
+    noise = max(10.0 * solver.tol, 1e-13)  # relative accuracy of the objective
+
+    def objective(theta, v):
+        ll, g, V = _ll_and_grad(solver, theta, counts, v)
+        lp = log_prior(theta, scale[:, None])
+        return -(ll + lp), -(g - theta / scale[:, None] ** 2), ll, V
+
+    def direction(g, Sh, Yh, rho, count, newest):
+        d = _two_loop(g, Sh, Yh, rho, count, newest, history)
+        gnorm = jnp.linalg.norm(g, axis=-1, keepdims=True)
+        # before any curvature pair, or if the quasi-Newton direction is not a descent
+        # direction: the Newton step of the prior alone (sigma^2 g; the likelihood only adds
+        # curvature), at most one prior scale long
+        fallback = -g * jnp.minimum(scale[:, None] ** 2, scale[:, None] / jnp.where(gnorm > 0, gnorm, 1.0))
+        ok = (count > 0) & (jnp.sum(g * d, -1) < 0)
+        return jnp.where(ok[:, None], d, fallback)
+
+    def cond(c):
+        return jnp.any(~c["done"])
+
+    def body(c):
+        live = ~c["done"]
+        first = c["evals"] == 0
+        trial = jnp.where(live[:, None], c["theta"] + c["alpha"][:, None] * c["d"], c["theta"])
+        f_new, g_new, ll_new, V_new = objective(trial, c["V"])
+        slope = jnp.sum(c["g"] * c["d"], -1)
+        armijo = jnp.isfinite(f_new) & (f_new <= c["f"] + 1e-4 * c["alpha"] * slope)
+        exhausted = c["backtracks"] >= max_backtracks
+        accept = live & (first | armijo)
+        done_step = live & (first | armijo | exhausted)  # move on to a new direction
+        failed = live & exhausted & ~accept
+        # curvature pair of an accepted step
+        s_vec = c["alpha"][:, None] * c["d"]
+        y_vec = g_new - c["g"]
+        sy = jnp.sum(s_vec * y_vec, -1)
+        store = accept & ~first & (sy > 1e-10 * jnp.linalg.norm(s_vec, axis=-1) * jnp.linalg.norm(y_vec, axis=-1))
+        slot = jnp.where(store, (c["newest"] + 1) % history, c["newest"])
+        ks = jnp.arange(K)
+        Sh = jnp.where(store[:, None, None], c["S"].at[ks, slot].set(s_vec), c["S"])
+        Yh = jnp.where(store[:, None, None], c["Y"].at[ks, slot].set(y_vec), c["Y"])
+        rho = jnp.where(store[:, None], c["rho"].at[ks, slot].set(1.0 / jnp.where(sy != 0, sy, 1.0)), c["rho"])
+        count = jnp.where(store, jnp.minimum(c["count"] + 1, history), c["count"])
+        count = jnp.where(failed, 0, count)  # a failed line search forgets the history
+        pick = lambda new, old: jnp.where(accept.reshape(accept.shape + (1,) * (new.ndim - 1)), new, old)
+        theta, f, g, ll, V = (pick(trial, c["theta"]), pick(f_new, c["f"]), pick(g_new, c["g"]),
+                              pick(ll_new, c["ll"]), pick(V_new, c["V"]))
+        d = jnp.where(done_step[:, None], direction(g, Sh, Yh, rho, count, slot), c["d"])
+        steps = c["steps"] + (done_step & ~first)
+        failures = jnp.where(failed, c["failures"] + 1, jnp.where(accept, 0, c["failures"]))
+        # nothing left to gain that the solver's tolerance would not hide
+        converged = done_step & (jnp.abs(jnp.sum(g * d, -1)) <= noise * (1.0 + jnp.abs(f)))
+        done = c["done"] | (steps >= num_steps) | (failures >= 2) | converged
+        return dict(theta=theta, f=f, g=g, ll=ll, V=V, S=Sh, Y=Yh, rho=rho, count=count, newest=slot, d=d,
+                    alpha=jnp.where(done_step, 1.0, 0.5 * c["alpha"]),
+                    backtracks=jnp.where(done_step, 0, c["backtracks"] + live), steps=steps,
+                    evals=c["evals"] + live, failures=failures, done=done)
+
+    zeros_i = jnp.zeros(K, jnp.int32)
+    init = dict(theta=theta0, f=jnp.full(K, jnp.inf), g=jnp.zeros((K, D)), ll=jnp.zeros(K), V=v0,
+                S=jnp.zeros((K, history, D)), Y=jnp.zeros((K, history, D)), rho=jnp.zeros((K, history)),
+                count=zeros_i, newest=jnp.full(K, history - 1, jnp.int32), d=jnp.zeros((K, D)), alpha=jnp.zeros(K),
+                backtracks=zeros_i, steps=zeros_i, evals=zeros_i, failures=zeros_i,
+                done=jnp.full(K, num_steps <= 0))
+    if num_steps <= 0:
+        f, g, ll, V = objective(theta0, v0)
+        return theta0, ll, V, jnp.linalg.norm(g, axis=-1), jnp.ones(K, jnp.int32)
+    c = jax.lax.while_loop(cond, body, init)
+    return c["theta"], c["ll"], c["V"], jnp.linalg.norm(c["g"], axis=-1), c["evals"]
 
 
 def irl_fit(solver, counts, theta0=None, *, prior_scale=PRIOR_SCALE, num_steps: int = 30, v0=None,
