@@ -160,7 +160,10 @@ class FitResult:
                 out[name] = float("nan") if x.shape[1] < 4 else (1.0 if fn.__name__ == "split_gelman_rubin"
                                                                   else float(x.size))
                 continue
-            out[name] = float(fn(x))
+            value = float(fn(x))
+            if fn.__name__ == "effective_sample_size":
+                value = min(value, float(x.size))  # a nearly constant short run can overflow the estimate
+            out[name] = value if np.isfinite(value) else float("nan")
         return out
 
     @property

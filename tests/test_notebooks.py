@@ -71,8 +71,7 @@ def test_the_notebook_runs_without_error(executed, name):
     nb = executed[name]
     if isinstance(nb, BaseException):
         raise nb
-    errors = [out for cell in nb.cells if cell.cell_type == "code" for out in cell.outputs
-              if out.output_type == "error"]
+    code = [cell for cell in nb.cells if cell.cell_type == "code"]
+    errors = [out for cell in code for out in cell.outputs if out.output_type == "error"]
     assert not errors, f"{name}: {errors[0].ename}: {errors[0].evalue}"
-    last = nb.cells[-1] if nb.cells[-1].cell_type == "code" else [c for c in nb.cells if c.cell_type == "code"][-1]
-    assert last.execution_count is not None  # every cell ran
+    assert all(cell.execution_count is not None for cell in code)  # every cell ran
