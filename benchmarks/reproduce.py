@@ -24,7 +24,7 @@ RESULTS = os.path.join(os.path.dirname(os.path.abspath(__file__)), "results")
 
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(prog="benchmarks/reproduce.py", description=__doc__.split("\n\n")[0])
-    configure_parser(parser, default_output=RESULTS)
+    configure_parser(parser, default_output=os.path.relpath(RESULTS))
     args = parser.parse_args(argv)
     return int(args.func(args) or 0)
 
