@@ -8,3 +8,5 @@ from .config import EmissionConfig, Hyperparameter, ModelConfig, PriorConfig, Sa
 from .runs import load, load_mdp, save_mdp
 from .diagnostics import convergence, relabel, skill_summary
 from .plots import plot_segmentation, plot_skill_rewards, plot_trace, skill_styles
+from . import reward_move  # reward_move.init / reward_move.build_kernel: MALA on reward weights
+from .reward_move import RewardMALAInfo, RewardMALAState

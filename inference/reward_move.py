@@ -28,7 +28,7 @@ from typing import Callable, NamedTuple
 import jax
 import jax.numpy as jnp
 
-from ..models.reward import PRIOR_SCALE, as_solver, log_prior
+from ..models.reward import PRIOR_SCALE, _check_prior_scale, as_solver, log_prior
 
 jax.config.update("jax_enable_x64", True)
 
@@ -89,6 +89,7 @@ def init(solver, theta, counts, prior_scale=PRIOR_SCALE, v0=None) -> RewardMALAS
         v0: optional (K, S) warm start of the first solve.
     """
     solver = as_solver(solver)
+    _check_prior_scale(prior_scale)
     theta = jnp.asarray(theta, jnp.float64)
     counts = jnp.asarray(counts, jnp.float64)
     if theta.ndim != 2 or theta.shape[1] != solver.num_features:
@@ -114,6 +115,7 @@ def build_kernel(solver, prior_scale=PRIOR_SCALE) -> Callable:
         M^-1) None, (D,) or (K, D).
     """
     solver = as_solver(solver)
+    _check_prior_scale(prior_scale)
 
     def kernel(rng_key, state: RewardMALAState, counts, step_size, inverse_mass=None):
         K, D = state.theta.shape

@@ -32,29 +32,14 @@ import numpyro.distributions as dist
 
 from ..domains.solvers import make_soft_solver
 from .emissions import Emission, register_emission
-from .reward import count_log_likelihood_and_grad, count_table, fit_reward, step_log_likelihoods
+from .reward import (count_log_likelihood_and_grad, count_table, fisher_information, fit_reward,
+                     step_log_likelihoods)
 
 jax.config.update("jax_enable_x64", True)
 
-__all__ = ["RewardEmission", "SingleRewardEmission", "fisher_information"]
+__all__ = ["RewardEmission", "SingleRewardEmission"]
 
 _UPDATES = ("mala", "map")
-
-
-def fisher_information(solver, theta, counts, v0=None):
-    """Fisher information of theta (D,) for steps with count table ``counts`` (S, A):
-    sum_s n_s Cov_{a ~ pi(.|s)}[d log pi(a|s) / d theta], (D, D)."""
-
-    def log_pi(t):
-        res = solver(solver.rewards(t), v0)
-        return res.Q - res.V[..., None]
-
-    lp = log_pi(theta)
-    J = jax.jacfwd(log_pi)(theta)  # (S, A, D)
-    pi = jnp.exp(lp)
-    n_s = jnp.sum(counts, axis=-1)
-    mean = jnp.einsum("sa,sad->sd", pi, J)
-    return (jnp.einsum("s,sa,sad,sae->de", n_s, pi, J, J) - jnp.einsum("s,sd,se->de", n_s, mean, mean))
 
 
 @register_emission("reward")

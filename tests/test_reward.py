@@ -4,8 +4,8 @@ import numpy as np
 import pytest
 
 from npbrs.domains import TabularMDP, greedy_policy, make_soft_solver
-from npbrs.models.reward import (count_log_likelihood, count_log_likelihood_and_grad, count_table, fit_reward,
-                                 irl_fit, log_policy, step_log_likelihoods)
+from npbrs.models.reward import (count_log_likelihood, count_log_likelihood_and_grad, count_table,
+                                 fisher_information, fit_reward, irl_fit, log_policy, step_log_likelihoods)
 
 
 def random_mdp(seed, S=8, A=3, D=4, gamma=0.9):
@@ -104,6 +104,17 @@ def test_forward_mode_equals_reverse_mode(small):
         jnp.asarray(theta), jnp.asarray(direction))
     _, grad, _ = count_log_likelihood_and_grad(solver, theta, counts)
     np.testing.assert_allclose(tangent, np.sum(np.asarray(grad) * direction, -1), rtol=1e-9)
+
+
+def test_fisher_information_of_a_logistic_policy():
+    """One absorbing state, phi(s, a) = [a]: pi(1) = sigmoid(theta), Fisher = n p (1 - p)."""
+    mdp = TabularMDP(successors=np.zeros((1, 2, 1), int), probs=np.ones((1, 2, 1)),
+                     features=np.array([[[0.0], [1.0]]]), discount=0.9)
+    theta = np.array([[0.7], [-2.0]])
+    counts = np.array([[[3.0, 5.0]], [[1.0, 1.0]]])
+    F = fisher_information(make_soft_solver(mdp, tol=1e-12), theta, counts)
+    p = 1.0 / (1.0 + np.exp(-theta[:, 0]))
+    np.testing.assert_allclose(F[:, 0, 0], counts.sum((1, 2)) * p * (1 - p), rtol=1e-9)
 
 
 def test_irl_fit_reaches_a_stationary_point_inside_jit_and_warm_starts(small):

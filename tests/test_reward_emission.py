@@ -14,7 +14,8 @@ from npbrs.domains import Demonstrations, TabularMDP, generate_demonstrations
 from npbrs.inference import fit
 from npbrs.inference.metrics import paper_accuracy
 from npbrs.models.emissions import HMMData
-from npbrs.models.reward_emission import RewardEmission, fisher_information
+from npbrs.models.reward import fisher_information
+from npbrs.models.reward_emission import RewardEmission
 
 
 def test_reward_emission_follows_the_protocol():
