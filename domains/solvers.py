@@ -574,6 +574,13 @@ def make_soft_solver(mdp, *, tol: float = 1e-10, max_iter: Optional[int] = None,
         grad_tol: relative tolerance of the linear solves of derivatives.
     Returns:
         A :class:`SoftSolver`; ``solver(rewards (..., S, A), v0 (..., S) or None)``.
+
+    Example::
+
+        solver = make_soft_solver(mdp)
+        res = solver(rewards)                          # rewards (K, S, A): res.V (K, S), res.Q (K, S, A)
+        res = jax.jit(solver)(rewards * 1.01, res.V)   # warm start, inside jit
+        g = jax.grad(lambda r: solver(r).V.sum())(rewards)  # implicit gradient
     """
     return SoftSolver(mdp, tol=tol, max_iter=max_iter, method=method, operator=operator, krylov_dim=krylov_dim,
                       max_restarts=max_restarts, precondition_degree=precondition_degree, forcing=forcing,
