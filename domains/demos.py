@@ -9,10 +9,11 @@ from __future__ import annotations
 
 import hashlib
 import os
-import tempfile
 from typing import Optional, Sequence
 
 import numpy as np
+
+from .files import atomic_write
 
 __all__ = ["Demonstrations", "generate_demonstrations"]
 
@@ -165,19 +166,11 @@ class Demonstrations:
 
     def save(self, path) -> None:
         """Write an ``.npz`` file at exactly ``path``, atomically (a temporary file, then a rename)."""
-        path = os.fspath(path)
-        directory = os.path.dirname(os.path.abspath(path))
-        fd, tmp = tempfile.mkstemp(dir=directory, prefix=".demos-", suffix=".npz.tmp")
-        try:
-            with os.fdopen(fd, "wb") as f:
+        def write(tmp):
+            with open(tmp, "wb") as f:
                 np.savez(f, **self._arrays())
-                f.flush()
-                os.fsync(f.fileno())
-            os.replace(tmp, path)
-        except BaseException:
-            if os.path.exists(tmp):
-                os.remove(tmp)
-            raise
+
+        atomic_write(path, write, suffix=".npz.tmp")
 
     @classmethod
     def load(cls, path) -> "Demonstrations":

@@ -42,9 +42,10 @@ from __future__ import annotations
 import dataclasses
 import math
 import os
-import tempfile
 from dataclasses import dataclass, field
 from typing import Any, Dict, Optional, Union
+
+from npbrs.domains.files import atomic_write
 
 __all__ = ["ModelConfig", "EmissionConfig", "PriorConfig", "SamplerConfig", "Hyperparameter", "CHAIN_METHODS"]
 
@@ -395,16 +396,11 @@ class ModelConfig:
         """This config as TOML text; also written (atomically) to ``path`` when given."""
         text = _toml_document(self.to_dict())
         if path is not None:
-            path = os.fspath(path)
-            fd, tmp = tempfile.mkstemp(dir=os.path.dirname(os.path.abspath(path)), prefix=".config-", suffix=".tmp")
-            try:
-                with os.fdopen(fd, "w", encoding="utf-8") as f:
+            def write(tmp):
+                with open(tmp, "w", encoding="utf-8") as f:
                     f.write(text)
-                os.replace(tmp, path)
-            except BaseException:
-                if os.path.exists(tmp):
-                    os.remove(tmp)
-                raise
+
+            atomic_write(path, write, suffix=".toml.tmp")
         return text
 
 

@@ -29,11 +29,12 @@ from __future__ import annotations
 import copy
 import json
 import os
-import tempfile
 import time
 from typing import Callable, Dict, Optional, Sequence
 
 import numpy as np
+
+from npbrs.domains.files import atomic_write
 
 __all__ = ["reproduce", "default_settings", "format_markdown", "save_json", "load_json", "add_parser",
            "reproduce_command", "METHODS", "EMISSIONS", "ROWS", "COLUMNS", "PAPER", "QUICK_DATA"]
@@ -375,15 +376,12 @@ def _write_atomic(path, text: str) -> None:
     path = os.fspath(path)
     directory = os.path.dirname(os.path.abspath(path))
     os.makedirs(directory, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=directory, prefix=".tmp-", suffix=os.path.basename(path))
-    try:
-        with os.fdopen(fd, "w") as f:
+
+    def write(tmp):
+        with open(tmp, "w") as f:
             f.write(text)
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.remove(tmp)
-        raise
+
+    atomic_write(path, write, suffix=".tmp")
 
 
 def save_json(result: dict, path) -> None:

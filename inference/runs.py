@@ -39,36 +39,16 @@ from __future__ import annotations
 
 import json
 import os
-import tempfile
 
 import numpy as np
+
+from npbrs.domains.files import atomic_write
 
 __all__ = ["save_run", "load_run", "load", "to_inference_data", "from_inference_data", "save_mdp", "load_mdp",
            "write_checkpoint", "read_checkpoint", "restore_state", "atomic_write"]
 
 RUN_FORMAT, RUN_VERSION = "npbrs-run", 1
 CHECKPOINT_FORMAT, CHECKPOINT_VERSION = "npbrs-checkpoint", 1
-
-
-def atomic_write(path, write, suffix: str = ".tmp") -> None:
-    """Call ``write(temporary_path)``, then rename the temporary file to ``path``.
-
-    The temporary file lives in ``path``'s directory (a rename across file systems is not
-    atomic) and is removed if ``write`` fails or is interrupted.
-    """
-    path = os.fspath(path)
-    directory = os.path.dirname(os.path.abspath(path))
-    fd, tmp = tempfile.mkstemp(dir=directory, prefix="." + os.path.basename(path) + "-", suffix=suffix)
-    os.close(fd)
-    try:
-        write(tmp)
-        with open(tmp, "rb+") as f:
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.remove(tmp)
-        raise
 
 
 # ------------------------------------------------------------------------------ saved runs
