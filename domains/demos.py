@@ -8,7 +8,6 @@ A file holds ``states`` and ``actions`` (every trajectory's integers, concatenat
 from __future__ import annotations
 
 import hashlib
-import os
 from typing import Optional, Sequence
 
 import numpy as np
