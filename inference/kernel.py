@@ -29,6 +29,7 @@ from npbrs.models.emissions import Emission, HMMData
 from npbrs.models.hmm import batch_backward_sample, batch_forward_filter, transition_counts
 
 from .moves import birth_death
+from .split_merge import split_merge
 
 jax.config.update("jax_enable_x64", True)
 
@@ -43,7 +44,8 @@ class BPHMMState(NamedTuple):
     z (N, T) skill sequences (-1 on padding), log_lik (N, T, K), log_marginals (N,),
     log_joint: the model's log density, num_skills: skills used by z, num_switches: mean
     switches per trajectory, accept: the emission move's mean acceptance, birth_accept: the
-    fraction of birth/death trials accepted in the last sweep, best_*: the
+    fraction of birth/death trials accepted in the last sweep, split_accept: likewise for
+    split-merge trials, best_*: the
     highest-log-joint state seen after warmup.
     """
 
@@ -64,6 +66,7 @@ class BPHMMState(NamedTuple):
     num_switches: jax.Array
     accept: jax.Array
     birth_accept: jax.Array
+    split_accept: jax.Array
     best_log_joint: jax.Array
     best_z: jax.Array
     best_params: Dict[str, jax.Array]
@@ -95,7 +98,9 @@ class BPHMMKernel(MCMCKernel):
         init_window: window length of the initial segmentation.
         sample_features: Gibbs on the features (off only for tests of the other steps).
         moves: trans-dimensional moves, {"birth_death": trials per sweep (0: off),
-            "window": (min, max) length of a birth's window}.
+            "window": (min, max) length of a birth's window, "split_merge": trials per sweep
+            (0: off; the emission needs ``fit_point``), "blocks": refits of a split's
+            sequential allocation}.
     """
 
     sample_field = "params"
@@ -112,10 +117,13 @@ class BPHMMKernel(MCMCKernel):
         self.init_window = int(init_window)
         self.sample_features = bool(sample_features)
         self.moves = self.check_moves(moves)
+        if self.moves["split_merge"] and not emission.supports_split_merge():
+            raise ValueError(f"moves.split_merge: the {emission.name!r} emission has no fit_point, which "
+                             "split-merge moves need; use birth_death moves or implement Emission.fit_point")
         self._num_warmup = 0
         self._init_fns = {}
 
-    _MOVE_DEFAULTS = {"birth_death": 0, "window": (10, 50)}
+    _MOVE_DEFAULTS = {"birth_death": 0, "window": (10, 50), "split_merge": 0, "blocks": 4}
 
     @classmethod
     def check_moves(cls, moves):
@@ -125,8 +133,11 @@ class BPHMMKernel(MCMCKernel):
             if name not in out:
                 raise ValueError(f"unknown move option {name!r}; expected one of {sorted(out)}")
             out[name] = value
-        if not isinstance(out["birth_death"], int) or isinstance(out["birth_death"], bool) or out["birth_death"] < 0:
-            raise ValueError(f"moves.birth_death must be a number of trials >= 0, got {out['birth_death']!r}")
+        for name in ("birth_death", "split_merge"):
+            if not isinstance(out[name], int) or isinstance(out[name], bool) or out[name] < 0:
+                raise ValueError(f"moves.{name} must be a number of trials >= 0, got {out[name]!r}")
+        if not isinstance(out["blocks"], int) or isinstance(out["blocks"], bool) or out["blocks"] < 1:
+            raise ValueError(f"moves.blocks must be an integer >= 1, got {out['blocks']!r}")
         lo, hi = out["window"]
         if not (1 <= int(lo) <= int(hi)):
             raise ValueError(f"moves.window must be (min, max) with 1 <= min <= max, got {out['window']!r}")
@@ -192,7 +203,7 @@ class BPHMMKernel(MCMCKernel):
             features=features, eta=eta, params=params,
             cache=self.emission.init_cache(K), hyper=hyper, z=z,
             log_lik=jnp.zeros((N, T, K)), log_marginals=jnp.zeros(N), log_joint=zero,
-            num_skills=jnp.int32(0), num_switches=zero, accept=zero, birth_accept=zero,
+            num_skills=jnp.int32(0), num_switches=zero, accept=zero, birth_accept=zero, split_accept=zero,
             best_log_joint=jnp.float64(-jnp.inf), best_z=z, best_params=params, best_features=features)
         return self._finish(state)
 
@@ -261,7 +272,7 @@ class BPHMMKernel(MCMCKernel):
         """One full Gibbs sweep."""
         N, K = state.features.shape
         mask = self.data.mask
-        key, k_feat, k_bd, k_z, k_eta, k_em, k_hyp = jax.random.split(state.rng_key, 7)
+        key, k_feat, k_bd, k_z, k_eta, k_em, k_hyp, k_sm = jax.random.split(state.rng_key, 8)
         features = self._sample_features(k_feat, state) if self.sample_features else state.features
         params, log_lik = state.params, state.log_lik
         births = jnp.zeros(())
@@ -279,6 +290,18 @@ class BPHMMKernel(MCMCKernel):
         log_init, log_trans, active = hmm_parameters(features, state.eta)
         _, log_alpha = batch_forward_filter(log_init, log_trans, log_lik, mask, active)
         z = batch_backward_sample(k_z, log_trans, log_alpha, mask, active)
+        splits = jnp.zeros(())
+        if self.moves["split_merge"]:
+            blocks = min(self.moves["blocks"], N)
+
+            def sm_trial(carry, key):
+                f, zz, p, ll = carry
+                f, zz, p, ll, info = split_merge(key, self.emission, self.data, state.hyper, f, zz, p, ll, blocks)
+                return (f, zz, p, ll), info.accepted
+
+            (features, z, params, log_lik), sm_accepted = jax.lax.scan(
+                sm_trial, (features, z, params, log_lik), jax.random.split(k_sm, self.moves["split_merge"]))
+            splits = jnp.mean(sm_accepted.astype(jnp.float64))
         # eta | z, F and omega | F are conditionally independent: one block
         eta, omega = self._sample_eta_omega(k_eta, z, features, state.hyper)
         weights = _skill_weights(z, mask, K)
@@ -286,7 +309,7 @@ class BPHMMKernel(MCMCKernel):
                                                    state.step < state.num_warmup)
         accept = jnp.asarray(info.get("accept", 1.0) if isinstance(info, dict) else 1.0, jnp.float64)
         new = state._replace(rng_key=key, omega=omega, features=features, eta=eta, params=params, cache=cache,
-                             z=z, accept=jnp.mean(accept), birth_accept=births)
+                             z=z, accept=jnp.mean(accept), birth_accept=births, split_accept=splits)
         if self.hyperpriors:
             new = new._replace(hyper=self._sample_hyper(k_hyp, new))
         new = self._finish(new)

@@ -32,7 +32,7 @@ jax.config.update("jax_enable_x64", True)
 
 __all__ = ["Hyper", "prior_distributions", "hmm_parameters", "log_marginal_likelihoods",
            "bphmm_model", "log_joint_terms",
-           "collapsed_feature_log_prob"]
+           "collapsed_feature_log_prob", "collapsed_sequence_log_prob"]
 
 class Hyper(NamedTuple):
     """BP-HMM hyperparameters: IBP mass alpha, stickiness kappa, transition concentration gamma."""
@@ -88,6 +88,40 @@ def collapsed_feature_log_prob(features, alpha):
     a = alpha / K
     m = jnp.sum(features, axis=0)
     return jnp.sum(betaln(m + a, N - m + 1.0) - betaln(a, 1.0))
+
+
+def collapsed_sequence_log_prob(z, mask, features, kappa, gamma):
+    """log p(z_i | f_i) with the transition weights eta_i integrated out, per trajectory (N,).
+
+    Given f_i, row j of pi_i is Dirichlet(gamma + kappa [j == k], k active) (normalised
+    Gamma weights), so each row contributes a Dirichlet-multinomial term of its transition
+    counts; the first skill is uniform over the active ones. A sequence that uses an
+    inactive skill has probability 0 (-inf).
+
+    Args:
+        z: (N, T) skills (-1 or anything at masked steps); mask: (N, T) bool;
+        features: (N, K) 0/1; kappa, gamma: the hyperparameters.
+    """
+    from jax.scipy.special import gammaln
+
+    from .hmm import transition_counts
+
+    N, K = features.shape
+    active = features > 0
+    z = jnp.where(mask, z, -1)
+    counts = transition_counts(z, mask, K).astype(jnp.float64)  # (N, K, K)
+    conc = gamma + kappa * jnp.eye(K)
+    pair = active[:, :, None] & active[:, None, :]
+    c = jnp.where(pair, conc, 0.0)
+    row = (gammaln(jnp.maximum(jnp.sum(c, -1), 1e-300)) - gammaln(jnp.sum(c, -1) + jnp.sum(counts, -1))
+           + jnp.sum(jnp.where(pair, gammaln(c + counts) - gammaln(jnp.where(pair, c, 1.0)), 0.0), -1))
+    trans = jnp.sum(jnp.where(active, row, 0.0), -1)
+    has_steps = jnp.any(mask, -1)
+    n_active = jnp.sum(active, -1)
+    init = jnp.where(has_steps, -jnp.log(jnp.maximum(n_active, 1)), 0.0)
+    used = jnp.any(jax.nn.one_hot(z, K, dtype=bool) & mask[..., None], axis=1)
+    ok = ~jnp.any(used & ~active, -1) & (n_active > 0)
+    return jnp.where(ok, trans + init, -jnp.inf)
 
 
 def _hyper_value(name, value, hyperpriors):

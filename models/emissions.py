@@ -81,11 +81,23 @@ class Emission:
     def log_proposal(self, params_one, data: HMMData, weights):
         raise NotImplementedError
 
-    def propose_and_score(self, key, data: HMMData, weights, other_one):
+    def propose_and_score(self, key, data: HMMData, weights, other_one, init=None):
         """``(new_one, log q(new_one), log q(other_one))`` under one data-driven proposal
-        (a birth needs the first two, the matching death the last); override to share work."""
+        (a birth needs the first two, the matching death the last); override to share work.
+        ``init``: optional parameters of one skill that an iterative fit may start from (the
+        proposal must be a deterministic function of ``weights`` and ``init``)."""
         new, log_q = self.propose(key, data, weights)
         return new, log_q, self.log_proposal(other_one, data, weights)
+
+    def fit_point(self, data: HMMData, weights, init=None):
+        """Deterministic point estimates (M, ...) of M skills' parameters from weighted steps
+        ``weights`` (N, T, M), e.g. a few IRL steps started at ``init`` (M, ...) or a posterior
+        mean. Used by the split-merge move's sequential allocation; optional."""
+        raise NotImplementedError(f"the {self.name!r} emission has no fit_point (needed by split-merge moves)")
+
+    @classmethod
+    def supports_split_merge(cls) -> bool:
+        return cls.fit_point is not Emission.fit_point
 
     def sample_prior_one(self, key):
         """One skill's parameters drawn from the prior (the sites of ``sample_params(1)``)."""
@@ -205,6 +217,10 @@ class PolicyEmission(Emission):
 
         conc = self.concentration + self._counts(data, weights)
         return jnp.sum(dist.Dirichlet(conc).log_prob(params_one["policy"]))
+
+    def fit_point(self, data, weights, init=None):
+        conc = self.concentration + self._counts(data, weights)  # (M, S, A)
+        return {"policy": conc / jnp.sum(conc, -1, keepdims=True)}
 
     def describe(self):
         return {"name": self.name, "concentration": self.concentration}

@@ -29,7 +29,7 @@ import jax.numpy as jnp
 
 jax.config.update("jax_enable_x64", True)
 
-__all__ = ["NEG_LOG", "forward_filter", "backward_sample", "viterbi", "batch_forward_filter",
+__all__ = ["NEG_LOG", "forward_filter", "backward_sample", "path_log_prob", "viterbi", "batch_forward_filter",
            "batch_backward_sample", "batch_viterbi", "transition_counts", "initial_counts"]
 
 # Stands in for log 0. exp(NEG_LOG) is exactly 0 in float32 and float64, and sums of a few of
@@ -129,6 +129,37 @@ def backward_sample(key, log_trans, log_alpha, mask=None, active=None) -> jax.Ar
 
     _, z = jax.lax.scan(step, jnp.int32(-1), (jnp.arange(T), log_alpha, mask), reverse=True)
     return z
+
+
+def path_log_prob(log_init, log_trans, log_lik, z, mask=None, active=None) -> jax.Array:
+    """log p(z_{1:T}, x_{1:T}) of one skill sequence under the model of :func:`forward_filter`.
+
+    Minus the filter's ``log_marginal`` it is the log-probability with which
+    :func:`backward_sample` draws ``z``. A sequence that uses an inactive skill gets a value
+    near ``NEG_LOG`` (far below any real log-probability), never NaN.
+
+    Args:
+        log_init, log_trans, log_lik, mask, active: as for :func:`forward_filter`.
+        z: (T,) int skills (ignored at masked steps).
+    Returns:
+        scalar log-probability.
+    """
+    log_lik = jnp.asarray(log_lik)
+    T, K = log_lik.shape
+    mask = jnp.ones(T, dtype=bool) if mask is None else jnp.asarray(mask, dtype=bool)
+    active, log_trans, log_init = _prepare(jnp.asarray(log_init), jnp.asarray(log_trans), active)
+    log_lik = _prepare_lik(log_lik, active)
+    z = jnp.clip(jnp.asarray(z), 0, K - 1)
+    emit = jnp.where(active[z], jnp.take_along_axis(log_lik, z[:, None], axis=1)[:, 0], NEG_LOG)
+
+    def step(prev, inputs):
+        zt, e, real = inputs
+        first = prev < 0
+        lp = jnp.where(first, log_init[zt], log_trans[jnp.maximum(prev, 0), zt]) + e
+        return jnp.where(real, zt, prev), jnp.where(real, lp, 0.0)
+
+    _, terms = jax.lax.scan(step, jnp.int32(-1), (z.astype(jnp.int32), emit, mask))
+    return jnp.sum(terms)
 
 
 def viterbi(log_init, log_trans, log_lik, mask=None, active=None) -> Tuple[jax.Array, jax.Array]:

@@ -196,11 +196,22 @@ class RewardEmission(Emission):
         return theta, {**cache, "V": V, "log_step": log_step, "scale": scale}, acc_sum / self.mala_steps
 
     # ------------------------------------------------------------------ data-driven proposal
-    def _proposal(self, data, weights):
+    def fit_point(self, data, weights, init=None):
+        """IRL fits (M, D) to weighted steps (N, T, M): ``fit_steps`` L-BFGS steps from ``init``
+        (or from theta = 0)."""
+        counts = self._counts(data, weights)  # (M, S, A)
+        M, D = counts.shape[0], self.num_features
+        theta0 = jnp.zeros((M, D)) if init is None else self._scaled(init["theta"])
+        fit, _, _, _, _ = fit_reward(self.solver, counts, theta0, jnp.zeros((M, self.num_states)), self.prior_scale,
+                                     self.fit_steps)
+        return {"theta": fit / self.temperature}
+
+    def _proposal(self, data, weights, init=None):
         """Mean (D,) and Cholesky factor (D, D) of the proposal fitted to weighted steps."""
         counts = self._counts(data, weights)  # (S, A)
         D = self.num_features
-        fit, _, V, _, _ = fit_reward(self.solver, counts[None], jnp.zeros((1, D)), jnp.zeros((1, self.num_states)),
+        theta0 = jnp.zeros((1, D)) if init is None else self._scaled(init["theta"])[None]
+        fit, _, V, _, _ = fit_reward(self.solver, counts[None], theta0, jnp.zeros((1, self.num_states)),
                                      self.prior_scale, self.fit_steps)
         mean = fit[0] / self.temperature
         F = fisher_information(self.solver, self._scaled(mean), counts, V[0]) * self.temperature ** 2
@@ -214,8 +225,8 @@ class RewardEmission(Emission):
         theta = mean + chol @ jax.random.normal(key, mean.shape)
         return {"theta": theta}, dist.MultivariateNormal(mean, scale_tril=chol).log_prob(theta)
 
-    def propose_and_score(self, key, data, weights, other_one):
-        mean, chol = self._proposal(data, weights)
+    def propose_and_score(self, key, data, weights, other_one, init=None):
+        mean, chol = self._proposal(data, weights, init)
         q = dist.MultivariateNormal(mean, scale_tril=chol)
         theta = mean + chol @ jax.random.normal(key, mean.shape)
         return {"theta": theta}, q.log_prob(theta), q.log_prob(other_one["theta"])

@@ -56,7 +56,9 @@ def exact_partition_posterior():
     return keys, np.exp(lps - np.logaddexp.reduce(lps))
 
 
-@pytest.mark.parametrize("moves", [{}, {"birth_death": 2, "window": (1, 3)}])
+@pytest.mark.parametrize("moves", [{}, {"birth_death": 2, "window": (1, 3)}, {"split_merge": 2, "blocks": 2},
+                                   {"split_merge": 1, "blocks": 1, "birth_death": 1, "window": (1, 3)}],
+                         ids=["gibbs", "birth_death", "split_merge", "all_moves"])
 def test_sampler_visits_segmentations_in_proportion_to_their_posterior(moves):
     keys, exact = exact_partition_posterior()
     data = HMMData(jnp.zeros(ACTIONS.shape, jnp.int32), jnp.asarray(ACTIONS, jnp.int32), jnp.ones(ACTIONS.shape, bool))

@@ -1,0 +1,138 @@
+"""Split-merge moves: the collapsed densities they use, and a split followed by the matching
+merge returns the state with reciprocal acceptance ratios."""
+
+import itertools
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from npbrs.inference.kernel import BPHMMKernel
+from npbrs.inference.split_merge import split_merge, split_merge_at
+from npbrs.models.bphmm import collapsed_sequence_log_prob
+from npbrs.models.emissions import PolicyEmission
+from npbrs.models.hmm import backward_sample, forward_filter, path_log_prob
+from test_kernel import planted_policy_data
+
+
+def test_collapsed_sequence_prob_is_a_distribution_and_matches_monte_carlo():
+    K, T, kappa, gamma = 3, 4, 2.0, 0.7
+    f = np.array([1.0, 0.0, 1.0])
+    paths = [np.array(p) for p in itertools.product(range(K), repeat=T)]
+    Z = jnp.asarray(np.stack(paths), jnp.int32)
+    lp = np.asarray(collapsed_sequence_log_prob(Z, jnp.ones(Z.shape, bool), jnp.tile(f, (len(paths), 1)), kappa, gamma))
+    np.testing.assert_allclose(np.exp(lp).sum(), 1.0, rtol=1e-10)
+    uses_inactive = np.array([np.any(p == 1) for p in paths])
+    assert np.all(np.isneginf(lp[uses_inactive]))
+    # Monte Carlo over eta ~ Gamma(gamma + kappa I): p(z | f) = E[prod pi]
+    rng = np.random.default_rng(0)
+    eta = rng.gamma(gamma + kappa * np.eye(K), size=(200000, K, K)) * f
+    pi = eta / eta.sum(-1, keepdims=True)
+    for p in [np.array([0, 0, 2, 2]), np.array([2, 0, 2, 0]), np.array([0, 0, 0, 0])]:
+        mc = 0.5 * np.prod([pi[:, p[t], p[t + 1]] for t in range(T - 1)], axis=0)
+        lp_p = float(collapsed_sequence_log_prob(jnp.asarray(p)[None], jnp.ones((1, T), bool), jnp.asarray(f)[None],
+                                                 kappa, gamma)[0])
+        assert abs(mc.mean() - np.exp(lp_p)) < 4 * mc.std() / np.sqrt(len(mc)), (p, mc.mean(), np.exp(lp_p))
+    # padding is skipped
+    zpad = jnp.asarray([[0, 2, -1, -1]])
+    lp_pad = collapsed_sequence_log_prob(zpad, jnp.asarray([[True, True, False, False]]), jnp.asarray(f)[None],
+                                         kappa, gamma)
+    lp_short = collapsed_sequence_log_prob(jnp.asarray([[0, 2]]), jnp.ones((1, 2), bool), jnp.asarray(f)[None],
+                                           kappa, gamma)
+    np.testing.assert_allclose(float(lp_pad[0]), float(lp_short[0]), rtol=1e-12)
+
+
+def test_path_log_prob_is_the_backward_samplers_probability():
+    rng = np.random.default_rng(1)
+    K, T = 3, 4
+    log_init = jnp.asarray(rng.normal(size=K))
+    log_trans = jnp.asarray(rng.normal(size=(K, K)))
+    log_lik = jnp.asarray(rng.normal(size=(T, K)))
+    mask = jnp.asarray([True, True, True, False])
+    active = jnp.asarray([True, False, True])
+    lm, alpha = forward_filter(log_init, log_trans, log_lik, mask, active)
+    paths = [np.array(p + (0,)) for p in itertools.product(range(K), repeat=T - 1)]
+    q = np.array([float(path_log_prob(log_init, log_trans, log_lik, jnp.asarray(p), mask, active) - lm)
+                  for p in paths])
+    np.testing.assert_allclose(np.exp(q).sum(), 1.0, rtol=1e-10)
+    draws = jax.vmap(lambda k: backward_sample(k, log_trans, alpha, mask, active))(
+        jax.random.split(jax.random.PRNGKey(0), 20000))
+    draws = np.asarray(draws)[:, :3]
+    for p, qp in zip(paths, q):
+        freq = np.mean(np.all(draws == p[:3], axis=1))
+        assert abs(freq - np.exp(qp)) < 5 * np.sqrt(np.exp(qp) * (1 - np.exp(qp)) / 20000) + 1e-9
+
+
+def _state(seed=2):
+    data, _ = planted_policy_data(seed=seed, N=4, T=30)
+    em = PolicyEmission(4, 3)
+    kernel = BPHMMKernel(em, data, max_skills=5, init_skills=2, moves={"split_merge": 1})
+    state = kernel.init(jax.random.PRNGKey(0), 0, None, (), {})
+    return kernel, data, em, state
+
+
+@pytest.mark.parametrize("blocks", [1, 3])
+def test_split_then_merge_returns_the_state_with_reciprocal_ratios(blocks):
+    kernel, data, em, state = _state()
+    f, z, params, ll = state.features, state.z, state.params, state.log_lik
+    zz = np.asarray(z)
+    k = int(zz[0, 3])
+    other = np.argwhere(zz == k)
+    ia, ta = 0, 3
+    ib, tb = [int(x) for x in other[len(other) // 2]]
+    anchors = (ia, ta, ib, tb)
+    key = jax.random.PRNGKey(11)
+    lr_split, possible, is_split, f2, z2, p2, ll2 = split_merge_at(key, em, data, state.hyper, f, z, params, ll,
+                                                                   anchors, blocks)
+    assert bool(is_split) and bool(possible) and np.isfinite(float(lr_split))
+    k2 = int(np.asarray(z2)[ib, tb])
+    assert k2 != k and int(np.asarray(z2)[ia, ta]) == k and np.asarray(f)[:, k2].sum() == 0
+    # the split only relabels steps of skill k
+    changed = np.asarray(z2) != zz
+    assert np.all(zz[changed] == k) and np.all(np.asarray(z2)[changed] == k2)
+    # the matching merge, proposing the original parameters of both slots
+    forced = jax.tree.map(lambda p: jnp.stack([p[k], p[k2]]), params)
+    lr_merge, possible_m, is_split_m, f3, z3, p3, ll3 = split_merge_at(key, em, data, state.hyper, f2, z2, p2, ll2,
+                                                                        anchors, blocks, forced_params=forced)
+    assert not bool(is_split_m) and bool(possible_m)
+    np.testing.assert_array_equal(np.asarray(z3), zz)
+    np.testing.assert_array_equal(np.asarray(f3), np.asarray(f))
+    for a, b in zip(jax.tree.leaves(p3), jax.tree.leaves(params)):
+        np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-12)
+    np.testing.assert_allclose(np.asarray(ll3), np.asarray(ll), rtol=1e-10, atol=1e-10)
+    np.testing.assert_allclose(float(lr_merge), -float(lr_split), rtol=1e-9)
+
+
+def test_split_merge_trials_are_reproducible_and_keep_a_valid_state():
+    kernel, data, em, state = _state()
+    run = jax.jit(lambda key: split_merge(key, em, data, state.hyper, state.features, state.z, state.params,
+                                          state.log_lik))
+    seen_split = seen_merge = False
+    for s in range(20):
+        f2, z2, p2, ll2, info = run(jax.random.PRNGKey(s))
+        again = run(jax.random.PRNGKey(s))
+        np.testing.assert_array_equal(np.asarray(again[1]), np.asarray(z2))
+        seen_split |= bool(info.is_split & info.possible)
+        seen_merge |= bool(~info.is_split & info.possible)
+        z2, f2 = np.asarray(z2), np.asarray(f2)
+        used = np.zeros_like(f2, bool)
+        for i in range(z2.shape[0]):
+            used[i, np.unique(z2[i][np.asarray(data.mask[i])])] = True
+        assert np.all(f2[used] == 1.0)
+        ref, _ = em.log_likelihoods(p2, data)
+        np.testing.assert_allclose(np.asarray(ll2), np.asarray(ref), rtol=1e-10, atol=1e-10)
+    assert seen_split and seen_merge
+
+
+def test_kernel_refuses_split_merge_without_fit_point():
+    from npbrs.models.emissions import Emission
+
+    class Bare(PolicyEmission):
+        fit_point = Emission.fit_point
+
+    data, _ = planted_policy_data(seed=2, N=2, T=10)
+    with pytest.raises(ValueError, match="fit_point"):
+        BPHMMKernel(Bare(4, 3), data, max_skills=3, moves={"split_merge": 1})
+    with pytest.raises(ValueError, match="split_merge"):
+        BPHMMKernel(PolicyEmission(4, 3), data, max_skills=3, moves={"split_merge": -1})
