@@ -57,13 +57,15 @@ class RewardEmission(Emission):
         target_accept: the acceptance rate the step size is tuned to during warmup.
         map_steps: L-BFGS steps of a "map" update.
         fit_steps: L-BFGS steps of the data-driven proposal's IRL fit (from theta = 0).
+        refit_steps: L-BFGS steps of a warm-started fit (a split-merge move's refits and
+            final proposals, which start from the allocation's fits).
         proposal_inflation: factor on the proposal's standard deviations.
         solver_options: keyword options of :func:`npbrs.domains.make_soft_solver`.
     """
 
     def __init__(self, mdp, prior_scale: float = 10.0, temperature: float = 1.0, discount: Optional[float] = None,
                  update: str = "mala", mala_steps: int = 3, step_size: float = 0.5, target_accept: float = 0.6,
-                 map_steps: int = 5, fit_steps: int = 20, proposal_inflation: float = 1.5,
+                 map_steps: int = 5, fit_steps: int = 20, refit_steps: int = 3, proposal_inflation: float = 1.5,
                  solver_options: Optional[dict] = None):
         if update not in _UPDATES:
             raise ValueError(f"unknown reward update {update!r}; expected one of {_UPDATES}")
@@ -73,7 +75,8 @@ class RewardEmission(Emission):
                 raise ValueError(f"{name} must be a positive number, got {value!r}")
         if not 0 < target_accept < 1:
             raise ValueError(f"target_accept must lie in (0, 1), got {target_accept!r}")
-        for name, value in [("mala_steps", mala_steps), ("map_steps", map_steps), ("fit_steps", fit_steps)]:
+        for name, value in [("mala_steps", mala_steps), ("map_steps", map_steps), ("fit_steps", fit_steps),
+                            ("refit_steps", refit_steps)]:
             if not isinstance(value, (int, np.integer)) or value < 1:
                 raise ValueError(f"{name} must be an integer >= 1, got {value!r}")
         if discount is not None:
@@ -88,6 +91,7 @@ class RewardEmission(Emission):
         self.target_accept = float(target_accept)
         self.map_steps = int(map_steps)
         self.fit_steps = int(fit_steps)
+        self.refit_steps = int(refit_steps)
         self.proposal_inflation = float(proposal_inflation)
         self.solver_options = dict(solver_options or {})
         self.solver = make_soft_solver(mdp, **self.solver_options)
@@ -98,7 +102,7 @@ class RewardEmission(Emission):
         return {"name": self.name, "prior_scale": self.prior_scale, "temperature": self.temperature,
                 "discount": self.discount, "update": self.update_kind, "mala_steps": self.mala_steps,
                 "step_size": self.step_size, "target_accept": self.target_accept, "map_steps": self.map_steps,
-                "fit_steps": self.fit_steps, "proposal_inflation": self.proposal_inflation}
+                "fit_steps": self.fit_steps, "refit_steps": self.refit_steps, "proposal_inflation": self.proposal_inflation}
 
     # ------------------------------------------------------------------ prior
     def _prior(self):
@@ -197,13 +201,14 @@ class RewardEmission(Emission):
 
     # ------------------------------------------------------------------ data-driven proposal
     def fit_point(self, data, weights, init=None):
-        """IRL fits (M, D) to weighted steps (N, T, M): ``fit_steps`` L-BFGS steps from ``init``
-        (or from theta = 0)."""
+        """IRL fits (M, D) to weighted steps (N, T, M): ``refit_steps`` L-BFGS steps from
+        ``init``, or twice as many from theta = 0."""
         counts = self._counts(data, weights)  # (M, S, A)
         M, D = counts.shape[0], self.num_features
         theta0 = jnp.zeros((M, D)) if init is None else self._scaled(init["theta"])
+        steps = 2 * self.refit_steps if init is None else self.refit_steps
         fit, _, _, _, _ = fit_reward(self.solver, counts, theta0, jnp.zeros((M, self.num_states)), self.prior_scale,
-                                     self.fit_steps)
+                                     steps)
         return {"theta": fit / self.temperature}
 
     def _proposal(self, data, weights, init=None):
@@ -212,7 +217,7 @@ class RewardEmission(Emission):
         D = self.num_features
         theta0 = jnp.zeros((1, D)) if init is None else self._scaled(init["theta"])[None]
         fit, _, V, _, _ = fit_reward(self.solver, counts[None], theta0, jnp.zeros((1, self.num_states)),
-                                     self.prior_scale, self.fit_steps)
+                                     self.prior_scale, self.fit_steps if init is None else self.refit_steps)
         mean = fit[0] / self.temperature
         F = fisher_information(self.solver, self._scaled(mean), counts, V[0]) * self.temperature ** 2
         precision = F + jnp.eye(D) / self.prior_scale ** 2
