@@ -34,6 +34,8 @@ A TOML variant (every key optional; these are the defaults)::
 
     [sampler.moves]            # the kernel's trans-dimensional moves (BPHMMKernel's ``moves``)
     # birth_death = 2          # e.g. birth/death trials per sweep
+    # split_merge = 1          # split-merge trials per sweep (emissions with fit_point)
+    # blocks = 4               # refits of a split's sequential allocation
     # window = [10, 50]
 """
 

@@ -123,7 +123,7 @@ class BPHMMKernel(MCMCKernel):
         self._num_warmup = 0
         self._init_fns = {}
 
-    _MOVE_DEFAULTS = {"birth_death": 0, "window": (10, 50), "split_merge": 0, "blocks": 4}
+    _MOVE_DEFAULTS = {"birth_death": 0, "window": (10, 50), "split_merge": 0, "blocks": 2}
 
     @classmethod
     def check_moves(cls, moves):
@@ -296,7 +296,8 @@ class BPHMMKernel(MCMCKernel):
 
             def sm_trial(carry, key):
                 f, zz, p, ll = carry
-                f, zz, p, ll, info = split_merge(key, self.emission, self.data, state.hyper, f, zz, p, ll, blocks)
+                f, zz, p, ll, info = split_merge(key, self.emission, self.data, state.hyper, f, state.eta, zz, p, ll,
+                                                 blocks)
                 return (f, zz, p, ll), info.accepted
 
             (features, z, params, log_lik), sm_accepted = jax.lax.scan(

@@ -69,6 +69,16 @@ def check_emission(emission: Emission, data: HMMData, max_skills: int = 3, seed:
     np.testing.assert_allclose(float(lq_new), float(log_q), rtol=1e-8, atol=1e-8)
     np.testing.assert_allclose(float(lq_other), float(emission.log_proposal(other, data, w_one)), rtol=1e-8, atol=1e-8)
 
+    # point fits (split-merge moves): deterministic, parameter-shaped, finite
+    if emission.supports_split_merge():
+        w2 = weights[..., :2]
+        fits = jax.jit(emission.fit_point)(data, w2)
+        again = jax.jit(emission.fit_point)(data, w2, fits)
+        for name, value in fits.items():
+            assert value.shape == (2,) + params[name].shape[1:], f"fit_point: site {name!r} has shape {value.shape}"
+            assert bool(jnp.all(jnp.isfinite(value))) and bool(jnp.all(jnp.isfinite(again[name])))
+        _tree_close(jax.jit(emission.fit_point)(data, w2), fits, rtol=1e-12, atol=1e-12)
+
     # the sampler runs with it, and its log joint is the model's
     kernel = BPHMMKernel(emission, data, max_skills=K)
     state = kernel.init(key, 0, None, (), {})

@@ -83,18 +83,18 @@ def test_split_then_merge_returns_the_state_with_reciprocal_ratios(blocks):
     ib, tb = [int(x) for x in other[len(other) // 2]]
     anchors = (ia, ta, ib, tb)
     key = jax.random.PRNGKey(11)
-    lr_split, possible, is_split, f2, z2, p2, ll2 = split_merge_at(key, em, data, state.hyper, f, z, params, ll,
+    eta = state.eta
+    lr_split, possible, is_split, f2, z2, p2, ll2 = split_merge_at(key, em, data, state.hyper, f, eta, z, params, ll,
                                                                    anchors, blocks)
     assert bool(is_split) and bool(possible) and np.isfinite(float(lr_split))
     k2 = int(np.asarray(z2)[ib, tb])
     assert k2 != k and int(np.asarray(z2)[ia, ta]) == k and np.asarray(f)[:, k2].sum() == 0
-    # the split only relabels steps of skill k
-    changed = np.asarray(z2) != zz
-    assert np.all(zz[changed] == k) and np.all(np.asarray(z2)[changed] == k2)
-    # the matching merge, proposing the original parameters of both slots
+    assert np.all(np.asarray(f2)[:, k2] <= np.asarray(f)[:, k])  # only trajectories that had k get k2
+    # the matching merge, proposing the original parameters of both slots and skill sequences
     forced = jax.tree.map(lambda p: jnp.stack([p[k], p[k2]]), params)
-    lr_merge, possible_m, is_split_m, f3, z3, p3, ll3 = split_merge_at(key, em, data, state.hyper, f2, z2, p2, ll2,
-                                                                        anchors, blocks, forced_params=forced)
+    lr_merge, possible_m, is_split_m, f3, z3, p3, ll3 = split_merge_at(key, em, data, state.hyper, f2, eta, z2, p2, ll2,
+                                                                        anchors, blocks, forced_params=forced,
+                                                                        forced_z=z)
     assert not bool(is_split_m) and bool(possible_m)
     np.testing.assert_array_equal(np.asarray(z3), zz)
     np.testing.assert_array_equal(np.asarray(f3), np.asarray(f))
@@ -106,8 +106,8 @@ def test_split_then_merge_returns_the_state_with_reciprocal_ratios(blocks):
 
 def test_split_merge_trials_are_reproducible_and_keep_a_valid_state():
     kernel, data, em, state = _state()
-    run = jax.jit(lambda key: split_merge(key, em, data, state.hyper, state.features, state.z, state.params,
-                                          state.log_lik))
+    run = jax.jit(lambda key: split_merge(key, em, data, state.hyper, state.features, state.eta, state.z,
+                                          state.params, state.log_lik))
     seen_split = seen_merge = False
     for s in range(20):
         f2, z2, p2, ll2, info = run(jax.random.PRNGKey(s))
