@@ -152,7 +152,8 @@ class BPHMMKernel(MCMCKernel):
 
     @property
     def default_fields(self):
-        return ("params", "log_joint", "num_skills", "num_switches", "features", "accept")
+        return ("params", "log_joint", "num_skills", "num_switches", "features", "accept", "birth_accept",
+                "split_accept")
 
     def get_diagnostics_str(self, state):
         return f"log joint {float(state.log_joint):.1f}, skills {int(state.num_skills)}"

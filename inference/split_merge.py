@@ -2,10 +2,15 @@
 split-merge Monte Carlo methods for nonparametric models of sequential data"), for emissions
 whose parameters have no conjugate update.
 
+A trial first chooses a split or a merge and its anchor steps by skill (``_choose_anchors``:
+a used skill and two of its steps, or two used skills and one step of each), so that small
+skills are proposed for merging as often as large ones; the choice's probability, and that of
+choosing the same anchors for the reverse move in the proposed state, enter the ratio.
+
 The move acts on the features F, the emission parameters and the skill sequences z jointly;
 the transition weights eta are left as they are (an identity map; entries of an unused skill
 hold prior draws) and the popularities omega are integrated out (the sweep redraws them
-right after). Two anchor steps are drawn uniformly from all real steps. If their skills are
+right after). Given two anchor steps (see above): if their skills are
 equal (k1) the move proposes a *split* of k1 into k1 and a free slot k2 (drawn uniformly
 among the slots no trajectory uses); otherwise a *merge* of the anchors' skills k1 and k2
 into k1.
@@ -283,22 +288,59 @@ def split_merge_at(key, emission, data, hyper, features, eta, z, params, log_lik
     return log_ratio, possible, is_split, new_f, new_z, new_params, new_log_lik
 
 
-def _anchors(key, mask):
+def _skill_counts(z, mask, K):
+    return jnp.sum(jax.nn.one_hot(z, K, dtype=jnp.float64) * mask[..., None], axis=(0, 1))
+
+
+def _choose_anchors(key, z, mask, K):
+    """Anchors by skill: with probability 1/2 a split (a used skill uniformly, two distinct
+    steps of it uniformly), else a merge (an ordered pair of distinct used skills uniformly,
+    one step of each uniformly). Small skills are anchored as often as large ones.
+
+    Returns (anchors, possible, log-probability of the choice)."""
     N, T = mask.shape
-    k1, k2 = jax.random.split(key)
-    logits = jnp.where(mask.ravel(), 0.0, -jnp.inf)
-    a = jax.random.categorical(k1, logits)
-    b = jax.random.categorical(k2, logits)
-    return (a // T, a % T, b // T, b % T)
+    counts = _skill_counts(z, mask, K)
+    used = counts > 0
+    n_used = jnp.sum(used)
+    k_mode, k_first, k_second, k_a, k_b = jax.random.split(key, 5)
+    split = jax.random.bernoulli(k_mode)
+    first = jax.random.categorical(k_first, jnp.where(used, 0.0, -jnp.inf))
+    other = jax.random.categorical(k_second, jnp.where(used & (jnp.arange(K) != first), 0.0, -jnp.inf))
+    second = jnp.where(split, first, other)
+    flat_z, flat_mask = z.ravel(), mask.ravel()
+    a = jax.random.categorical(k_a, jnp.where(flat_mask & (flat_z == first), 0.0, -jnp.inf))
+    b = jax.random.categorical(k_b, jnp.where(flat_mask & (flat_z == second) & (jnp.arange(N * T) != a), 0.0, -jnp.inf))
+    possible = jnp.where(split, counts[first] >= 2, n_used >= 2)
+    log_p = _choice_log_prob(split, counts, first, second)
+    return (a // T, a % T, b // T, b % T), possible, log_p
+
+
+def _choice_log_prob(split, counts, first, second):
+    n_used = jnp.maximum(jnp.sum(counts > 0), 1.0)
+    n1, n2 = jnp.maximum(counts[first], 1.0), jnp.maximum(counts[second], 1.0)
+    return jnp.log(0.5) + jnp.where(split, -jnp.log(n_used) - jnp.log(n1) - jnp.log(jnp.maximum(n1 - 1.0, 1.0)),
+                                    -jnp.log(n_used) - jnp.log(jnp.maximum(n_used - 1.0, 1.0)) - jnp.log(n1) - jnp.log(n2))
 
 
 def split_merge(key, emission, data, hyper, features, eta, z, params, log_lik, num_blocks: int = 2,
                 forced_params: Optional[dict] = None):
-    """One split-merge trial: returns (features, z, params, log_lik, info)."""
+    """One split-merge trial: returns (features, z, params, log_lik, info).
+
+    The anchors are chosen by skill (:func:`_choose_anchors`); the probability of choosing the
+    same anchors for the reverse move in the proposed state enters the acceptance ratio."""
+    K = features.shape[1]
+    mask = data.mask
     k_anchor, k_move, k_acc = jax.random.split(key, 3)
-    anchors = _anchors(k_anchor, data.mask)
+    anchors, can, log_p_fwd = _choose_anchors(k_anchor, z, mask, K)
     log_ratio, possible, is_split, f2, z2, p2, ll2 = split_merge_at(
         k_move, emission, data, hyper, features, eta, z, params, log_lik, anchors, num_blocks, forced_params)
+    ia, ta, ib, tb = anchors
+    k1 = z[ia, ta]
+    k2 = jnp.where(is_split, z2[ib, tb], z[ib, tb])
+    # the reverse: a merge of (k1, k2) after a split, a split of k1 after a merge, in z2
+    log_p_rev = _choice_log_prob(~is_split, _skill_counts(z2, mask, K), k1, jnp.where(is_split, k2, k1))
+    log_ratio = log_ratio + log_p_rev - log_p_fwd
+    possible = possible & can
     accept = possible & (jnp.log(jax.random.uniform(k_acc)) < log_ratio)
     pick = lambda a, b: jax.tree.map(lambda x, y: jnp.where(accept, x, y), a, b)  # noqa: E731
     info = SplitMergeInfo(is_split, possible, accept, jnp.where(possible, log_ratio, -jnp.inf))

@@ -200,13 +200,23 @@ def log_prior(theta, prior_scale=PRIOR_SCALE) -> jax.Array:
     return jnp.sum(dist.Normal(0.0, prior_scale).log_prob(jnp.asarray(theta, jnp.float64)), axis=-1)
 
 
-def count_log_likelihood_and_grad(solver: SoftSolver, theta, counts, v0=None):
+def noisy_log_policy(log_pi, epsilon: float = 0.0):
+    """log((1 - epsilon) pi(a | s) + epsilon / A): a Boltzmann policy that acts uniformly at
+    random with probability epsilon (a noisy expert). epsilon = 0 returns ``log_pi``."""
+    if not epsilon:
+        return log_pi
+    A = log_pi.shape[-1]
+    return jnp.logaddexp(jnp.log1p(-epsilon) + log_pi, jnp.log(epsilon / A))
+
+
+def count_log_likelihood_and_grad(solver: SoftSolver, theta, counts, v0=None, epsilon: float = 0.0):
     """Value and gradient of :func:`count_log_likelihood` per skill, and the new soft values.
 
     Args:
         solver: a SoftSolver or a TabularMDP.
         theta: (K, D) (or (D,)) reward weights; counts: (K, S, A) (or (S, A)).
         v0: optional warm start (K, S) (or (S,)).
+        epsilon: the noisy expert's random-action probability (:func:`noisy_log_policy`).
     Returns:
         (log_lik (K,), grad (K, D), V (K, S)), without the K axis for theta (D,).
     """
@@ -220,30 +230,30 @@ def count_log_likelihood_and_grad(solver: SoftSolver, theta, counts, v0=None):
         if counts.ndim != 2:
             raise ValueError(f"theta (D,) needs counts (S, A), got {counts.shape}")
         ll, g, V = count_log_likelihood_and_grad(solver, theta[None], counts[None],
-                                                 None if v0 is None else jnp.asarray(v0)[None])
+                                                 None if v0 is None else jnp.asarray(v0)[None], epsilon)
         return ll[0], g[0], V[0]
     K = theta.shape[0]
     counts = jnp.broadcast_to(counts, (K,) + counts.shape[-2:])
     if v0 is None:
         v0 = jnp.zeros((K, solver.num_states))
-    return _LL_AND_GRAD(solver, theta, counts, v0)
+    return _LL_AND_GRAD(solver, theta, counts, v0, float(epsilon))
 
 
-def _ll_and_grad(solver, theta, counts, v0):
+def _ll_and_grad(solver, theta, counts, v0, epsilon=0.0):
     """(K,) log-likelihoods, (K, D) gradients and (K, S) values of K skills, by one batched
     solve and one batched adjoint solve (skill k's log-likelihood depends on theta_k only, so
     the gradient of their sum holds every skill's gradient)."""
 
     def total(t):
         res = solver(solver.rewards(t), v0)
-        ll = jnp.sum(counts * (res.Q - res.V[..., None]), axis=(-2, -1))
+        ll = jnp.sum(counts * noisy_log_policy(res.Q - res.V[..., None], epsilon), axis=(-2, -1))
         return jnp.sum(ll), (ll, res.V)
 
     (_, (ll, V)), g = jax.value_and_grad(total, has_aux=True)(theta)
     return ll, g, V
 
 
-_LL_AND_GRAD = jax.jit(_ll_and_grad, static_argnums=0)
+_LL_AND_GRAD = jax.jit(_ll_and_grad, static_argnums=(0, 4))
 
 
 def fisher_information(solver: SoftSolver, theta, counts, v0=None) -> jax.Array:
@@ -317,7 +327,7 @@ def _two_loop(g, S_hist, Y_hist, rho, count, newest, history):
 
 
 def fit_reward(solver: SoftSolver, counts, theta0, v0, prior_scale=PRIOR_SCALE, num_steps: int = 30,
-               history: int = 10, max_backtracks: int = 10):
+               history: int = 10, max_backtracks: int = 10, epsilon: float = 0.0):
     """The jit-able core of :func:`irl_fit` for K skills: static shapes, no input checks.
 
     L-BFGS with a backtracking (Armijo) line search on -(log-lik + log-prior) of every skill,
@@ -333,6 +343,7 @@ def fit_reward(solver: SoftSolver, counts, theta0, v0, prior_scale=PRIOR_SCALE, 
         solver: a SoftSolver.
         counts: (K, S, A); theta0: (K, D); v0: (K, S); prior_scale: scalar or (K,).
         num_steps: L-BFGS steps; history: L-BFGS memory; max_backtracks: halvings per line search.
+        epsilon: the noisy expert's random-action probability (:func:`noisy_log_policy`).
     Returns:
         (theta (K, D), log_lik (K,), V (K, S), norm of the log-posterior's gradient (K,),
         number of value-and-gradient evaluations (K,)).
@@ -342,7 +353,7 @@ def fit_reward(solver: SoftSolver, counts, theta0, v0, prior_scale=PRIOR_SCALE, 
     noise = max(10.0 * solver.tol, 1e-13)  # relative accuracy of the objective
 
     def objective(theta, v):
-        ll, g, V = _ll_and_grad(solver, theta, counts, v)
+        ll, g, V = _ll_and_grad(solver, theta, counts, v, epsilon)
         lp = log_prior(theta, scale[:, None])
         return -(ll + lp), -(g - theta / scale[:, None] ** 2), ll, V
 

@@ -32,7 +32,7 @@ import numpyro.distributions as dist
 
 from ..domains.solvers import make_soft_solver
 from .emissions import Emission, register_emission
-from .reward import (count_log_likelihood_and_grad, count_table, fisher_information, fit_reward,
+from .reward import (count_log_likelihood_and_grad, count_table, fisher_information, fit_reward, noisy_log_policy,
                      step_log_likelihoods)
 
 jax.config.update("jax_enable_x64", True)
@@ -61,18 +61,25 @@ class RewardEmission(Emission):
             final proposals, which start from the allocation's fits).
         proposal_inflation: factor on the proposal's standard deviations.
         solver_options: keyword options of :func:`npbrs.domains.make_soft_solver`.
+        epsilon: probability that the demonstrator acts uniformly at random instead of by the
+            skill's Boltzmann policy (a noisy expert): pi = (1 - eps) Boltzmann + eps / A. A few
+            actions that no reward explains then cost log(eps / A) each instead of opening a
+            skill of their own. The Fisher information used for preconditioning and proposal
+            scales stays the Boltzmann policy's (an approximation; the moves stay exact).
     """
 
     def __init__(self, mdp, prior_scale: float = 10.0, temperature: float = 1.0, discount: Optional[float] = None,
                  update: str = "mala", mala_steps: int = 3, step_size: float = 0.5, target_accept: float = 0.6,
                  map_steps: int = 5, fit_steps: int = 20, refit_steps: int = 3, proposal_inflation: float = 1.5,
-                 solver_options: Optional[dict] = None):
+                 solver_options: Optional[dict] = None, epsilon: float = 0.0):
         if update not in _UPDATES:
             raise ValueError(f"unknown reward update {update!r}; expected one of {_UPDATES}")
         for name, value in [("prior_scale", prior_scale), ("temperature", temperature), ("step_size", step_size),
                             ("proposal_inflation", proposal_inflation)]:
             if not (np.isfinite(value) and value > 0):
                 raise ValueError(f"{name} must be a positive number, got {value!r}")
+        if not (np.isfinite(epsilon) and 0 <= epsilon < 1):
+            raise ValueError(f"epsilon must lie in [0, 1), got {epsilon!r}")
         if not 0 < target_accept < 1:
             raise ValueError(f"target_accept must lie in (0, 1), got {target_accept!r}")
         for name, value in [("mala_steps", mala_steps), ("map_steps", map_steps), ("fit_steps", fit_steps),
@@ -92,6 +99,7 @@ class RewardEmission(Emission):
         self.map_steps = int(map_steps)
         self.fit_steps = int(fit_steps)
         self.refit_steps = int(refit_steps)
+        self.epsilon = float(epsilon)
         self.proposal_inflation = float(proposal_inflation)
         self.solver_options = dict(solver_options or {})
         self.solver = make_soft_solver(mdp, **self.solver_options)
@@ -102,7 +110,8 @@ class RewardEmission(Emission):
         return {"name": self.name, "prior_scale": self.prior_scale, "temperature": self.temperature,
                 "discount": self.discount, "update": self.update_kind, "mala_steps": self.mala_steps,
                 "step_size": self.step_size, "target_accept": self.target_accept, "map_steps": self.map_steps,
-                "fit_steps": self.fit_steps, "refit_steps": self.refit_steps, "proposal_inflation": self.proposal_inflation}
+                "fit_steps": self.fit_steps, "refit_steps": self.refit_steps, "proposal_inflation": self.proposal_inflation,
+                "epsilon": self.epsilon}
 
     # ------------------------------------------------------------------ prior
     def _prior(self):
@@ -131,13 +140,14 @@ class RewardEmission(Emission):
         K = theta.shape[0]
         v0 = cache["V"] if isinstance(cache, dict) and cache["V"].shape[0] == K else None
         res = self.solver(self.solver.rewards(self._scaled(theta)), v0)
-        ll = step_log_likelihoods(res.Q - res.V[..., None], data.states, data.actions, data.mask)
+        ll = step_log_likelihoods(noisy_log_policy(res.Q - res.V[..., None], self.epsilon), data.states, data.actions,
+                                  data.mask)
         new_cache = dict(cache) if isinstance(cache, dict) else self.init_cache(K)
         new_cache["V"] = res.V
         return ll, new_cache
 
     def _log_post_and_grad(self, theta, counts, V):
-        ll, g, V = count_log_likelihood_and_grad(self.solver, self._scaled(theta), counts, V)
+        ll, g, V = count_log_likelihood_and_grad(self.solver, self._scaled(theta), counts, V, self.epsilon)
         lp = ll + self.log_prior({"theta": theta})
         grad = g * self.temperature - theta / self.prior_scale ** 2
         return lp, grad, V
@@ -151,7 +161,7 @@ class RewardEmission(Emission):
         k_prior, k_move = jax.random.split(key)
         if self.update_kind == "map":
             new, _, V, _, _ = fit_reward(self.solver, counts, self._scaled(theta), cache["V"], self.prior_scale,
-                                         self.map_steps)
+                                         self.map_steps, epsilon=self.epsilon)
             new = new / self.temperature
             accept = jnp.ones(K)
             cache = {**cache, "V": V}
@@ -208,7 +218,7 @@ class RewardEmission(Emission):
         theta0 = jnp.zeros((M, D)) if init is None else self._scaled(init["theta"])
         steps = 2 * self.refit_steps if init is None else self.refit_steps
         fit, _, _, _, _ = fit_reward(self.solver, counts, theta0, jnp.zeros((M, self.num_states)), self.prior_scale,
-                                     steps)
+                                     steps, epsilon=self.epsilon)
         return {"theta": fit / self.temperature}
 
     def _proposal(self, data, weights, init=None):
@@ -217,7 +227,8 @@ class RewardEmission(Emission):
         D = self.num_features
         theta0 = jnp.zeros((1, D)) if init is None else self._scaled(init["theta"])[None]
         fit, _, V, _, _ = fit_reward(self.solver, counts[None], theta0, jnp.zeros((1, self.num_states)),
-                                     self.prior_scale, self.fit_steps if init is None else self.refit_steps)
+                                     self.prior_scale, self.fit_steps if init is None else self.refit_steps,
+                                     epsilon=self.epsilon)
         mean = fit[0] / self.temperature
         F = fisher_information(self.solver, self._scaled(mean), counts, V[0]) * self.temperature ** 2
         precision = F + jnp.eye(D) / self.prior_scale ** 2

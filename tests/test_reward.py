@@ -189,3 +189,30 @@ def test_bad_input_names_the_problem(small):
     with pytest.raises(ValueError, match="feature 1 of state 0, action 0 is not finite"):
         TabularMDP(successors=mdp.successors, probs=mdp.probs,
                    features=np.where(np.arange(4) == 1, np.nan, mdp.features))
+
+
+def test_noisy_expert_likelihood_and_gradient(small):
+    """epsilon-noisy Boltzmann policy: the count log-likelihood is the mixture's, computed by
+    hand from the Boltzmann policy, and its gradient equals central finite differences."""
+    from npbrs.models.reward import noisy_log_policy
+
+    _, solver, theta, counts = small
+    eps_noise = 0.07
+    A = counts.shape[-1]
+    log_pi, _ = log_policy(solver, theta)
+    by_hand = np.sum(counts * np.log((1 - eps_noise) * np.exp(np.asarray(log_pi)) + eps_noise / A), axis=(1, 2))
+    ll, grad, _ = count_log_likelihood_and_grad(solver, theta, counts, None, eps_noise)
+    np.testing.assert_allclose(np.asarray(ll), by_hand, rtol=1e-12)
+    np.testing.assert_allclose(np.exp(np.asarray(noisy_log_policy(log_pi, eps_noise))).sum(-1), 1.0, rtol=1e-12)
+
+    def ll_at(t):
+        return float(count_log_likelihood_and_grad(solver, t[None], counts[k][None], None, eps_noise)[0][0])
+
+    h = 1e-5
+    for k in range(theta.shape[0]):
+        fd = np.array([(ll_at(theta[k] + h * e) - ll_at(theta[k] - h * e)) / (2 * h) for e in np.eye(theta.shape[1])])
+        np.testing.assert_allclose(np.asarray(grad[k]), fd, rtol=1e-6, atol=1e-7 * np.abs(fd).max())
+    # epsilon = 0 is the Boltzmann policy itself
+    ll0, g0, _ = count_log_likelihood_and_grad(solver, theta, counts, None, 0.0)
+    ll_plain, g_plain, _ = count_log_likelihood_and_grad(solver, theta, counts)
+    np.testing.assert_allclose(np.asarray(ll0), np.asarray(ll_plain), rtol=1e-14)

@@ -22,6 +22,19 @@ def test_reward_emission_follows_the_protocol():
     dom = gridworld(size=3)
     demos = generate_demonstrations(dom, num_trajectories=3, length=12, seed=1)
     check_emission(RewardEmission(dom.mdp), HMMData.from_demonstrations(demos))
+    # the noisy expert's emission too: its likelihoods are the mixture's
+    data = HMMData.from_demonstrations(demos)
+    noisy = RewardEmission(dom.mdp, epsilon=0.05)
+    check_emission(noisy, data)
+    params = {"theta": jnp.asarray(np.random.default_rng(0).normal(size=(2, dom.mdp.num_features)) * 3)}
+    plain_ll, _ = RewardEmission(dom.mdp).log_likelihoods(params, data)
+    noisy_ll, _ = noisy.log_likelihoods(params, data)
+    A = dom.mdp.num_actions
+    expected = np.log(0.95 * np.exp(np.asarray(plain_ll)) + 0.05 / A)
+    np.testing.assert_allclose(np.where(data.mask[..., None], noisy_ll, 0), np.where(data.mask[..., None], expected, 0),
+                               rtol=1e-10)
+    with pytest.raises(ValueError, match="epsilon"):
+        RewardEmission(dom.mdp, epsilon=1.0)
 
 
 def one_state_mdp():
