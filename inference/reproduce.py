@@ -67,7 +67,7 @@ QUICK_DATA = {"runs": 1, "num_trajectories": 2, "length": 40}
 # methods take about 30 minutes on two shared CPU cores, most of it compiling each run's
 # samplers (the demonstrations are constants of the compiled sweep: every run compiles afresh).
 _SETTINGS = {
-    "npbrs": {"chains": 1, "warmup": 20, "samples": 20, "max_skills": 8, "emission_options": {}},
+    "npbrs": {"chains": 4, "warmup": 20, "samples": 20, "max_skills": 8, "emission_options": {}},
     "subgoal": {"chains": 1, "warmup": 50, "samples": 50, "max_skills": 8, "emission_options": {}},
     "irl": {"chains": 1, "warmup": 25, "samples": 25, "max_skills": 1, "emission_options": {}},
     "lds": {"chains": 1, "warmup": 50, "samples": 50, "max_skills": 8, "emission_options": {}},
