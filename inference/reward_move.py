@@ -28,7 +28,7 @@ from typing import Callable, NamedTuple
 import jax
 import jax.numpy as jnp
 
-from ..models.reward import PRIOR_SCALE, _check_prior_scale, as_solver, log_prior
+from ..models.reward import PRIOR_SCALE, _check_prior_scale, _ll_grad_residual, as_solver, log_prior
 
 jax.config.update("jax_enable_x64", True)
 
@@ -66,13 +66,10 @@ def _log_density_and_grad(solver, theta, counts, v0, prior_scale):
     """log p(theta_k | counts_k) up to a constant for K skills (one batched solve), its
     gradient, V, and whether each solve converged."""
 
-    def total(t):
-        res = solver(solver.rewards(t), v0)
-        lp = jnp.sum(counts * (res.Q - res.V[..., None]), axis=(-2, -1)) + log_prior(t, prior_scale[:, None])
-        ok = (res.residual <= solver.tol) & jnp.isfinite(lp)
-        return jnp.sum(lp), (lp, res.V, ok)
-
-    (_, (lp, V, ok)), g = jax.value_and_grad(total, has_aux=True)(theta)
+    ll, g, V, residual = _ll_grad_residual(solver, theta, counts, v0)
+    lp = ll + log_prior(theta, prior_scale[:, None])
+    g = g - theta / prior_scale[:, None] ** 2
+    ok = (residual <= solver.tol) & jnp.isfinite(lp)
     return lp, g, V, ok & jnp.all(jnp.isfinite(g), axis=-1)
 
 

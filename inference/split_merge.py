@@ -249,23 +249,21 @@ def split_merge_at(key, emission, data, hyper, features, eta, z, params, log_lik
 
     f_merged = features.at[:, k1].set(jnp.maximum(features[:, k1], features[:, k2])).at[:, k2].set(0.0)
 
+    current_k1 = jax.tree.map(lambda t: t[0], current)
+
     # the proposal, forward
     def forward_split(_):
-        f_s, two_s, lq = split_proposal(z, features, current_k1(), None, None, k_feat)
-        return f_s, two_s, lq
+        return split_proposal(z, features, current_k1, None, None, k_feat)
 
     def forward_merge(_):
         two_m, lq = merge_proposal(z, current, None, k_feat)
         return f_merged, two_m, lq
 
-    def current_k1():
-        return jax.tree.map(lambda t: t[0], current)
-
     new_f, new_two, lq_fwd = jax.lax.cond(is_split, forward_split, forward_merge, None)
     if forced_params is not None:
         new_two = forced_params
         lq_fwd = jax.lax.cond(is_split,
-                              lambda _: split_proposal(z, features, current_k1(), new_f, new_two, None)[2],
+                              lambda _: split_proposal(z, features, current_k1, new_f, new_two, None)[2],
                               lambda _: merge_proposal(z, current, new_two, None)[1], None)
     new_params = _set_two(params, k1, k2, new_two)
     new_cols, _ = emission.log_likelihoods(new_two, data, emission.init_cache(2))  # (N, T, 2)

@@ -239,18 +239,23 @@ def count_log_likelihood_and_grad(solver: SoftSolver, theta, counts, v0=None, ep
     return _LL_AND_GRAD(solver, theta, counts, v0, float(epsilon))
 
 
-def _ll_and_grad(solver, theta, counts, v0, epsilon=0.0):
-    """(K,) log-likelihoods, (K, D) gradients and (K, S) values of K skills, by one batched
-    solve and one batched adjoint solve (skill k's log-likelihood depends on theta_k only, so
-    the gradient of their sum holds every skill's gradient)."""
+def _ll_grad_residual(solver, theta, counts, v0, epsilon=0.0):
+    """(K,) log-likelihoods, (K, D) gradients, (K, S) values and (K,) solver residuals of K
+    skills, by one batched solve and one batched adjoint solve (skill k's log-likelihood
+    depends on theta_k only, so the gradient of their sum holds every skill's gradient)."""
 
     def total(t):
         res = solver(solver.rewards(t), v0)
         ll = jnp.sum(counts * noisy_log_policy(res.Q - res.V[..., None], epsilon), axis=(-2, -1))
-        return jnp.sum(ll), (ll, res.V)
+        return jnp.sum(ll), (ll, res.V, res.residual)
 
-    (_, (ll, V)), g = jax.value_and_grad(total, has_aux=True)(theta)
-    return ll, g, V
+    (_, (ll, V, residual)), g = jax.value_and_grad(total, has_aux=True)(theta)
+    return ll, g, V, residual
+
+
+def _ll_and_grad(solver, theta, counts, v0, epsilon=0.0):
+    """(K,) log-likelihoods, (K, D) gradients and (K, S) values (:func:`_ll_grad_residual`)."""
+    return _ll_grad_residual(solver, theta, counts, v0, epsilon)[:3]
 
 
 _LL_AND_GRAD = jax.jit(_ll_and_grad, static_argnums=(0, 4))
