@@ -296,13 +296,14 @@ class BPHMMKernel(MCMCKernel):
             blocks = min(self.moves["blocks"], N)
 
             def sm_trial(carry, key):
-                f, zz, p, ll = carry
-                f, zz, p, ll, info = split_merge(key, self.emission, self.data, state.hyper, f, state.eta, zz, p, ll,
-                                                 blocks)
-                return (f, zz, p, ll), info.accepted
+                f, e, zz, p, ll = carry
+                f, e, zz, p, ll, info = split_merge(key, self.emission, self.data, state.hyper, f, e, zz, p, ll,
+                                                    blocks)
+                return (f, e, zz, p, ll), info.accepted
 
-            (features, z, params, log_lik), sm_accepted = jax.lax.scan(
-                sm_trial, (features, z, params, log_lik), jax.random.split(k_sm, self.moves["split_merge"]))
+            # eta changes here only for trajectories a move touched; the next line redraws it all
+            (features, _, z, params, log_lik), sm_accepted = jax.lax.scan(
+                sm_trial, (features, state.eta, z, params, log_lik), jax.random.split(k_sm, self.moves["split_merge"]))
             splits = jnp.mean(sm_accepted.astype(jnp.float64))
         # eta | z, F and omega | F are conditionally independent: one block
         eta, omega = self._sample_eta_omega(k_eta, z, features, state.hyper)

@@ -65,7 +65,7 @@ import jax
 import jax.numpy as jnp
 
 from npbrs.models.bphmm import collapsed_feature_log_prob, hmm_parameters
-from npbrs.models.hmm import NEG_LOG, batch_backward_sample, batch_forward_filter, viterbi
+from npbrs.models.hmm import NEG_LOG, batch_backward_sample, batch_forward_filter, transition_counts, viterbi
 
 __all__ = ["SplitMergeInfo", "split_merge", "split_merge_at"]
 
@@ -149,6 +149,49 @@ def _allocate(emission, data, z_m, f_m, k1, k2, anchors, order, init_one, num_bl
     return z, fits
 
 
+def _eta_shapes(z_alloc, f, hyper, mask):
+    """Shapes of eta's proposal given an allocation: each row's entries in active columns
+    are Dirichlet(conc + counts) proportions times a Gamma(sum conc) total (the kernel's
+    exact conditional of eta given z), inactive columns their Gamma(conc) prior.
+    Returns (conc (K, K), counts (N, K, K) masked to active columns, active (N, 1, K))."""
+    K = f.shape[1]
+    conc = hyper.gamma + hyper.kappa * jnp.eye(K)
+    active = (f > 0)[:, None, :]
+    counts = jnp.where(active, transition_counts(z_alloc, mask, K), 0).astype(jnp.float64)
+    return conc, counts, active
+
+
+def _draw_eta(key, eta, z_alloc, f, involved, hyper, mask):
+    """eta with the involved trajectories' matrices redrawn from the conditional given z_alloc."""
+    conc, counts, active = _eta_shapes(z_alloc, f, hyper, mask)
+    k_g, k_t = jax.random.split(key)
+    g = jnp.maximum(jax.random.gamma(k_g, jnp.where(active, conc + counts, conc)), 1e-300)
+    total = jnp.maximum(jax.random.gamma(k_t, jnp.sum(jnp.where(active, conc, 0.0), -1, keepdims=True)), 1e-300)
+    scaled = g / jnp.maximum(jnp.sum(jnp.where(active, g, 0.0), -1, keepdims=True), 1e-300) * total
+    new = jnp.maximum(jnp.where(active, scaled, g), 1e-300)
+    return jnp.where(involved[:, None, None], new, eta)
+
+
+def _eta_log_p_over_q(eta, z_alloc, f, involved, hyper, mask):
+    """log p(eta_i | F) - log q(eta_i | z_alloc, F) summed over the involved trajectories.
+
+    Prior and proposal share the Gamma(sum conc) total, its Jacobian and the inactive
+    entries, so per row the difference is log Dir(D; conc) - log Dir(D; conc + counts) with
+    D the row's proportions over the active columns."""
+    conc, counts, active = _eta_shapes(z_alloc, f, hyper, mask)
+    c = jnp.where(active, conc, 0.0)
+    row = jnp.sum(jnp.where(active, eta, 0.0), -1, keepdims=True)
+    log_d = jnp.where(active, jnp.log(jnp.where(active, eta, 1.0) / jnp.maximum(row, 1e-300)), 0.0)
+    lg = lambda x: jnp.where(active, jax.scipy.special.gammaln(jnp.where(active, x, 1.0)), 0.0)  # noqa: E731
+    n_row = jnp.sum(counts, -1)
+    c_row = jnp.sum(c, -1)
+    per_row = (jax.scipy.special.gammaln(c_row) - jnp.sum(lg(conc), -1)
+               - jax.scipy.special.gammaln(c_row + n_row) + jnp.sum(lg(conc + counts), -1)
+               - jnp.sum(counts * log_d, -1))
+    per_row = jnp.where(c_row > 0, per_row, 0.0)
+    return jnp.sum(jnp.where(involved[:, None], per_row, 0.0))
+
+
 def _pair_table(used_a, used_b, N, ia, ib):
     """log-probabilities (N, 3) of the pairs (1, 0), (0, 1), (1, 1)."""
     preferred = jnp.where(used_a & used_b, 2, jnp.where(used_b, 1, 0))
@@ -174,19 +217,20 @@ def _clamp(log_lik, anchors, labels):
 
 
 def split_merge_at(key, emission, data, hyper, features, eta, z, params, log_lik, anchors, num_blocks: int = 2,
-                   forced_params=None, forced_z=None):
+                   forced_params=None, forced_z=None, forced_eta=None):
     """One split-merge proposal with given anchors ((i_a, t_a, i_b, t_b)): returns
-    (log acceptance ratio, possible, is_split, features', z', params', log_lik').
+    (log acceptance ratio, possible, is_split, features', eta', z', params', log_lik').
 
-    ``forced_params`` (two skills' parameters stacked) and ``forced_z`` (N, T) replace the
-    proposal's draws of the two slots' parameters and of the redrawn skill sequences: a test
-    hook that evaluates the ratio of a given reverse move.
+    ``forced_params`` (two skills' parameters stacked), ``forced_eta`` (N, K, K) and
+    ``forced_z`` (N, T) replace the proposal's draws of the two slots' parameters, of the
+    transition weights and of the redrawn skill sequences: a test hook that evaluates the
+    ratio of a given reverse move.
     """
     N, T = data.mask.shape
     K = features.shape[1]
     mask = data.mask
     ia, ta, ib, tb = anchors
-    k_slot, k_order, k_feat, k_prop, k_prior, k_z, k_rev = jax.random.split(key, 7)
+    k_slot, k_order, k_feat, k_prop, k_prior, k_z, k_eta = jax.random.split(key, 7)
     k1 = z[ia, ta]
     l2 = z[ib, tb]
     same_step = (ia == ib) & (ta == tb)
@@ -209,7 +253,7 @@ def split_merge_at(key, emission, data, hyper, features, eta, z, params, log_lik
 
     def split_proposal(z_m, f_m, theta_m_k1, f_s, two_s, key):
         """log q(S | M) of the split state's features f_s and parameters two_s (given), and,
-        when key is not None, a draw of them: returns (f_s, two_s, log q)."""
+        when key is not None, a draw of them: returns (f_s, two_s, log q, allocation)."""
         z_alloc, fits = _allocate(emission, data, z_m, f_m, k1, k2, anchors, order, theta_m_k1, num_blocks)
         used_a = jnp.any((z_alloc == k1) & mask, axis=1)
         used_b = jnp.any((z_alloc == k2) & mask, axis=1)
@@ -232,7 +276,7 @@ def split_merge_at(key, emission, data, hyper, features, eta, z, params, log_lik
         else:
             lq_two = jnp.sum(lq_other)
         n_free = jnp.sum(f_m.sum(0) == 0)
-        return f_s, two_s, -jnp.log(jnp.maximum(n_free, 1).astype(jnp.float64)) + lq_pairs + lq_two
+        return f_s, two_s, -jnp.log(jnp.maximum(n_free, 1).astype(jnp.float64)) + lq_pairs + lq_two, z_alloc
 
     def merge_proposal(z_s, two_s, two_m, key):
         """log q(M | S) of the merged parameters two_m (given) or a draw of them."""
@@ -257,9 +301,9 @@ def split_merge_at(key, emission, data, hyper, features, eta, z, params, log_lik
 
     def forward_merge(_):
         two_m, lq = merge_proposal(z, current, None, k_feat)
-        return f_merged, two_m, lq
+        return f_merged, two_m, lq, jnp.where(z == k2, k1, z)
 
-    new_f, new_two, lq_fwd = jax.lax.cond(is_split, forward_split, forward_merge, None)
+    new_f, new_two, lq_fwd, alloc_fwd = jax.lax.cond(is_split, forward_split, forward_merge, None)
     if forced_params is not None:
         new_two = forced_params
         lq_fwd = jax.lax.cond(is_split,
@@ -272,26 +316,33 @@ def split_merge_at(key, emission, data, hyper, features, eta, z, params, log_lik
     # skill sequences: redrawn given the proposed state with the anchors clamped
     old_labels = (k1, jnp.where(is_split, k1, k2))
     new_labels = (k1, jnp.where(is_split, k2, k1))
+    # transition weights of the trajectories that use k1 or k2: redrawn from their
+    # conditional given the move's allocation (the merged labels, or the split's)
+    involved = (features[:, k1] > 0) | (features[:, k2] > 0)
+    new_eta = _draw_eta(k_eta, eta, alloc_fwd, new_f, involved, hyper, mask) if forced_eta is None else forced_eta
     li_o, lt_o, act_o = hmm_parameters(features, eta)
-    li_n, lt_n, act_n = hmm_parameters(new_f, eta)
+    li_n, lt_n, act_n = hmm_parameters(new_f, new_eta)
     lm_old, _ = batch_forward_filter(li_o, lt_o, _clamp(log_lik, anchors, old_labels), mask, act_o)
     lm_new, alpha_new = batch_forward_filter(li_n, lt_n, _clamp(new_log_lik, anchors, new_labels), mask, act_n)
     new_z = batch_backward_sample(k_z, lt_n, alpha_new, mask, act_n) if forced_z is None else forced_z
 
     # the reverse move, computed from the proposed state and its skill sequences
     def reverse_of_split(_):  # a merge of the proposed split state
-        return merge_proposal(new_z, new_two, current, None)[1]
+        return merge_proposal(new_z, new_two, current, None)[1], jnp.where(new_z == k2, k1, new_z)
 
     def reverse_of_merge(_):  # a split of the proposed merged state
-        return split_proposal(new_z, new_f, jax.tree.map(lambda t: t[0], new_two), features, current, None)[2]
+        out = split_proposal(new_z, new_f, jax.tree.map(lambda t: t[0], new_two), features, current, None)
+        return out[2], out[3]
 
-    lq_rev = jax.lax.cond(is_split, reverse_of_split, reverse_of_merge, None)
+    lq_rev, alloc_rev = jax.lax.cond(is_split, reverse_of_split, reverse_of_merge, None)
     log_ratio = (jnp.sum(lm_new) - jnp.sum(lm_old)
                  + collapsed_feature_log_prob(new_f, hyper.alpha) - collapsed_feature_log_prob(features, hyper.alpha)
                  + jnp.sum(emission.log_prior(new_two)) - jnp.sum(emission.log_prior(current))
-                 + lq_rev - lq_fwd)
+                 + lq_rev - lq_fwd
+                 + _eta_log_p_over_q(new_eta, alloc_fwd, new_f, involved, hyper, mask)
+                 - _eta_log_p_over_q(eta, alloc_rev, features, involved, hyper, mask))
     possible = ~same_step & (~is_split | jnp.any(free)) & jnp.isfinite(log_ratio) & (log_ratio > 0.5 * NEG_LOG)
-    return log_ratio, possible, is_split, new_f, new_z, new_params, new_log_lik
+    return log_ratio, possible, is_split, new_f, new_eta, new_z, new_params, new_log_lik
 
 
 def _skill_counts(z, mask, K):
@@ -330,7 +381,7 @@ def _choice_log_prob(split, counts, first, second):
 
 def split_merge(key, emission, data, hyper, features, eta, z, params, log_lik, num_blocks: int = 2,
                 forced_params: Optional[dict] = None):
-    """One split-merge trial: returns (features, z, params, log_lik, info).
+    """One split-merge trial: returns (features, eta, z, params, log_lik, info).
 
     The anchors are chosen by skill (:func:`_choose_anchors`); the probability of choosing the
     same anchors for the reverse move in the proposed state enters the acceptance ratio."""
@@ -338,7 +389,7 @@ def split_merge(key, emission, data, hyper, features, eta, z, params, log_lik, n
     mask = data.mask
     k_anchor, k_move, k_acc = jax.random.split(key, 3)
     anchors, can, log_p_fwd = _choose_anchors(k_anchor, z, mask, K)
-    log_ratio, possible, is_split, f2, z2, p2, ll2 = split_merge_at(
+    log_ratio, possible, is_split, f2, eta2, z2, p2, ll2 = split_merge_at(
         k_move, emission, data, hyper, features, eta, z, params, log_lik, anchors, num_blocks, forced_params)
     ia, ta, ib, tb = anchors
     k1 = z[ia, ta]
@@ -350,4 +401,4 @@ def split_merge(key, emission, data, hyper, features, eta, z, params, log_lik, n
     accept = possible & (jnp.log(jax.random.uniform(k_acc)) < log_ratio)
     pick = lambda a, b: jax.tree.map(lambda x, y: jnp.where(accept, x, y), a, b)  # noqa: E731
     info = SplitMergeInfo(is_split, possible, accept, jnp.where(possible, log_ratio, -jnp.inf))
-    return pick(f2, features), pick(z2, z), pick(p2, params), pick(ll2, log_lik), info
+    return pick(f2, features), pick(eta2, eta), pick(z2, z), pick(p2, params), pick(ll2, log_lik), info

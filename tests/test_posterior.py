@@ -8,6 +8,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 from scipy.special import betaln, gammaln
+from scipy.stats import chi2
 
 from npbrs.inference.kernel import BPHMMKernel
 from npbrs.models.emissions import HMMData, PolicyEmission
@@ -27,9 +28,20 @@ def partition_key(z):
 
 
 def exact_partition_posterior():
+    probs = {}
+    for _, z, lp in exact_joint_states():
+        key = partition_key(z)
+        probs[key] = np.logaddexp(probs.get(key, -np.inf), lp)
+    keys = sorted(probs)
+    lps = np.array([probs[k] for k in keys])
+    return keys, np.exp(lps - np.logaddexp.reduce(lps))
+
+
+def exact_joint_states():
+    """Every (F, z) of the tiny model with its unnormalised log posterior (omega, eta and the
+    policies integrated out)."""
     N, T = ACTIONS.shape
     conc_eta = GAMMA + KAPPA * np.eye(K)
-    probs = {}
     for F in itertools.product([0, 1], repeat=N * K):
         F = np.array(F).reshape(N, K)
         if np.any(F.sum(1) == 0):
@@ -49,11 +61,7 @@ def exact_partition_posterior():
             for k in range(K):
                 n = np.bincount(ACTIONS[z == k], minlength=2)
                 lp += dirichlet_multinomial(n, np.full(2, CONC))
-            key = partition_key(z)
-            probs[key] = np.logaddexp(probs.get(key, -np.inf), lp)
-    keys = sorted(probs)
-    lps = np.array([probs[k] for k in keys])
-    return keys, np.exp(lps - np.logaddexp.reduce(lps))
+            yield F, z, lp
 
 
 @pytest.mark.parametrize("moves", [{}, {"birth_death": 2, "window": (1, 3)}, {"split_merge": 2, "blocks": 2},
@@ -86,3 +94,44 @@ def test_sampler_visits_segmentations_in_proportion_to_their_posterior(moves):
     sd = np.sqrt(exact * (1 - exact) / n_eff)
     assert np.all(np.abs(freq - exact) < 5 * sd + 1e-3), np.c_[exact, freq]
     assert 0.5 * np.sum(np.abs(freq - exact)) < 0.03
+
+
+def test_split_merge_trial_leaves_the_exact_posterior_invariant():
+    """Exact posterior draws of (F, z), with eta and the policies drawn from their exact
+    conditionals, stay exact posterior draws after one split-merge trial: a check of the move
+    alone (in the sampler test above the Gibbs sweeps would mask a small bias)."""
+    from npbrs.inference.kernel import _skill_weights
+    from npbrs.inference.split_merge import split_merge
+
+    keys, exact = exact_partition_posterior()
+    states = list(exact_joint_states())
+    lps = np.array([lp for _, _, lp in states])
+    rng = np.random.default_rng(0)
+    M = 100000
+    pick = rng.choice(len(states), size=M, p=np.exp(lps - np.logaddexp.reduce(lps)))
+    F = jnp.asarray(np.stack([states[j][0] for j in pick]), jnp.float64)
+    Z = jnp.asarray(np.stack([states[j][1] for j in pick]), jnp.int32)
+    data = HMMData(jnp.zeros(ACTIONS.shape, jnp.int32), jnp.asarray(ACTIONS, jnp.int32), jnp.ones(ACTIONS.shape, bool))
+    em = PolicyEmission(1, 2, concentration=CONC)
+    kernel = BPHMMKernel(em, data, max_skills=K, alpha=ALPHA, kappa=KAPPA, gamma=GAMMA, init_skills=1,
+                         moves={"split_merge": 1, "blocks": 2})
+    hyper = kernel.hyper0
+    params0 = em.init_params(jax.random.PRNGKey(0), data, _skill_weights(Z[0], data.mask, K))
+
+    def one(key, f, z):
+        k_eta, k_par, k_move = jax.random.split(key, 3)
+        eta = kernel._sample_eta(k_eta, z, f, hyper)
+        params, _, _ = em.update(k_par, params0, em.init_cache(K), data, _skill_weights(z, data.mask, K), False)
+        log_lik, _ = em.log_likelihoods(params, data)
+        out = split_merge(k_move, em, data, hyper, f, eta, z, params, log_lik, 2)
+        return out[2], out[5].accepted, out[5].is_split
+
+    z2, accepted, is_split = jax.jit(jax.vmap(one))(jax.random.split(jax.random.PRNGKey(1), M), F, Z)
+    accepted, is_split = np.asarray(accepted), np.asarray(is_split)
+    assert accepted[is_split].mean() > 0.05 and accepted[~is_split].mean() > 0.05, (accepted[is_split].mean(),
+                                                                                    accepted[~is_split].mean())
+    index = {k: j for j, k in enumerate(keys)}
+    counts = np.bincount([index[partition_key(z)] for z in np.asarray(z2)], minlength=len(keys))
+    # independent draws: Pearson's chi-square over the segmentations (all expected counts > 100)
+    stat = np.sum((counts - M * exact) ** 2 / (M * exact))
+    assert chi2.sf(stat, len(keys) - 1) > 1e-4, (stat, len(keys) - 1)

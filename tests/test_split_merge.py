@@ -84,20 +84,24 @@ def test_split_then_merge_returns_the_state_with_reciprocal_ratios(blocks):
     anchors = (ia, ta, ib, tb)
     key = jax.random.PRNGKey(11)
     eta = state.eta
-    lr_split, possible, is_split, f2, z2, p2, ll2 = split_merge_at(key, em, data, state.hyper, f, eta, z, params, ll,
-                                                                   anchors, blocks)
+    lr_split, possible, is_split, f2, eta2, z2, p2, ll2 = split_merge_at(key, em, data, state.hyper, f, eta, z, params,
+                                                                         ll, anchors, blocks)
     assert bool(is_split) and bool(possible) and np.isfinite(float(lr_split))
     k2 = int(np.asarray(z2)[ib, tb])
     assert k2 != k and int(np.asarray(z2)[ia, ta]) == k and np.asarray(f)[:, k2].sum() == 0
     assert np.all(np.asarray(f2)[:, k2] <= np.asarray(f)[:, k])  # only trajectories that had k get k2
+    touched = np.asarray(f)[:, k] > 0  # eta is redrawn for these trajectories only
+    assert np.all(np.asarray(eta2)[~touched] == np.asarray(eta)[~touched])
+    assert np.all(np.asarray(eta2)[touched] != np.asarray(eta)[touched])
     # the matching merge, proposing the original parameters of both slots and skill sequences
     forced = jax.tree.map(lambda p: jnp.stack([p[k], p[k2]]), params)
-    lr_merge, possible_m, is_split_m, f3, z3, p3, ll3 = split_merge_at(key, em, data, state.hyper, f2, eta, z2, p2, ll2,
-                                                                        anchors, blocks, forced_params=forced,
-                                                                        forced_z=z)
+    lr_merge, possible_m, is_split_m, f3, eta3, z3, p3, ll3 = split_merge_at(
+        key, em, data, state.hyper, f2, eta2, z2, p2, ll2, anchors, blocks, forced_params=forced, forced_z=z,
+        forced_eta=eta)
     assert not bool(is_split_m) and bool(possible_m)
     np.testing.assert_array_equal(np.asarray(z3), zz)
     np.testing.assert_array_equal(np.asarray(f3), np.asarray(f))
+    np.testing.assert_array_equal(np.asarray(eta3), np.asarray(eta))
     for a, b in zip(jax.tree.leaves(p3), jax.tree.leaves(params)):
         np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-12)
     np.testing.assert_allclose(np.asarray(ll3), np.asarray(ll), rtol=1e-10, atol=1e-10)
@@ -110,9 +114,11 @@ def test_split_merge_trials_are_reproducible_and_keep_a_valid_state():
                                           state.params, state.log_lik))
     seen_split = seen_merge = False
     for s in range(20):
-        f2, z2, p2, ll2, info = run(jax.random.PRNGKey(s))
+        f2, eta2, z2, p2, ll2, info = run(jax.random.PRNGKey(s))
         again = run(jax.random.PRNGKey(s))
-        np.testing.assert_array_equal(np.asarray(again[1]), np.asarray(z2))
+        np.testing.assert_array_equal(np.asarray(again[2]), np.asarray(z2))
+        np.testing.assert_array_equal(np.asarray(again[1]), np.asarray(eta2))
+        assert np.all(np.isfinite(np.asarray(eta2))) and np.all(np.asarray(eta2) > 0)
         seen_split |= bool(info.is_split & info.possible)
         seen_merge |= bool(~info.is_split & info.possible)
         z2, f2 = np.asarray(z2), np.asarray(f2)
