@@ -2,7 +2,7 @@
 its trans-dimensional moves.
 
 Three corner-seeking reward skills in a 4 x 4 gridworld (``tests/gridworld.py``), 6
-demonstrations of 60 steps; every chain starts over-segmented (5 skills on random windows).
+demonstrations of 60 steps; every chain starts over-segmented (5 skills on random windows; ``--init-skills 1``: one skill).
 For each move setting, 8 chains run 40 sweeps; a chain has *recovered* the skills at the first
 sweep where it uses at most 3 skills and labels at least 90% of the steps correctly under
 one-to-one matching. Prints, per setting, the sweeps each chain needed (41: not within 40),
@@ -37,8 +37,8 @@ SETTINGS = {"gibbs only": {}, "birth/death 2": {"birth_death": 2}, "split-merge 
             "both": {"birth_death": 2, "split_merge": 1}}
 
 
-def sweeps_to_recover(data, true, emission, moves, chains, sweeps, seed):
-    kernel = BPHMMKernel(emission, data, max_skills=5, init_skills=5, moves=moves)
+def sweeps_to_recover(data, true, emission, moves, chains, sweeps, seed, init_skills=5):
+    kernel = BPHMMKernel(emission, data, max_skills=5, init_skills=init_skills, moves=moves)
 
     def run(key):
         def body(s, _):
@@ -70,6 +70,8 @@ def main(argv=None):
     parser.add_argument("--chains", type=int, default=8)
     parser.add_argument("--sweeps", type=int, default=40)
     parser.add_argument("--json", default=None)
+    parser.add_argument("--init-skills", type=int, default=5, help="skills of the initial state (5: over-segmented)")
+    parser.add_argument("--settings", nargs="+", choices=list(SETTINGS), default=list(SETTINGS))
     args = parser.parse_args(argv)
     dom = gridworld()
     demos = generate_demonstrations(dom, num_trajectories=6, length=60, switch_prob=0.05, seed=args.seed)
@@ -77,8 +79,10 @@ def main(argv=None):
     true = [np.asarray(t) for t in demos.skills]
     emission = make_emission("reward", dom.mdp)
     out = {}
-    for name, moves in SETTINGS.items():
-        hits, final, wall = sweeps_to_recover(data, true, emission, moves, args.chains, args.sweeps, args.seed)
+    for name in args.settings:
+        moves = SETTINGS[name]
+        hits, final, wall = sweeps_to_recover(data, true, emission, moves, args.chains, args.sweeps, args.seed,
+                                              args.init_skills)
         out[name] = {"moves": moves, "sweeps_to_recover": hits, "median": float(np.median(hits)),
                      "final_skills": final, "wall_s": wall}
         print(f"{name:14s} sweeps to recover {hits}  median {np.median(hits):4.1f}  final skills {final}  "
