@@ -34,7 +34,7 @@ the prior.
 
 Transition weights, both directions: every trajectory that uses k1 or k2 gets a new eta_i
 from its exact conditional given the move's allocation (the split's, or the merged labels
-k2 -> k1): per row, Dirichlet(conc + counts) proportions over the active skills times a
+k2 -> k1), or with probability ``ETA_PRIOR_WEIGHT`` from its prior: per row, Dirichlet(conc + counts) proportions over the active skills times a
 Gamma(sum conc) total, inactive entries from their Gamma prior. Prior and proposal share the
 total, its Jacobian and the inactive entries, so per row log p(eta) - log q(eta) is
 log Dir(D; conc) - log Dir(D; conc + counts) of the proportions D. Keeping eta instead (the
@@ -82,6 +82,9 @@ __all__ = ["SplitMergeInfo", "split_merge", "split_merge_at"]
 
 # probability of each feature pair other than the one that matches the allocation
 PAIR_EPS = 0.1
+# weight of the prior in each touched trajectory's eta proposal (a defensive mixture: a
+# reverse move's density of the current eta is at least this weight times the prior's)
+ETA_PRIOR_WEIGHT = 0.02
 
 
 class SplitMergeInfo(NamedTuple):
@@ -173,9 +176,12 @@ def _eta_shapes(z_alloc, f, hyper, mask):
 
 
 def _draw_eta(key, eta, z_alloc, f, involved, hyper, mask):
-    """eta with the involved trajectories' matrices redrawn from the conditional given z_alloc."""
+    """eta with the involved trajectories' matrices redrawn from the defensive mixture
+    (1 - ETA_PRIOR_WEIGHT) p(eta_i | z_alloc) + ETA_PRIOR_WEIGHT p(eta_i), per trajectory."""
     conc, counts, active = _eta_shapes(z_alloc, f, hyper, mask)
-    k_g, k_t = jax.random.split(key)
+    k_g, k_t, k_w = jax.random.split(key, 3)
+    from_prior = jax.random.bernoulli(k_w, ETA_PRIOR_WEIGHT, (counts.shape[0],))
+    counts = jnp.where(from_prior[:, None, None], 0.0, counts)
     g = jnp.maximum(jax.random.gamma(k_g, jnp.where(active, conc + counts, conc)), 1e-300)
     total = jnp.maximum(jax.random.gamma(k_t, jnp.sum(jnp.where(active, conc, 0.0), -1, keepdims=True)), 1e-300)
     scaled = g / jnp.maximum(jnp.sum(jnp.where(active, g, 0.0), -1, keepdims=True), 1e-300) * total
@@ -184,11 +190,13 @@ def _draw_eta(key, eta, z_alloc, f, involved, hyper, mask):
 
 
 def _eta_log_p_over_q(eta, z_alloc, f, involved, hyper, mask):
-    """log p(eta_i | F) - log q(eta_i | z_alloc, F) summed over the involved trajectories.
+    """log p(eta_i | F) - log q(eta_i | z_alloc, F) summed over the involved trajectories,
+    q the defensive mixture of :func:`_draw_eta`.
 
-    Prior and proposal share the Gamma(sum conc) total, its Jacobian and the inactive
-    entries, so per row the difference is log Dir(D; conc) - log Dir(D; conc + counts) with
-    D the row's proportions over the active columns."""
+    The conditional and the prior share the Gamma(sum conc) total, its Jacobian and the
+    inactive entries, so per row log p - log p(. | z_alloc) is
+    log Dir(D; conc) - log Dir(D; conc + counts) with D the row's proportions over the active
+    columns; the mixture's weight on the prior bounds log p - log q by -log ETA_PRIOR_WEIGHT."""
     conc, counts, active = _eta_shapes(z_alloc, f, hyper, mask)
     c = jnp.where(active, conc, 0.0)
     row = jnp.sum(jnp.where(active, eta, 0.0), -1, keepdims=True)
@@ -200,7 +208,10 @@ def _eta_log_p_over_q(eta, z_alloc, f, involved, hyper, mask):
                - jax.scipy.special.gammaln(c_row + n_row) + jnp.sum(lg(conc + counts), -1)
                - jnp.sum(counts * log_d, -1))
     per_row = jnp.where(c_row > 0, per_row, 0.0)
-    return jnp.sum(jnp.where(involved[:, None], per_row, 0.0))
+    delta = jnp.sum(per_row, -1)  # (N,) log p - log p(. | z_alloc)
+    w = ETA_PRIOR_WEIGHT
+    log_p_over_q = -jnp.logaddexp(jnp.log1p(-w) - delta, jnp.log(w))
+    return jnp.sum(jnp.where(involved, log_p_over_q, 0.0))
 
 
 def _pair_table(used_a, used_b, N, ia, ib):

@@ -17,7 +17,11 @@ The data-driven proposal of a new skill from weighted steps (a birth's window) f
 theta = 0 with a fixed number of L-BFGS steps (deterministic in the steps, so its density can
 be evaluated in the reverse move) and draws theta from a Gaussian around the fit whose
 covariance is the inverse Fisher information plus prior precision (a Laplace approximation),
-inflated by ``proposal_inflation``.
+inflated by ``proposal_inflation``. With ``proposal_broad_weight`` w > 0 the proposal is the
+defensive mixture (1 - w) N(fit, C) + w N(fit, s^2 C), s = ``proposal_broad_scale``: its
+draws stay near the fit, but a reverse move's density of a value many standard deviations
+from the fit (a split-merge's current rewards, when the reverse split allocates the steps
+differently) is about log w - D log s - d^2 / (2 s^2) instead of -d^2 / 2.
 """
 
 from __future__ import annotations
@@ -60,6 +64,8 @@ class RewardEmission(Emission):
         refit_steps: L-BFGS steps of a warm-started fit (a split-merge move's refits and
             final proposals, which start from the allocation's fits).
         proposal_inflation: factor on the proposal's standard deviations.
+        proposal_broad_weight, proposal_broad_scale: weight w and scale s of the broad
+            component of the defensive-mixture proposal (w = 0: a single Gaussian).
         solver_options: keyword options of :func:`npbrs.domains.make_soft_solver`.
         epsilon: probability that the demonstrator acts uniformly at random instead of by the
             skill's Boltzmann policy (a noisy expert): pi = (1 - eps) Boltzmann + eps / A. A few
@@ -71,13 +77,16 @@ class RewardEmission(Emission):
     def __init__(self, mdp, prior_scale: float = 10.0, temperature: float = 1.0, discount: Optional[float] = None,
                  update: str = "mala", mala_steps: int = 3, step_size: float = 0.5, target_accept: float = 0.6,
                  map_steps: int = 5, fit_steps: int = 20, refit_steps: int = 3, proposal_inflation: float = 1.5,
-                 solver_options: Optional[dict] = None, epsilon: float = 0.0):
+                 solver_options: Optional[dict] = None, epsilon: float = 0.0, proposal_broad_weight: float = 0.1,
+                 proposal_broad_scale: float = 10.0):
         if update not in _UPDATES:
             raise ValueError(f"unknown reward update {update!r}; expected one of {_UPDATES}")
         for name, value in [("prior_scale", prior_scale), ("temperature", temperature), ("step_size", step_size),
-                            ("proposal_inflation", proposal_inflation)]:
+                            ("proposal_inflation", proposal_inflation), ("proposal_broad_scale", proposal_broad_scale)]:
             if not (np.isfinite(value) and value > 0):
                 raise ValueError(f"{name} must be a positive number, got {value!r}")
+        if not (np.isfinite(proposal_broad_weight) and 0 <= proposal_broad_weight < 1):
+            raise ValueError(f"proposal_broad_weight must lie in [0, 1), got {proposal_broad_weight!r}")
         if not (np.isfinite(epsilon) and 0 <= epsilon < 1):
             raise ValueError(f"epsilon must lie in [0, 1), got {epsilon!r}")
         if not 0 < target_accept < 1:
@@ -101,6 +110,8 @@ class RewardEmission(Emission):
         self.refit_steps = int(refit_steps)
         self.epsilon = float(epsilon)
         self.proposal_inflation = float(proposal_inflation)
+        self.proposal_broad_weight = float(proposal_broad_weight)
+        self.proposal_broad_scale = float(proposal_broad_scale)
         self.solver_options = dict(solver_options or {})
         self.solver = make_soft_solver(mdp, **self.solver_options)
         self.num_states, self.num_actions = mdp.num_states, mdp.num_actions
@@ -111,7 +122,8 @@ class RewardEmission(Emission):
                 "discount": self.discount, "update": self.update_kind, "mala_steps": self.mala_steps,
                 "step_size": self.step_size, "target_accept": self.target_accept, "map_steps": self.map_steps,
                 "fit_steps": self.fit_steps, "refit_steps": self.refit_steps, "proposal_inflation": self.proposal_inflation,
-                "epsilon": self.epsilon}
+                "epsilon": self.epsilon, "proposal_broad_weight": self.proposal_broad_weight,
+                "proposal_broad_scale": self.proposal_broad_scale}
 
     # ------------------------------------------------------------------ prior
     def _prior(self):
@@ -236,20 +248,31 @@ class RewardEmission(Emission):
         chol = jnp.linalg.cholesky(0.5 * (cov + cov.T) + 1e-12 * jnp.eye(D))
         return mean, chol
 
+    def _draw_and_density(self, key, mean, chol):
+        """A draw of the (mixture) proposal around mean and its log-density function."""
+        w, s = self.proposal_broad_weight, self.proposal_broad_scale
+        narrow_q = dist.MultivariateNormal(mean, scale_tril=chol)
+        if w == 0:
+            return mean + chol @ jax.random.normal(key, mean.shape), narrow_q.log_prob
+        k_pick, k_draw = jax.random.split(key)
+        broad = jax.random.bernoulli(k_pick, w)
+        theta = mean + jnp.where(broad, s, 1.0) * (chol @ jax.random.normal(k_draw, mean.shape))
+        broad_q = dist.MultivariateNormal(mean, scale_tril=s * chol)
+        return theta, lambda x: jnp.logaddexp(jnp.log1p(-w) + narrow_q.log_prob(x), jnp.log(w) + broad_q.log_prob(x))
+
     def propose(self, key, data, weights):
         mean, chol = self._proposal(data, weights)
-        theta = mean + chol @ jax.random.normal(key, mean.shape)
-        return {"theta": theta}, dist.MultivariateNormal(mean, scale_tril=chol).log_prob(theta)
+        theta, log_q = self._draw_and_density(key, mean, chol)
+        return {"theta": theta}, log_q(theta)
 
     def propose_and_score(self, key, data, weights, other_one, init=None):
         mean, chol = self._proposal(data, weights, init)
-        q = dist.MultivariateNormal(mean, scale_tril=chol)
-        theta = mean + chol @ jax.random.normal(key, mean.shape)
-        return {"theta": theta}, q.log_prob(theta), q.log_prob(other_one["theta"])
+        theta, log_q = self._draw_and_density(key, mean, chol)
+        return {"theta": theta}, log_q(theta), log_q(other_one["theta"])
 
     def log_proposal(self, params_one, data, weights):
         mean, chol = self._proposal(data, weights)
-        return dist.MultivariateNormal(mean, scale_tril=chol).log_prob(params_one["theta"])
+        return self._draw_and_density(jax.random.PRNGKey(0), mean, chol)[1](params_one["theta"])
 
 
 @register_emission("single")

@@ -98,3 +98,42 @@ def test_the_sampler_recovers_planted_reward_skills_in_a_gridworld():
     assert result.num_skills == 3
     assert paper_accuracy(demos.skills, result.segmentation) >= 0.9
     assert result.rhat["log_joint"] < 1.1
+
+
+def test_data_driven_proposal_is_the_defensive_mixture_it_scores():
+    """Draws of the proposal follow (1 - w) N(fit, C) + w N(fit, s^2 C), and the scored density
+    is that mixture's (checked against the formula and against the draws' Mahalanobis radii)."""
+    from scipy.stats import chi2 as chi2_dist, multivariate_normal
+
+    dom = gridworld(size=3)
+    demos = generate_demonstrations(dom, num_trajectories=2, length=15, seed=3)
+    data = HMMData.from_demonstrations(demos)
+    em = RewardEmission(dom.mdp, proposal_broad_weight=0.2, proposal_broad_scale=5.0)
+    weights = jnp.asarray(data.mask, jnp.float64)
+    mean, chol = (np.asarray(x) for x in em._proposal(data, weights))
+    D = mean.shape[0]
+    other = {"theta": jnp.asarray(mean + 7.0 * np.diag(chol))}
+    draw = jax.jit(jax.vmap(lambda k: em.propose_and_score(k, data, weights, other)))
+    thetas, log_q, log_q_other = draw(jax.random.split(jax.random.PRNGKey(0), 4000))
+    thetas = np.asarray(thetas["theta"])
+    cov = chol @ chol.T
+
+    def mixture(x):
+        return np.logaddexp(np.log(0.8) + multivariate_normal(mean, cov).logpdf(x),
+                            np.log(0.2) + multivariate_normal(mean, 25.0 * cov).logpdf(x))
+
+    np.testing.assert_allclose(np.asarray(log_q)[:20], mixture(thetas[:20]), rtol=1e-8)
+    np.testing.assert_allclose(np.asarray(log_q_other)[0], mixture(np.asarray(other["theta"])), rtol=1e-8)
+    np.testing.assert_allclose(float(em.log_proposal({"theta": jnp.asarray(thetas[0])}, data, weights)),
+                               mixture(thetas[0]), rtol=1e-8)
+    r2 = np.sum(np.linalg.solve(chol, (thetas - mean).T) ** 2, axis=0)
+    q = chi2_dist.ppf(0.99, D)
+    expected = 0.8 * 0.01 + 0.2 * chi2_dist.sf(q / 25.0, D)
+    assert abs(np.mean(r2 > q) - expected) < 4 * np.sqrt(expected * (1 - expected) / 4000)
+    # w = 0 is the single Gaussian
+    plain = RewardEmission(dom.mdp, proposal_broad_weight=0.0)
+    _, lq, _ = plain.propose_and_score(jax.random.PRNGKey(1), data, weights, other)
+    th, _, _ = plain.propose_and_score(jax.random.PRNGKey(1), data, weights, other)
+    np.testing.assert_allclose(float(lq), multivariate_normal(mean, cov).logpdf(np.asarray(th["theta"])), rtol=1e-8)
+    with pytest.raises(ValueError, match="proposal_broad_weight"):
+        RewardEmission(dom.mdp, proposal_broad_weight=1.0)
