@@ -260,6 +260,17 @@ class RewardEmission(Emission):
         broad_q = dist.MultivariateNormal(mean, scale_tril=s * chol)
         return theta, lambda x: jnp.logaddexp(jnp.log1p(-w) + narrow_q.log_prob(x), jnp.log(w) + broad_q.log_prob(x))
 
+    def init_params(self, key, data, weights):
+        """A starting point: a draw of the Laplace proposal (the narrow component only) around
+        each skill's IRL fit to its weighted steps. (K, D)."""
+        keys = jax.random.split(key, weights.shape[-1])
+
+        def one(k, w):
+            mean, chol = self._proposal(data, w)
+            return mean + chol @ jax.random.normal(k, mean.shape)
+
+        return {"theta": jax.vmap(one, in_axes=(0, 2))(keys, weights)}
+
     def propose(self, key, data, weights):
         mean, chol = self._proposal(data, weights)
         theta, log_q = self._draw_and_density(key, mean, chol)
