@@ -65,9 +65,10 @@ under single-Gaussian and single-conditional reverse proposals (a quadcopter sta
 copies of one skill: merge log ratios of -400 to -9000, although the merge gains 270 nats of
 likelihood). Both proposals are therefore defensive mixtures (eta: ``ETA_PRIOR_WEIGHT``; the
 reward emission: ``proposal_broad_weight``), which bounds those reverse densities; the same
-merges then have log ratios of +3 to +125 and are accepted. Splits are accepted too, and
-what a chain ends with varies: on quadcopter seeds 0-4 one chain of 40 sweeps with one trial
-per sweep ends with 4, 3, 7, 6, 3 skills (Gibbs alone 5, 5, 5, 3, 3). One trial costs about
+merges then have log ratios of +3 to +125 and are accepted. Splits are accepted too: on
+quadcopter seeds 0-4 one chain of 40 sweeps with one trial per sweep ends with 6, 5, 5, 4, 6
+skills (Gibbs alone 5, 5, 5, 3, 3), although it reaches higher log joints (seed 3: -6044
+against -7661). One trial costs about
 three Gibbs sweeps (IRL refits; under vectorised chains ``lax.cond`` runs both branches). The
 move is exact (tested against enumeration, by posterior invariance, and by split-merge
 reciprocity) and off by default.
