@@ -23,7 +23,7 @@ import jax.numpy as jnp
 import numpyro.distributions as dist
 from numpyro.infer.mcmc import MCMCKernel
 
-from npbrs.models.bphmm import (Hyper, bphmm_model, hmm_parameters, log_joint_terms,
+from npbrs.models.bphmm import (Hyper, bphmm_model, eta_from_gammas, eta_gamma_shapes, hmm_parameters, log_joint_terms,
                                 log_marginal_likelihoods)
 from npbrs.models.emissions import Emission, HMMData
 from npbrs.models.hmm import batch_backward_sample, batch_forward_filter, transition_counts
@@ -221,11 +221,7 @@ class BPHMMKernel(MCMCKernel):
         their Gamma prior. omega_k ~ Beta(alpha/K + m_k, 1 + N - m_k) as a ratio of Gammas.
         """
         N, K = features.shape
-        conc = hyper.gamma + hyper.kappa * jnp.eye(K)
-        counts = transition_counts(z, self.data.mask, K)  # (N, K, K)
-        active = (features > 0)[:, None, :]
-        shape_g = jnp.where(active, conc + counts, conc)
-        shape_total = jnp.sum(jnp.where(active, conc, 0.0), -1)  # (N, K)
+        shape_g, shape_total, active = eta_gamma_shapes(transition_counts(z, self.data.mask, K), features, hyper)
         m = features.sum(0)
         shape_omega = jnp.concatenate([hyper.alpha / K + m, 1.0 + N - m])  # (2K,)
         shapes = jnp.concatenate([shape_g.ravel(), shape_total.ravel(), shape_omega])
@@ -233,9 +229,7 @@ class BPHMMKernel(MCMCKernel):
         g = draws[:N * K * K].reshape(N, K, K)
         total = draws[N * K * K:N * K * K + N * K].reshape(N, K, 1)
         a, b = draws[N * K * K + N * K:].reshape(2, K)
-        g_active_sum = jnp.sum(jnp.where(active, g, 0.0), -1, keepdims=True)
-        scaled = g / jnp.maximum(g_active_sum, 1e-300) * total
-        eta = jnp.maximum(jnp.where(active, scaled, g), 1e-300)
+        eta = eta_from_gammas(g, total, active)
         omega = jnp.clip(a / (a + b), 1e-300, 1.0 - 1e-16)
         return eta, omega
 

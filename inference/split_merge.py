@@ -81,7 +81,7 @@ from typing import NamedTuple, Optional
 import jax
 import jax.numpy as jnp
 
-from npbrs.models.bphmm import collapsed_feature_log_prob, hmm_parameters
+from npbrs.models.bphmm import collapsed_feature_log_prob, eta_from_gammas, eta_gamma_shapes, hmm_parameters
 from npbrs.models.hmm import NEG_LOG, batch_backward_sample, batch_forward_filter, transition_counts, viterbi
 
 __all__ = ["SplitMergeInfo", "split_merge", "split_merge_at"]
@@ -169,30 +169,23 @@ def _allocate(emission, data, z_m, f_m, k1, k2, anchors, order, init_one, num_bl
     return z, fits
 
 
-def _eta_shapes(z_alloc, f, hyper, mask):
-    """Shapes of eta's proposal given an allocation: each row's entries in active columns
-    are Dirichlet(conc + counts) proportions times a Gamma(sum conc) total (the kernel's
-    exact conditional of eta given z), inactive columns their Gamma(conc) prior.
-    Returns (conc (K, K), counts (N, K, K) masked to active columns, active (N, 1, K))."""
+def _eta_counts(z_alloc, f, mask):
+    """Transition counts (N, K, K) of an allocation in the active columns of F."""
     K = f.shape[1]
-    conc = hyper.gamma + hyper.kappa * jnp.eye(K)
-    active = (f > 0)[:, None, :]
-    counts = jnp.where(active, transition_counts(z_alloc, mask, K), 0).astype(jnp.float64)
-    return conc, counts, active
+    return jnp.where((f > 0)[:, None, :], transition_counts(z_alloc, mask, K), 0).astype(jnp.float64)
 
 
 def _draw_eta(key, eta, z_alloc, f, involved, hyper, mask):
     """eta with the involved trajectories' matrices redrawn from the defensive mixture
-    (1 - ETA_PRIOR_WEIGHT) p(eta_i | z_alloc) + ETA_PRIOR_WEIGHT p(eta_i), per trajectory."""
-    conc, counts, active = _eta_shapes(z_alloc, f, hyper, mask)
+    (1 - ETA_PRIOR_WEIGHT) p(eta_i | z_alloc) + ETA_PRIOR_WEIGHT p(eta_i), per trajectory
+    (the kernel's conditional of eta, :func:`~npbrs.models.bphmm.eta_gamma_shapes`)."""
     k_g, k_t, k_w = jax.random.split(key, 3)
-    from_prior = jax.random.bernoulli(k_w, ETA_PRIOR_WEIGHT, (counts.shape[0],))
-    counts = jnp.where(from_prior[:, None, None], 0.0, counts)
-    g = jnp.maximum(jax.random.gamma(k_g, jnp.where(active, conc + counts, conc)), 1e-300)
-    total = jnp.maximum(jax.random.gamma(k_t, jnp.sum(jnp.where(active, conc, 0.0), -1, keepdims=True)), 1e-300)
-    scaled = g / jnp.maximum(jnp.sum(jnp.where(active, g, 0.0), -1, keepdims=True), 1e-300) * total
-    new = jnp.maximum(jnp.where(active, scaled, g), 1e-300)
-    return jnp.where(involved[:, None, None], new, eta)
+    from_prior = jax.random.bernoulli(k_w, ETA_PRIOR_WEIGHT, (f.shape[0],))
+    counts = jnp.where(from_prior[:, None, None], 0.0, _eta_counts(z_alloc, f, mask))
+    shape_g, shape_total, active = eta_gamma_shapes(counts, f, hyper)
+    g = jnp.maximum(jax.random.gamma(k_g, shape_g), 1e-300)
+    total = jnp.maximum(jax.random.gamma(k_t, shape_total[..., None]), 1e-300)
+    return jnp.where(involved[:, None, None], eta_from_gammas(g, total, active), eta)
 
 
 def _eta_log_p_over_q(eta, z_alloc, f, involved, hyper, mask):
@@ -203,7 +196,10 @@ def _eta_log_p_over_q(eta, z_alloc, f, involved, hyper, mask):
     inactive entries, so per row log p - log p(. | z_alloc) is
     log Dir(D; conc) - log Dir(D; conc + counts) with D the row's proportions over the active
     columns; the mixture's weight on the prior bounds log p - log q by -log ETA_PRIOR_WEIGHT."""
-    conc, counts, active = _eta_shapes(z_alloc, f, hyper, mask)
+    K = f.shape[1]
+    conc = hyper.gamma + hyper.kappa * jnp.eye(K)
+    counts = _eta_counts(z_alloc, f, mask)
+    active = (f > 0)[:, None, :]
     c = jnp.where(active, conc, 0.0)
     row = jnp.sum(jnp.where(active, eta, 0.0), -1, keepdims=True)
     log_d = jnp.where(active, jnp.log(jnp.where(active, eta, 1.0) / jnp.maximum(row, 1e-300)), 0.0)

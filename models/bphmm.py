@@ -30,7 +30,8 @@ from .hmm import batch_forward_filter
 
 jax.config.update("jax_enable_x64", True)
 
-__all__ = ["Hyper", "prior_distributions", "hmm_parameters", "log_marginal_likelihoods",
+__all__ = ["Hyper", "prior_distributions", "hmm_parameters", "eta_gamma_shapes", "eta_from_gammas",
+           "log_marginal_likelihoods",
            "bphmm_model", "log_joint_terms",
            "collapsed_feature_log_prob", "collapsed_sequence_log_prob"]
 
@@ -71,6 +72,27 @@ def hmm_parameters(features, eta):
         (log eta, normalised over the active skills by the filters), active (N, K) bool.
     """
     return jnp.zeros(features.shape, eta.dtype), jnp.log(eta), features > 0
+
+
+def eta_gamma_shapes(counts, features, hyper):
+    """Gamma shapes of eta's conditional given transition counts (N, K, K) and F.
+
+    Per row, the entries in active columns are Dirichlet(conc + counts) proportions times a
+    Gamma(sum conc) total (the Gamma-Dirichlet decomposition); inactive entries keep their
+    Gamma(conc) prior; conc = gamma + kappa * I. Returns (shapes of the entries (N, K, K),
+    shapes of the totals (N, K), active columns (N, 1, K) bool). With zero counts this is
+    the prior."""
+    K = features.shape[1]
+    conc = hyper.gamma + hyper.kappa * jnp.eye(K)
+    active = (features > 0)[:, None, :]
+    return jnp.where(active, conc + counts, conc), jnp.sum(jnp.where(active, conc, 0.0), -1), active
+
+
+def eta_from_gammas(g, total, active):
+    """eta from Gamma draws of :func:`eta_gamma_shapes`' shapes: g (N, K, K), total (N, K, 1)."""
+    g_active_sum = jnp.sum(jnp.where(active, g, 0.0), -1, keepdims=True)
+    scaled = g / jnp.maximum(g_active_sum, 1e-300) * total
+    return jnp.maximum(jnp.where(active, scaled, g), 1e-300)
 
 
 def log_marginal_likelihoods(features, eta, log_lik, mask):

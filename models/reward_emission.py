@@ -248,42 +248,42 @@ class RewardEmission(Emission):
         chol = jnp.linalg.cholesky(0.5 * (cov + cov.T) + 1e-12 * jnp.eye(D))
         return mean, chol
 
-    def _draw_and_density(self, key, mean, chol):
-        """A draw of the (mixture) proposal around mean and its log-density function."""
-        w, s = self.proposal_broad_weight, self.proposal_broad_scale
-        narrow_q = dist.MultivariateNormal(mean, scale_tril=chol)
-        if w == 0:
-            return mean + chol @ jax.random.normal(key, mean.shape), narrow_q.log_prob
+    def _draw(self, key, mean, chol, broad_weight):
+        """A draw of the proposal around mean; broad_weight 0: the narrow Gaussian only."""
+        if broad_weight == 0:
+            return mean + chol @ jax.random.normal(key, mean.shape)
         k_pick, k_draw = jax.random.split(key)
-        broad = jax.random.bernoulli(k_pick, w)
-        theta = mean + jnp.where(broad, s, 1.0) * (chol @ jax.random.normal(k_draw, mean.shape))
-        broad_q = dist.MultivariateNormal(mean, scale_tril=s * chol)
-        return theta, lambda x: jnp.logaddexp(jnp.log1p(-w) + narrow_q.log_prob(x), jnp.log(w) + broad_q.log_prob(x))
+        scale = jnp.where(jax.random.bernoulli(k_pick, broad_weight), self.proposal_broad_scale, 1.0)
+        return mean + scale * (chol @ jax.random.normal(k_draw, mean.shape))
+
+    def _log_q(self, theta, mean, chol):
+        """log-density of the (mixture) proposal around mean at theta."""
+        w = self.proposal_broad_weight
+        narrow = dist.MultivariateNormal(mean, scale_tril=chol).log_prob(theta)
+        if w == 0:
+            return narrow
+        broad = dist.MultivariateNormal(mean, scale_tril=self.proposal_broad_scale * chol).log_prob(theta)
+        return jnp.logaddexp(jnp.log1p(-w) + narrow, jnp.log(w) + broad)
 
     def init_params(self, key, data, weights):
         """A starting point: a draw of the Laplace proposal (the narrow component only) around
         each skill's IRL fit to its weighted steps. (K, D)."""
         keys = jax.random.split(key, weights.shape[-1])
-
-        def one(k, w):
-            mean, chol = self._proposal(data, w)
-            return mean + chol @ jax.random.normal(k, mean.shape)
-
-        return {"theta": jax.vmap(one, in_axes=(0, 2))(keys, weights)}
+        return {"theta": jax.vmap(lambda k, w: self._draw(k, *self._proposal(data, w), 0.0), in_axes=(0, 2))(
+            keys, weights)}
 
     def propose(self, key, data, weights):
         mean, chol = self._proposal(data, weights)
-        theta, log_q = self._draw_and_density(key, mean, chol)
-        return {"theta": theta}, log_q(theta)
+        theta = self._draw(key, mean, chol, self.proposal_broad_weight)
+        return {"theta": theta}, self._log_q(theta, mean, chol)
 
     def propose_and_score(self, key, data, weights, other_one, init=None):
         mean, chol = self._proposal(data, weights, init)
-        theta, log_q = self._draw_and_density(key, mean, chol)
-        return {"theta": theta}, log_q(theta), log_q(other_one["theta"])
+        theta = self._draw(key, mean, chol, self.proposal_broad_weight)
+        return {"theta": theta}, self._log_q(theta, mean, chol), self._log_q(other_one["theta"], mean, chol)
 
     def log_proposal(self, params_one, data, weights):
-        mean, chol = self._proposal(data, weights)
-        return self._draw_and_density(jax.random.PRNGKey(0), mean, chol)[1](params_one["theta"])
+        return self._log_q(params_one["theta"], *self._proposal(data, weights))
 
 
 @register_emission("single")
