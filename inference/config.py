@@ -37,6 +37,7 @@ A TOML variant (every key optional; these are the defaults)::
     # split_merge = 1          # split-merge trials per sweep (emissions with fit_point)
     # blocks = 4               # refits of a split's sequential allocation
     # window = [10, 50]
+    # start = 20               # the sweep from which the moves run (plain Gibbs before it)
 """
 
 from __future__ import annotations

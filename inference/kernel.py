@@ -100,7 +100,8 @@ class BPHMMKernel(MCMCKernel):
         moves: trans-dimensional moves, {"birth_death": trials per sweep (0: off),
             "window": (min, max) length of a birth's window, "split_merge": trials per sweep
             (0: off; the emission needs ``fit_point``), "blocks": refits of a split's
-            sequential allocation}.
+            sequential allocation, "start": the sweep (counted from 0, warmup included) from
+            which the moves run; before it a sweep is plain Gibbs}.
     """
 
     sample_field = "params"
@@ -123,7 +124,7 @@ class BPHMMKernel(MCMCKernel):
         self._num_warmup = 0
         self._init_fns = {}
 
-    _MOVE_DEFAULTS = {"birth_death": 0, "window": (10, 50), "split_merge": 0, "blocks": 2}
+    _MOVE_DEFAULTS = {"birth_death": 0, "window": (10, 50), "split_merge": 0, "blocks": 2, "start": 0}
 
     @classmethod
     def check_moves(cls, moves):
@@ -138,6 +139,8 @@ class BPHMMKernel(MCMCKernel):
                 raise ValueError(f"moves.{name} must be a number of trials >= 0, got {out[name]!r}")
         if not isinstance(out["blocks"], int) or isinstance(out["blocks"], bool) or out["blocks"] < 1:
             raise ValueError(f"moves.blocks must be an integer >= 1, got {out['blocks']!r}")
+        if not isinstance(out["start"], int) or isinstance(out["start"], bool) or out["start"] < 0:
+            raise ValueError(f"moves.start must be a sweep number >= 0, got {out['start']!r}")
         lo, hi = out["window"]
         if not (1 <= int(lo) <= int(hi)):
             raise ValueError(f"moves.window must be (min, max) with 1 <= min <= max, got {out['window']!r}")
@@ -169,7 +172,10 @@ class BPHMMKernel(MCMCKernel):
 
     def sample(self, state, model_args, model_kwargs):
         if jnp.ndim(state.step) > 0:
-            return jax.vmap(self.sweep)(state)
+            # the chains sweep in lock-step: one unbatched "moves on" flag keeps the moves a real
+            # conditional under vmap (a batched predicate would run them in every sweep)
+            moves_on = state.step[0] >= self.moves["start"]
+            return jax.vmap(self.sweep, in_axes=(0, None))(state, moves_on)
         return self.sweep(state)
 
     # ------------------------------------------------------------------ pieces
@@ -263,13 +269,25 @@ class BPHMMKernel(MCMCKernel):
         features, _ = jax.lax.scan(one_skill, state.features, (jnp.arange(K), jax.random.split(key, K)))
         return features
 
-    def sweep(self, state: BPHMMState) -> BPHMMState:
-        """One full Gibbs sweep."""
+    def sweep(self, state: BPHMMState, moves_on=None) -> BPHMMState:
+        """One full sweep: features, birth/death, skill sequences, split-merge, eta and omega,
+        emission parameters, hyperparameters. The moves run from sweep ``moves["start"]`` on;
+        ``moves_on`` (a scalar flag) overrides that test: :meth:`sample` passes one flag
+        shared by vectorised chains."""
         N, K = state.features.shape
         mask = self.data.mask
         key, k_feat, k_bd, k_z, k_eta, k_em, k_hyp, k_sm = jax.random.split(state.rng_key, 8)
         features = self._sample_features(k_feat, state) if self.sample_features else state.features
         params, log_lik = state.params, state.log_lik
+        if self.moves["start"]:
+            moves_on = state.step >= self.moves["start"] if moves_on is None else moves_on
+
+            def gated(run, operands, skipped):
+                """run(operands) from the start sweep on; before it, (operands, skipped)."""
+                return jax.lax.cond(moves_on, run, lambda ops: (ops, skipped), operands)
+        else:
+            def gated(run, operands, skipped):
+                return run(operands)
         births = jnp.zeros(())
         if self.moves["birth_death"]:
             lo, hi = self.moves["window"]
@@ -279,9 +297,11 @@ class BPHMMKernel(MCMCKernel):
                 f, p, ll, info = birth_death(key, self.emission, self.data, state.hyper, f, state.eta, p, ll, lo, hi)
                 return (f, p, ll), info.accepted
 
-            (features, params, log_lik), accepted = jax.lax.scan(
-                trial, (features, params, log_lik), jax.random.split(k_bd, self.moves["birth_death"]))
-            births = jnp.mean(accepted.astype(jnp.float64))
+            def births_run(ops):
+                ops, accepted = jax.lax.scan(trial, ops, jax.random.split(k_bd, self.moves["birth_death"]))
+                return ops, jnp.mean(accepted.astype(jnp.float64))
+
+            (features, params, log_lik), births = gated(births_run, (features, params, log_lik), births)
         log_init, log_trans, active = hmm_parameters(features, state.eta)
         _, log_alpha = batch_forward_filter(log_init, log_trans, log_lik, mask, active)
         z = batch_backward_sample(k_z, log_trans, log_alpha, mask, active)
@@ -295,10 +315,13 @@ class BPHMMKernel(MCMCKernel):
                                                     blocks)
                 return (f, e, zz, p, ll), info.accepted
 
+            def splits_run(ops):
+                ops, accepted = jax.lax.scan(sm_trial, ops, jax.random.split(k_sm, self.moves["split_merge"]))
+                return ops, jnp.mean(accepted.astype(jnp.float64))
+
             # eta changes here only for trajectories a move touched; the next line redraws it all
-            (features, _, z, params, log_lik), sm_accepted = jax.lax.scan(
-                sm_trial, (features, state.eta, z, params, log_lik), jax.random.split(k_sm, self.moves["split_merge"]))
-            splits = jnp.mean(sm_accepted.astype(jnp.float64))
+            (features, _, z, params, log_lik), splits = gated(
+                splits_run, (features, state.eta, z, params, log_lik), splits)
         # eta | z, F and omega | F are conditionally independent: one block
         eta, omega = self._sample_eta_omega(k_eta, z, features, state.hyper)
         weights = _skill_weights(z, mask, K)

@@ -144,6 +144,33 @@ def test_kernel_refuses_split_merge_without_fit_point():
         BPHMMKernel(PolicyEmission(4, 3), data, max_skills=3, moves={"split_merge": -1})
 
 
+def _tree_equal(a, b):
+    return all(np.array_equal(np.asarray(x), np.asarray(y)) for x, y in zip(jax.tree.leaves(a), jax.tree.leaves(b)))
+
+
+def test_moves_start_runs_gibbs_before_the_start_sweep_and_the_moves_from_it():
+    data, _ = planted_policy_data(seed=2, N=4, T=30)
+    em = PolicyEmission(4, 3)
+    make = lambda moves: BPHMMKernel(em, data, max_skills=5, init_skills=3, moves=moves)  # noqa: E731
+    gibbs, always = make(None), make({"split_merge": 2})
+    early, late = make({"split_merge": 2, "start": 2}), make({"split_merge": 2, "start": 9})
+    for bad in (-1, 1.5, True):
+        with pytest.raises(ValueError, match="moves.start"):
+            make({"split_merge": 1, "start": bad})
+    # two chains, vectorised as numpyro runs them (one flag shared by the chains)
+    state = jax.jit(jax.vmap(gibbs._init))(jax.random.split(jax.random.PRNGKey(3), 2))
+    sweep = {k: jax.jit(lambda s, k=k: k.sample(s, (), {})) for k in (gibbs, always, early, late)}
+    for step in range(8):  # no move is accepted in these sweeps: all four kernels agree
+        new = sweep[gibbs](state)
+        assert _tree_equal(sweep[early](state), new) and _tree_equal(sweep[late](state), new), step
+        state = new
+    # sweep 8: a split-merge trial is accepted, so the moves make a difference
+    with_moves, without = sweep[always](state), sweep[gibbs](state)
+    assert not _tree_equal(with_moves, without)
+    assert _tree_equal(sweep[early](state), with_moves)  # started at sweep 2
+    assert _tree_equal(sweep[late](state), without)  # starts at sweep 9
+
+
 def test_split_merge_recovers_planted_reward_skills_in_fewer_sweeps():
     """One chain of benchmarks/bench_moves.py (3 corner-seeking reward skills in a gridworld,
     started with 5 skills): a chain has recovered the skills at the first sweep where it uses
