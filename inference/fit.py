@@ -157,12 +157,15 @@ class _Compiled:
             out[name] = getattr(state.hyper, name)
         return out
 
-    def init(self, keys, num_warmup: int):
-        """Every chain's initial state (keys (C, 2)), on the host."""
-        if "init" not in self._fns:
+    def init(self, keys, num_warmup: int, z0=None):
+        """Every chain's initial state (keys (C, 2)), on the host; z0: an initial segmentation
+        (N, T) shared by the chains, or None (random windows)."""
+        name = "init" if z0 is None else "init_z"
+        if name not in self._fns:
             kernel = self.kernel
-            self._fns["init"] = jax.jit(lambda k: _strong(kernel.init(k, num_warmup, None, (), {})))
-        return _to_host(self._fns["init"](keys))
+            self._fns[name] = jax.jit(lambda k, z: _strong(kernel.init(k, num_warmup, None if z is None else {"z": z},
+                                                                       (), {})))
+        return _to_host(self._fns[name](keys, z0))
 
     def step(self, method: str):
         """state -> (next state, record): batched over chains ("vectorized"), one chain
@@ -310,8 +313,8 @@ def fit(mdp, demos: Demonstrations, config: Union[ModelConfig, dict, str, os.Pat
         seed: Optional[int] = None, chain_method: Optional[str] = None, alpha: Optional[float] = None,
         kappa: Optional[float] = None, gamma: Optional[float] = None, hyperpriors: Optional[dict] = None,
         init_skills: Optional[int] = None, init_window: Optional[int] = None, moves: Optional[dict] = None,
-        progress_bar: bool = True, checkpoint_path=None, checkpoint_every: Optional[int] = None,
-        resume: bool = False) -> FitResult:
+        init_segmentation=None, progress_bar: bool = True, checkpoint_path=None,
+        checkpoint_every: Optional[int] = None, resume: bool = False) -> FitResult:
     """Segment demonstrations into skills.
 
     The model and sampler come from ``config`` (defaults: :class:`ModelConfig`); the keyword
@@ -331,6 +334,10 @@ def fit(mdp, demos: Demonstrations, config: Union[ModelConfig, dict, str, os.Pat
         hyperpriors: {"alpha"|"kappa"|"gamma": (shape, rate)}: sample those under Gamma hyperpriors.
         init_skills, init_window: the initial segmentation (see :class:`BPHMMKernel`).
         moves: options of the kernel's trans-dimensional moves, e.g. {"birth_death": True}.
+        init_segmentation: start every chain from this segmentation instead of random windows:
+            per trajectory an integer label per step (any integers, e.g. a previous result's
+            ``segmentation`` or hand labels), or a FitResult. The skills' initial parameters are
+            fitted to their steps as in the default start.
         progress_bar: show a progress bar (sweeps).
         checkpoint_path: write a checkpoint (``.npz``) there every ``checkpoint_every`` sweeps,
             at the end, and on Ctrl-C (then KeyboardInterrupt is re-raised).
@@ -370,6 +377,9 @@ def fit(mdp, demos: Demonstrations, config: Union[ModelConfig, dict, str, os.Pat
         cfg = cfg.replace(max_skills=int(fixed), sampler=dataclasses.replace(cfg.sampler, init_skills=None))
     compiled = _compiled(cfg, em, em_key, demos)
     kernel = compiled.kernel
+    z0 = None
+    if init_segmentation is not None:
+        z0 = kernel.check_segmentation(getattr(init_segmentation, "segmentation", init_segmentation))
     sampler = cfg.sampler
     C, W, S = sampler.chains, sampler.warmup, sampler.samples
     total = W + S
@@ -389,7 +399,7 @@ def fit(mdp, demos: Demonstrations, config: Union[ModelConfig, dict, str, os.Pat
 
     start = time.perf_counter()
     if state is None:
-        state = compiled.init(keys, W)
+        state = compiled.init(keys, W, z0)
     chains = _Chains(compiled, method, state)
     pending = []
 

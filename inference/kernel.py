@@ -20,6 +20,7 @@ from typing import Any, Dict, NamedTuple, Optional
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 import numpyro.distributions as dist
 from numpyro.infer.mcmc import MCMCKernel
 
@@ -162,13 +163,49 @@ class BPHMMKernel(MCMCKernel):
         return f"log joint {float(state.log_joint):.1f}, skills {int(state.num_skills)}"
 
     def init(self, rng_key, num_warmup, init_params, model_args, model_kwargs):
+        """Initial state(s). ``init_params`` may hold {"z": (N, T) skill labels in [0, K)}: start
+        every chain from that segmentation (see :meth:`check_segmentation`) instead of the
+        random windows."""
         self._num_warmup = int(num_warmup)
         batched = jnp.ndim(rng_key) > 1 or (jax.dtypes.issubdtype(rng_key.dtype, jax.dtypes.prng_key)
                                             and jnp.ndim(rng_key) > 0)
-        if (batched, self._num_warmup) not in self._init_fns:
+        z0 = None if not init_params or init_params.get("z") is None else jnp.asarray(init_params["z"], jnp.int32)
+        fn_key = (batched, self._num_warmup, z0 is not None)
+        if fn_key not in self._init_fns:
             # compiled once per kernel (the warmup length is baked into the initial state)
-            self._init_fns[(batched, self._num_warmup)] = jax.jit(jax.vmap(self._init) if batched else self._init)
-        return self._init_fns[(batched, self._num_warmup)](rng_key)
+            self._init_fns[fn_key] = jax.jit(jax.vmap(self._init, in_axes=(0, None)) if batched else self._init)
+        return self._init_fns[fn_key](rng_key, z0)
+
+    def check_segmentation(self, z) -> np.ndarray:
+        """An initial segmentation as an (N, T) int32 array in [0, K) (-1 on padding), from per
+        trajectory label arrays (any integers; relabelled 0, 1, ... in order of value) or an
+        (N, T) array; ValueError naming the trajectory and step of a bad entry."""
+        N, T = self.data.states.shape
+        lengths = np.asarray(self.data.mask).sum(1)
+        if isinstance(z, np.ndarray) and z.ndim == 2:
+            z = [z[i, :lengths[i]] for i in range(z.shape[0])] if z.shape == (N, T) else list(z)
+        try:
+            rows = [np.asarray(r) for r in z]
+        except TypeError:
+            raise ValueError(f"init_segmentation must be a sequence of per-trajectory label arrays, got "
+                             f"{type(z).__name__}") from None
+        if len(rows) != N:
+            raise ValueError(f"init_segmentation has {len(rows)} trajectories, the demonstrations {N}")
+        for i, r in enumerate(rows):
+            if r.shape != (lengths[i],):
+                raise ValueError(f"init_segmentation[{i}] has shape {r.shape}; trajectory {i} has {lengths[i]} steps")
+            if r.dtype.kind not in "biuf":
+                raise ValueError(f"init_segmentation[{i}] holds {r.dtype} values, not integer skill labels")
+            if r.size and r.dtype.kind == "f" and (not np.all(np.isfinite(r)) or np.any(r != np.round(r))):
+                bad = int(np.argmax(~np.isfinite(r) | (r != np.round(r))))
+                raise ValueError(f"init_segmentation[{i}][{bad}] = {r[bad].item()!r} is not an integer skill label")
+        labels = np.unique(np.concatenate(rows).astype(np.int64))
+        if len(labels) > self.max_skills:
+            raise ValueError(f"init_segmentation uses {len(labels)} skills, more than max_skills = {self.max_skills}")
+        out = np.full((N, T), -1, np.int32)
+        for i, r in enumerate(rows):
+            out[i, :lengths[i]] = np.searchsorted(labels, r.astype(np.int64))
+        return out
 
     def sample(self, state, model_args, model_kwargs):
         if jnp.ndim(state.step) > 0:
@@ -191,17 +228,23 @@ class BPHMMKernel(MCMCKernel):
         return state._replace(cache=cache, log_lik=log_lik, log_marginals=log_marg, log_joint=log_joint,
                               num_skills=num_skills, num_switches=num_switches)
 
-    def _init(self, rng_key):
+    def _init(self, rng_key, z0=None):
         N, T = self.data.states.shape
         K, K0 = self.max_skills, self.init_skills
         keys = jax.random.split(rng_key, 6)
-        num_windows = -(-T // self.init_window)
-        window_skill = jax.random.randint(keys[0], (N, num_windows), 0, K0)
-        z = jnp.repeat(window_skill, self.init_window, axis=1)[:, :T]
+        if z0 is None:
+            num_windows = -(-T // self.init_window)
+            window_skill = jax.random.randint(keys[0], (N, num_windows), 0, K0)
+            z = jnp.repeat(window_skill, self.init_window, axis=1)[:, :T]
+            features = jnp.zeros((N, K)).at[:, :K0].set(1.0)
+        else:  # a given segmentation: each trajectory has the features of the skills it uses
+            z = z0
+            features = jnp.zeros((N, K))
         z = jnp.where(self.data.mask, z, -1).astype(jnp.int32)
         weights = _skill_weights(z, self.data.mask, K)
         params = self.emission.init_params(keys[1], self.data, weights)
-        features = jnp.zeros((N, K)).at[:, :K0].set(1.0)
+        if z0 is not None:
+            features = (jnp.sum(weights, axis=1) > 0).astype(features.dtype)
         hyper = self.hyper0
         eta, omega = self._sample_eta_omega(keys[3], z, features, hyper)
         zero = jnp.float64(0.0)

@@ -10,6 +10,7 @@ import pytest
 from npbrs.domains.demos import Demonstrations
 from npbrs.domains.mdp import TabularMDP
 from npbrs.inference import EmissionConfig, Hyperparameter, ModelConfig, PriorConfig, SamplerConfig, fit
+from npbrs.inference.metrics import hungarian_accuracy
 from npbrs.models.emissions import EMISSIONS, PolicyEmission, register_emission
 
 fit_module = importlib.import_module("npbrs.inference.fit")  # the module, not the function it exports
@@ -186,6 +187,13 @@ def no_compilation(monkeypatch):
     (dict(hyperpriors={"kappa": (1.0,)}), "prior.kappa: a hyperprior is"),
     (dict(moves={"birth_death": -1}), "sampler.moves.birth_death"),
     (dict(checkpoint_every=5), "checkpoint_every given without checkpoint_path"),
+    (dict(init_segmentation=[np.zeros(20, int)] * 2), "init_segmentation has 2 trajectories, the demonstrations 3"),
+    (dict(init_segmentation=[np.zeros(20, int)] * 2 + [np.zeros(19, int)]),
+     r"init_segmentation\[2\] has shape \(19,\); trajectory 2 has 20 steps"),
+    (dict(init_segmentation=[np.zeros(20)] * 2 + [np.r_[np.zeros(5), 0.5, np.zeros(14)]]),
+     r"init_segmentation\[2\]\[5\] = 0.5 is not an integer"),
+    (dict(init_segmentation=[np.arange(20) % 4] * 3), "uses 4 skills, more than max_skills = 3"),
+    (dict(init_segmentation=5), "init_segmentation must be a sequence"),
 ])
 def test_bad_input_is_a_value_error_before_compilation(no_compilation, change, message):
     mdp, demos = small_problem()
@@ -200,3 +208,18 @@ def test_demonstrations_outside_the_mdp_are_a_value_error_before_compilation(no_
     bad = Demonstrations([s for s in demos.states], [a for a in demos.actions[:2]] + [np.full(20, 3)])
     with pytest.raises(ValueError, match="trajectory 2, step 0: action 3"):
         fit(mdp, bad, TOY, progress_bar=False)
+
+
+def test_fit_starts_from_a_given_segmentation():
+    mdp, demos = small_problem()
+    truth = [(np.arange(20) // 7 + i) % 3 for i in range(3)]  # the skill (preferred action) of each step
+    labels = [7 * t - 2 for t in truth]  # any integers: relabelled in order of value
+    result = fit(mdp, demos, TOY, num_warmup=0, num_samples=1, init_segmentation=labels, progress_bar=False)
+    start = fit_module._COMPILED[next(reversed(fit_module._COMPILED))].kernel
+    z0 = start.check_segmentation(labels)
+    np.testing.assert_array_equal(z0[:, :20], np.stack(truth))
+    # one sweep from the true segmentation keeps it (three well-separated action skills)
+    assert hungarian_accuracy(truth, result.segmentation) == 1.0
+    # a FitResult stands for its segmentation
+    again = fit(mdp, demos, TOY, num_warmup=0, num_samples=1, init_segmentation=result, progress_bar=False)
+    assert hungarian_accuracy(truth, again.segmentation) == 1.0

@@ -113,3 +113,25 @@ def test_vectorized_and_sequential_chains_give_the_same_draws():
         runs.append(np.asarray(mcmc.get_extra_fields(group_by_chain=True)["log_joint"]))
     np.testing.assert_allclose(runs[0], runs[1], rtol=1e-9)
     assert not np.allclose(runs[0][0], runs[0][1])  # chains differ from each other
+
+
+def test_init_from_a_segmentation_starts_every_chain_there():
+    data, z_true = planted_policy_data(seed=1)
+    kernel = BPHMMKernel(PolicyEmission(4, 3), data, max_skills=5, kappa=5.0)
+    lengths = np.asarray(data.mask).sum(1)
+    z0 = kernel.check_segmentation([z_true[i, :n] for i, n in enumerate(lengths)])
+    states = kernel.init(jax.random.split(jax.random.PRNGKey(0), 2), 0, {"z": z0}, (), {})
+    mask = np.asarray(data.mask)
+    for c in range(2):
+        z = np.asarray(states.z[c])
+        np.testing.assert_array_equal(z[mask], z_true[mask])
+        assert np.all(z[~mask] == -1)
+        used = np.stack([np.isin(np.arange(5), z_true[i][mask[i]]) for i in range(len(z))])
+        np.testing.assert_array_equal(np.asarray(states.features[c]) > 0, used)
+        # each skill's initial policy is fitted to its steps: skill k prefers action k
+        probs = np.asarray(states.params["policy"][c])  # (K, S, A)
+        assert np.all(probs[:3].argmax(-1) == np.arange(3)[:, None])
+    # the chains differ in their other draws
+    assert not np.array_equal(np.asarray(states.eta[0]), np.asarray(states.eta[1]))
+    default = kernel.init(jax.random.split(jax.random.PRNGKey(0), 2), 0, None, (), {})
+    assert np.all(np.asarray(states.log_joint) > np.asarray(default.log_joint))
