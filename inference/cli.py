@@ -53,6 +53,7 @@ def _add_fit(sub):
     p.add_argument("--warmup", type=_at_least(0), help="warmup sweeps per chain")
     p.add_argument("--seed", type=_at_least(0), help="random seed")
     p.add_argument("-o", "--output", required=True, help="the run file to write (.nc)")
+    p.add_argument("--init-from", metavar="RUN", help="start every chain from the segmentation of a saved run (.nc)")
     p.add_argument("--resume", action="store_true", help="continue from the output's checkpoint if there is one")
     p.add_argument("--checkpoint-every", type=_at_least(0), default=100,
                    help="sweeps between checkpoints (100; 0: no checkpoints)")
@@ -86,6 +87,11 @@ def fit_command(args) -> int:
 
     try:
         mdp, demos = _load_world(args)
+        init = None
+        if args.init_from is not None:
+            from .runs import load
+
+            init = load(args.init_from).segmentation
     except (OSError, ValueError) as e:
         return _error("fit", e)
     checkpoint = checkpoint_path_for(args.output) if args.checkpoint_every > 0 or args.resume else None
@@ -95,7 +101,7 @@ def fit_command(args) -> int:
         result = fit(mdp, demos, args.config, emission=args.emission, max_skills=args.max_skills,
                      num_chains=args.chains, num_samples=args.samples, num_warmup=args.warmup, seed=args.seed,
                      progress_bar=not args.no_progress, checkpoint_path=checkpoint,
-                     checkpoint_every=args.checkpoint_every or None, resume=args.resume)
+                     checkpoint_every=args.checkpoint_every or None, resume=args.resume, init_segmentation=init)
     except ValueError as e:
         return _error("fit", e)
     except KeyboardInterrupt:

@@ -71,6 +71,16 @@ def test_fit_on_the_demos_files_reproduces_the_demos_run(demo):
     assert code == 0, stderr
     short = load(out / "short.nc")
     assert short.num_draws == 2 and short.model_config.sampler.seed == 5
+    # --init-from starts from a saved run's segmentation, as fit(init_segmentation=...) does
+    code, _, stderr = run_main(["fit", out / "demos.npz", "--domain", "highway", "--config", out / "config.toml",
+                                "--samples", "2", "--init-from", out / "run.nc", "-o", out / "init.nc", "--no-progress"])
+    assert code == 0, stderr
+    from npbrs.domains import Demonstrations, get_domain
+    from npbrs.inference import fit
+
+    api = fit(get_domain("highway").mdp, Demonstrations.load(out / "demos.npz"), out / "config.toml", num_samples=2,
+              init_segmentation=load(out / "run.nc"), progress_bar=False)
+    assert load(out / "init.nc").equals(api)
 
 
 def test_report_prints_label_invariant_convergence_and_writes_plots(demo):
@@ -94,6 +104,9 @@ def test_fit_errors_name_what_is_wrong(demo, tmp_path):
     assert code == 2 and "trajectory 0, step 0: state" in err
     code, _, err = run_main(["fit", tmp_path / "missing.npz", "--domain", "highway", "-o", tmp_path / "x.nc"])
     assert code == 2 and "missing.npz" in err
+    code, _, err = run_main(["fit", out / "demos.npz", "--domain", "highway", "--init-from", tmp_path / "none.nc",
+                             "-o", tmp_path / "x.nc"])
+    assert code == 2 and "none.nc" in err
     code, _, err = run_main(["report", tmp_path / "missing.nc"])
     assert code == 2 and "missing.nc" in err
     assert not (tmp_path / "x.nc").exists()
