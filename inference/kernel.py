@@ -236,15 +236,15 @@ class BPHMMKernel(MCMCKernel):
             num_windows = -(-T // self.init_window)
             window_skill = jax.random.randint(keys[0], (N, num_windows), 0, K0)
             z = jnp.repeat(window_skill, self.init_window, axis=1)[:, :T]
-            features = jnp.zeros((N, K)).at[:, :K0].set(1.0)
-        else:  # a given segmentation: each trajectory has the features of the skills it uses
+        else:
             z = z0
-            features = jnp.zeros((N, K))
         z = jnp.where(self.data.mask, z, -1).astype(jnp.int32)
         weights = _skill_weights(z, self.data.mask, K)
         params = self.emission.init_params(keys[1], self.data, weights)
-        if z0 is not None:
-            features = (jnp.sum(weights, axis=1) > 0).astype(features.dtype)
+        if z0 is None:
+            features = jnp.zeros((N, K)).at[:, :K0].set(1.0)
+        else:  # a given segmentation: each trajectory has the features of the skills it uses
+            features = (jnp.sum(weights, axis=1) > 0).astype(jnp.float64)
         hyper = self.hyper0
         eta, omega = self._sample_eta_omega(keys[3], z, features, hyper)
         zero = jnp.float64(0.0)

@@ -56,36 +56,36 @@ integrated out) and of the parameters, and q the proposal densities above. Nothi
 counts allocations.
 
 Observed on the paper's domains (16 x 500 steps): the extra skills the Gibbs sweeps leave are
-mostly lower-scale copies of a true skill's reward (the same direction; the copy explains a
-few hundred steps about as well as the main skill does: the experts are deterministic, with
-ties broken towards the lowest action, which no Boltzmann policy reproduces). A merge of such a copy is proposed well, but the reverse split of the
-merged state must reallocate the union, and its deterministic allocation lands far from the
-current labelling of an ambiguous copy: the current rewards and eta then have tiny density
-under single-Gaussian and single-conditional reverse proposals (a quadcopter state with two
-copies of one skill: merge log ratios of -400 to -9000, although the merge gains 270 nats of
-likelihood). Both proposals are therefore defensive mixtures (eta: ``ETA_PRIOR_WEIGHT``; the
-reward emission: ``proposal_broad_weight``), which bounds those reverse densities; the same
-merges then have log ratios of +3 to +125 and are accepted. Splits are accepted too: on
-quadcopter seeds 0-4 one chain of 40 sweeps with one trial per sweep ends with 6, 5, 5, 4, 6
-skills (Gibbs alone 5, 5, 5, 3, 3), although it reaches higher log joints (seed 3: -6044
-against -7661). One trial costs about
-three Gibbs sweeps (IRL refits; under vectorised chains ``lax.cond`` runs both branches). The
-move is exact (tested against enumeration, by posterior invariance, and by split-merge
-reciprocity) and off by default.
+mostly lower-scale copies of a true skill's reward (the same direction; the copy explains a few
+hundred steps about as well as the main skill does: the experts are deterministic, with ties
+broken towards the lowest action, which no Boltzmann policy reproduces). A merge of such a copy
+is proposed well, but the reverse split of the merged state must reallocate the union, and its
+deterministic allocation lands far from the current labelling of an ambiguous copy: the current
+rewards and eta then have tiny density under single-Gaussian and single-conditional reverse
+proposals (a quadcopter state with two copies of one skill: merge log ratios of -400 to -9000,
+although the merge gains 270 nats of likelihood). Both proposals are therefore defensive
+mixtures (eta: ``ETA_PRIOR_WEIGHT``; the reward emission: ``proposal_broad_weight``), which
+bounds those reverse densities; the same merges then have log ratios of +3 to +125 and are
+accepted. Splits are accepted too: on quadcopter seeds 0-4 one chain of 40 sweeps with one
+trial per sweep ends with 6, 5, 5, 4, 6 skills (Gibbs alone 5, 5, 5, 3, 3), although it reaches
+higher log joints (seed 3: -6044 against -7661). One trial costs about three Gibbs sweeps (IRL
+refits; under vectorised chains ``lax.cond`` runs both branches). The move is exact (tested
+against enumeration, by posterior invariance, and by split-merge reciprocity) and off by
+default.
 
-Session 4 (1 chain, 20 + 20 sweeps, 16 x 500 steps): the extra skills are a mixing failure,
-not the posterior's choice. Started from the true segmentation, Gibbs keeps 3 skills at a
-higher log joint (quadcopter seeds 0 and 1: mean -5799 and -5864, against -5843 and -6007
-with 5 and 4 skills from the default start; ``benchmarks/bench_oversplit.py``). Merging a
-small copy (70 to 420 steps) into its skill is still rejected, at log ratios of -66 to -750:
-the reverse split's density of the current rewards (-45 to -59) and the eta terms (-30 to
--70 net) both pay for the reverse allocation not re-creating the copy, and the merged
-reward's draw costs -684 to +19 nats of likelihood. A prior component in the reward
+Later measurements (1 chain, 20 + 20 sweeps, 16 x 500 steps): the extra skills are a mixing
+failure, not the posterior's choice. Started from the true segmentation, Gibbs keeps 3 skills
+at a higher log joint (quadcopter seeds 0 and 1: mean -5799 and -5864, against -5843 and -6007
+with 5 and 4 skills from the default start; ``benchmarks/bench_oversplit.py``). Merging a small
+copy (70 to 420 steps; the accepted merges above were of a 630-step copy) is rejected, at log
+ratios of -66 to -750: the reverse split's density of the current rewards (-45 to -59) and the
+eta terms (-30 to -70 net) both pay for the reverse allocation not re-creating the copy, and
+the merged reward's draw costs -684 to +19 nats of likelihood. A prior component in the reward
 proposal's mixture did not change that (tried, not kept). With ``moves={"start": 20}`` (the
 moves only after 20 Gibbs sweeps) no trial was accepted on quadcopter seeds 0-4, so the fits
-equal Gibbs alone at 2-3x the wall time. From one initial skill with one trial per sweep
-the moves split merged skills (highway seed 2: 3 skills, accuracy 0.978, against 0.663
-without) but also true ones (highway seeds 0-4: 4, 7, 3, 5, 5 skills).
+equal Gibbs alone at 2-3x the wall time. From one initial skill with one trial per sweep the
+moves split merged skills (highway seed 2: 3 skills, accuracy 0.978, against 0.663 without) but
+also true ones (highway seeds 0-4: 4, 7, 3, 5, 5 skills).
 """
 
 from __future__ import annotations
@@ -189,37 +189,33 @@ def _eta_counts(z_alloc, f, mask):
     return jnp.where((f > 0)[:, None, :], transition_counts(z_alloc, mask, K), 0).astype(jnp.float64)
 
 
-def _draw_eta(key, eta, z_alloc, f, involved, hyper, mask):
+def _draw_eta(key, eta, counts, f, involved, hyper):
     """eta with the involved trajectories' matrices redrawn from the defensive mixture
     (1 - ETA_PRIOR_WEIGHT) p(eta_i | z_alloc) + ETA_PRIOR_WEIGHT p(eta_i), per trajectory
-    (the kernel's conditional of eta, :func:`~npbrs.models.bphmm.eta_gamma_shapes`)."""
+    (the kernel's conditional of eta, :func:`~npbrs.models.bphmm.eta_gamma_shapes`);
+    counts: the allocation's :func:`_eta_counts`."""
     k_g, k_t, k_w = jax.random.split(key, 3)
     from_prior = jax.random.bernoulli(k_w, ETA_PRIOR_WEIGHT, (f.shape[0],))
-    counts = jnp.where(from_prior[:, None, None], 0.0, _eta_counts(z_alloc, f, mask))
+    counts = jnp.where(from_prior[:, None, None], 0.0, counts)
     shape_g, shape_total, active = eta_gamma_shapes(counts, f, hyper)
     g = jnp.maximum(jax.random.gamma(k_g, shape_g), 1e-300)
     total = jnp.maximum(jax.random.gamma(k_t, shape_total[..., None]), 1e-300)
     return jnp.where(involved[:, None, None], eta_from_gammas(g, total, active), eta)
 
 
-def _eta_log_p_over_q(eta, z_alloc, f, involved, hyper, mask):
+def _eta_log_p_over_q(eta, counts, f, involved, hyper):
     """log p(eta_i | F) - log q(eta_i | z_alloc, F) summed over the involved trajectories,
-    q the defensive mixture of :func:`_draw_eta`.
+    q the defensive mixture of :func:`_draw_eta`; counts: the allocation's :func:`_eta_counts`.
 
     The conditional and the prior share the Gamma(sum conc) total, its Jacobian and the
     inactive entries, so per row log p - log p(. | z_alloc) is
     log Dir(D; conc) - log Dir(D; conc + counts) with D the row's proportions over the active
     columns; the mixture's weight on the prior bounds log p - log q by -log ETA_PRIOR_WEIGHT."""
-    K = f.shape[1]
-    conc = hyper.gamma + hyper.kappa * jnp.eye(K)
-    counts = _eta_counts(z_alloc, f, mask)
-    active = (f > 0)[:, None, :]
-    c = jnp.where(active, conc, 0.0)
+    conc, c_row, active = eta_gamma_shapes(jnp.zeros_like(counts), f, hyper)  # the prior's shapes
     row = jnp.sum(jnp.where(active, eta, 0.0), -1, keepdims=True)
     log_d = jnp.where(active, jnp.log(jnp.where(active, eta, 1.0) / jnp.maximum(row, 1e-300)), 0.0)
     lg = lambda x: jnp.where(active, jax.scipy.special.gammaln(jnp.where(active, x, 1.0)), 0.0)  # noqa: E731
     n_row = jnp.sum(counts, -1)
-    c_row = jnp.sum(c, -1)
     per_row = (jax.scipy.special.gammaln(c_row) - jnp.sum(lg(conc), -1)
                - jax.scipy.special.gammaln(c_row + n_row) + jnp.sum(lg(conc + counts), -1)
                - jnp.sum(counts * log_d, -1))
@@ -357,7 +353,8 @@ def split_merge_at(key, emission, data, hyper, features, eta, z, params, log_lik
     # transition weights of the trajectories that use k1 or k2: redrawn from their
     # conditional given the move's allocation (the merged labels, or the split's)
     involved = (features[:, k1] > 0) | (features[:, k2] > 0)
-    new_eta = _draw_eta(k_eta, eta, alloc_fwd, new_f, involved, hyper, mask) if forced_eta is None else forced_eta
+    counts_fwd = _eta_counts(alloc_fwd, new_f, mask)  # one count for the draw and its density
+    new_eta = _draw_eta(k_eta, eta, counts_fwd, new_f, involved, hyper) if forced_eta is None else forced_eta
     li_o, lt_o, act_o = hmm_parameters(features, eta)
     li_n, lt_n, act_n = hmm_parameters(new_f, new_eta)
     lm_old, _ = batch_forward_filter(li_o, lt_o, _clamp(log_lik, anchors, old_labels), mask, act_o)
@@ -377,8 +374,8 @@ def split_merge_at(key, emission, data, hyper, features, eta, z, params, log_lik
                  + collapsed_feature_log_prob(new_f, hyper.alpha) - collapsed_feature_log_prob(features, hyper.alpha)
                  + jnp.sum(emission.log_prior(new_two)) - jnp.sum(emission.log_prior(current))
                  + lq_rev - lq_fwd
-                 + _eta_log_p_over_q(new_eta, alloc_fwd, new_f, involved, hyper, mask)
-                 - _eta_log_p_over_q(eta, alloc_rev, features, involved, hyper, mask))
+                 + _eta_log_p_over_q(new_eta, counts_fwd, new_f, involved, hyper)
+                 - _eta_log_p_over_q(eta, _eta_counts(alloc_rev, features, mask), features, involved, hyper))
     possible = ~same_step & (~is_split | jnp.any(free)) & jnp.isfinite(log_ratio) & (log_ratio > 0.5 * NEG_LOG)
     return log_ratio, possible, is_split, new_f, new_eta, new_z, new_params, new_log_lik
 
