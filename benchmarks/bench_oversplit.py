@@ -9,7 +9,8 @@ skills with a log joint at least as high as the default start's, the extra skill
 default start are a mixing failure, not what the posterior prefers.
 
     python benchmarks/bench_oversplit.py --domain quadcopter --seeds 0 1 2 [--chains 1]
-        [--warmup 20] [--samples 20] [--moves '{"split_merge": 1}'] [--json out.json]
+        [--warmup 20] [--samples 20] [--moves '{"split_merge": 1}'] [--starts default truth]
+        [--json out.json]
 """
 
 from __future__ import annotations
@@ -30,6 +31,8 @@ def main(argv=None):
     parser.add_argument("--warmup", type=int, default=20)
     parser.add_argument("--samples", type=int, default=20)
     parser.add_argument("--moves", type=json.loads, default=None, help="the kernel's moves, as JSON")
+    parser.add_argument("--starts", nargs="+", choices=("default", "truth"), default=["default", "truth"],
+                        help="which starts to fit from")
     parser.add_argument("--json", metavar="PATH", help="write the rows as JSON")
     args = parser.parse_args(argv)
 
@@ -49,6 +52,8 @@ def main(argv=None):
     for seed in args.seeds:
         demos = generate_demonstrations(domain, num_trajectories=16, length=500, seed=seed)
         for start, init in (("default", None), ("truth", demos.skills)):
+            if start not in args.starts:
+                continue
             t = time.perf_counter()
             result = fit(domain.mdp, demos, num_chains=args.chains, num_warmup=args.warmup, num_samples=args.samples,
                          max_skills=8, seed=seed, moves=args.moves, init_segmentation=init, progress_bar=False)

@@ -38,6 +38,8 @@ A TOML variant (every key optional; these are the defaults)::
     # blocks = 4               # refits of a split's sequential allocation
     # window = [10, 50]
     # start = 20               # the sweep from which the moves run (plain Gibbs before it)
+    # greedy_merge = 2         # greedy merge trials per sweep in the second half of warmup
+    # greedy_from = 0.5        # ... from this fraction of warmup on
 """
 
 from __future__ import annotations

@@ -29,6 +29,7 @@ from npbrs.models.bphmm import (Hyper, bphmm_model, eta_from_gammas, eta_gamma_s
 from npbrs.models.emissions import Emission, HMMData
 from npbrs.models.hmm import batch_backward_sample, batch_forward_filter, transition_counts
 
+from .greedy_merge import greedy_merge
 from .moves import birth_death
 from .split_merge import split_merge
 
@@ -102,7 +103,11 @@ class BPHMMKernel(MCMCKernel):
             "window": (min, max) length of a birth's window, "split_merge": trials per sweep
             (0: off; the emission needs ``fit_point``), "blocks": refits of a split's
             sequential allocation, "start": the sweep (counted from 0, warmup included) from
-            which the moves run; before it a sweep is plain Gibbs}.
+            which the moves run; before it a sweep is plain Gibbs, "greedy_merge": greedy
+            merge trials per sweep in the warmup sweeps from ``greedy_from`` x warmup on (0:
+            off; the emission needs ``fit_evidence``; see ``npbrs.inference.greedy_merge``:
+            not an MCMC move, so it never runs in the sampling sweeps), "greedy_from": that
+            fraction of warmup, in [0, 1)}.
     """
 
     sample_field = "params"
@@ -122,10 +127,14 @@ class BPHMMKernel(MCMCKernel):
         if self.moves["split_merge"] and not emission.supports_split_merge():
             raise ValueError(f"moves.split_merge: the {emission.name!r} emission has no fit_point, which "
                              "split-merge moves need; use birth_death moves or implement Emission.fit_point")
+        if self.moves["greedy_merge"] and not emission.supports_greedy_merge():
+            raise ValueError(f"moves.greedy_merge: the {emission.name!r} emission has no fit_evidence, which "
+                             "greedy merges need; implement Emission.fit_evidence")
         self._num_warmup = 0
         self._init_fns = {}
 
-    _MOVE_DEFAULTS = {"birth_death": 0, "window": (10, 50), "split_merge": 0, "blocks": 2, "start": 0}
+    _MOVE_DEFAULTS = {"birth_death": 0, "window": (10, 50), "split_merge": 0, "blocks": 2, "start": 0,
+                      "greedy_merge": 0, "greedy_from": 0.5}
 
     @classmethod
     def check_moves(cls, moves):
@@ -135,13 +144,16 @@ class BPHMMKernel(MCMCKernel):
             if name not in out:
                 raise ValueError(f"unknown move option {name!r}; expected one of {sorted(out)}")
             out[name] = value
-        for name in ("birth_death", "split_merge"):
+        for name in ("birth_death", "split_merge", "greedy_merge"):
             if not isinstance(out[name], int) or isinstance(out[name], bool) or out[name] < 0:
                 raise ValueError(f"moves.{name} must be a number of trials >= 0, got {out[name]!r}")
         if not isinstance(out["blocks"], int) or isinstance(out["blocks"], bool) or out["blocks"] < 1:
             raise ValueError(f"moves.blocks must be an integer >= 1, got {out['blocks']!r}")
         if not isinstance(out["start"], int) or isinstance(out["start"], bool) or out["start"] < 0:
             raise ValueError(f"moves.start must be a sweep number >= 0, got {out['start']!r}")
+        g = out["greedy_from"]
+        if isinstance(g, bool) or not isinstance(g, (int, float)) or not 0.0 <= g < 1.0:
+            raise ValueError(f"moves.greedy_from must be a fraction of warmup in [0, 1), got {g!r}")
         lo, hi = out["window"]
         if not (1 <= int(lo) <= int(hi)):
             raise ValueError(f"moves.window must be (min, max) with 1 <= min <= max, got {out['window']!r}")
@@ -211,8 +223,8 @@ class BPHMMKernel(MCMCKernel):
         if jnp.ndim(state.step) > 0:
             # the chains sweep in lock-step: one unbatched "moves on" flag keeps the moves a real
             # conditional under vmap (a batched predicate would run them in every sweep)
-            moves_on = state.step[0] >= self.moves["start"]
-            return jax.vmap(self.sweep, in_axes=(0, None))(state, moves_on)
+            clock = (state.step[0], state.num_warmup[0])
+            return jax.vmap(self.sweep, in_axes=(0, None))(state, clock)
         return self.sweep(state)
 
     # ------------------------------------------------------------------ pieces
@@ -312,18 +324,22 @@ class BPHMMKernel(MCMCKernel):
         features, _ = jax.lax.scan(one_skill, state.features, (jnp.arange(K), jax.random.split(key, K)))
         return features
 
-    def sweep(self, state: BPHMMState, moves_on=None) -> BPHMMState:
-        """One full sweep: features, birth/death, skill sequences, split-merge, eta and omega,
-        emission parameters, hyperparameters. The moves run from sweep ``moves["start"]`` on;
-        ``moves_on`` (a scalar flag) overrides that test: :meth:`sample` passes one flag
-        shared by vectorised chains."""
+    def sweep(self, state: BPHMMState, clock=None) -> BPHMMState:
+        """One full sweep: features, birth/death, skill sequences, split-merge, greedy merges
+        (warmup only), eta and omega, emission parameters, hyperparameters. The moves run from
+        sweep ``moves["start"]`` on. ``clock``: (sweep, warmup sweeps) as unbatched scalars
+        that replace the state's own for those tests: :meth:`sample` passes the first chain's,
+        shared by vectorised chains so that the tests stay real conditionals under vmap (a
+        batched predicate would run both branches in every sweep)."""
         N, K = state.features.shape
         mask = self.data.mask
         key, k_feat, k_bd, k_z, k_eta, k_em, k_hyp, k_sm = jax.random.split(state.rng_key, 8)
+        k_gm = jax.random.fold_in(k_sm, 1)
         features = self._sample_features(k_feat, state) if self.sample_features else state.features
         params, log_lik = state.params, state.log_lik
+        step, num_warmup = (state.step, state.num_warmup) if clock is None else clock
         if self.moves["start"]:
-            moves_on = state.step >= self.moves["start"] if moves_on is None else moves_on
+            moves_on = step >= self.moves["start"]
 
             def gated(run, operands, skipped):
                 """run(operands) from the start sweep on; before it, (operands, skipped)."""
@@ -365,6 +381,19 @@ class BPHMMKernel(MCMCKernel):
             # eta changes here only for trajectories a move touched; the next line redraws it all
             (features, _, z, params, log_lik), splits = gated(
                 splits_run, (features, state.eta, z, params, log_lik), splits)
+        if self.moves["greedy_merge"]:
+            greedy_on = (step < num_warmup) & (step >= jnp.floor(self.moves["greedy_from"] * num_warmup))
+
+            def greedy_trial(carry, key):
+                f, zz, p, ll = carry
+                f, zz, p, ll, info = greedy_merge(key, self.emission, self.data, state.hyper, f, zz, p, ll)
+                return (f, zz, p, ll), info.accepted
+
+            def greedy_run(ops):
+                return jax.lax.scan(greedy_trial, ops, jax.random.split(k_gm, self.moves["greedy_merge"]))[0]
+
+            features, z, params, log_lik = jax.lax.cond(greedy_on, greedy_run, lambda ops: ops,
+                                                        (features, z, params, log_lik))
         # eta | z, F and omega | F are conditionally independent: one block
         eta, omega = self._sample_eta_omega(k_eta, z, features, state.hyper)
         weights = _skill_weights(z, mask, K)

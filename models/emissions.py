@@ -99,6 +99,18 @@ class Emission:
     def supports_split_merge(cls) -> bool:
         return cls.fit_point is not Emission.fit_point
 
+    def fit_evidence(self, data: HMMData, weights, init=None):
+        """Point estimates (M, ...) of M skills' parameters from weighted steps ``weights``
+        (N, T, M) and the log evidence (M,) of each skill's steps, log of the integral of
+        p(steps | params) p0(params) over the parameters (exact, or e.g. a Laplace
+        approximation at the estimate); ``init`` (M, ...) may start an iterative fit. Used by
+        the warmup's greedy merges; optional."""
+        raise NotImplementedError(f"the {self.name!r} emission has no fit_evidence (needed by greedy merges)")
+
+    @classmethod
+    def supports_greedy_merge(cls) -> bool:
+        return cls.fit_evidence is not Emission.fit_evidence
+
     def sample_prior_one(self, key):
         """One skill's parameters drawn from the prior (the sites of ``sample_params(1)``)."""
         from numpyro import handlers
@@ -221,6 +233,17 @@ class PolicyEmission(Emission):
     def fit_point(self, data, weights, init=None):
         conc = self.concentration + self._counts(data, weights)  # (M, S, A)
         return {"policy": conc / jnp.sum(conc, -1, keepdims=True)}
+
+    def fit_evidence(self, data, weights, init=None):
+        """Posterior means and the exact Dirichlet-multinomial log evidence of each skill."""
+        from jax.scipy.special import gammaln
+
+        n = self._counts(data, weights)  # (M, S, A)
+        c = self.concentration
+        A = self.num_actions
+        log_ev = jnp.sum(gammaln(A * c) - gammaln(A * c + jnp.sum(n, -1))
+                         + jnp.sum(gammaln(c + n) - gammaln(c), -1), -1)
+        return self.fit_point(data, weights), log_ev
 
     def describe(self):
         return {"name": self.name, "concentration": self.concentration}

@@ -1,0 +1,140 @@
+"""Greedy merges of warmup: a copy of a skill is merged into it, distinct skills are not, the
+move changes nothing outside warmup, and it removes copies the Gibbs sweeps keep."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from npbrs.inference.greedy_merge import greedy_merge, greedy_merge_at, merge_score
+from npbrs.inference.kernel import BPHMMKernel
+from npbrs.models.emissions import PolicyEmission
+from test_kernel import planted_policy_data
+
+
+def _tree_equal(a, b):
+    return all(np.array_equal(np.asarray(x), np.asarray(y)) for x, y in zip(jax.tree.leaves(a), jax.tree.leaves(b)))
+
+
+def _copy_start(moves=None, num_warmup=0, seed=1):
+    """Planted data of 3 skills, started at the true segmentation except that skill 0's steps
+    in the first trajectories that use it are labelled 3: a copy of skill 0."""
+    data, z_true = planted_policy_data(seed=seed, N=6, T=40)
+    mask = np.asarray(data.mask)
+    uses0 = [i for i in range(z_true.shape[0]) if np.any((z_true[i] == 0) & mask[i])]
+    z = z_true.copy()
+    for i in uses0[:2]:
+        z[i][z[i] == 0] = 3
+    kernel = BPHMMKernel(PolicyEmission(4, 3), data, max_skills=5, moves=moves)
+    state = kernel.init(jax.random.PRNGKey(1), num_warmup, {"z": jnp.asarray(z)}, (), {})
+    return kernel, data, np.where(mask, z_true, -1), state
+
+
+def test_a_copy_is_merged_into_its_skill_and_distinct_skills_are_not():
+    kernel, data, z_true, s = _copy_start()
+    em, hyper = kernel.emission, kernel.hyper0
+    assert int(s.num_skills) == 4
+    args = (em, data, hyper, s.features, s.z, s.params, s.log_lik)
+    merge_at = jax.jit(greedy_merge_at, static_argnums=2)
+    f, z, params, log_lik, info = merge_at(jax.random.PRNGKey(0), 3, *args)
+    assert bool(info.possible) and bool(info.accepted) and int(info.k) == 0
+    np.testing.assert_array_equal(np.asarray(z), z_true)  # the copy's steps are skill 0's again
+    f0 = np.asarray(s.features)
+    np.testing.assert_array_equal(np.asarray(f)[:, 0], np.maximum(f0[:, 0], f0[:, 3]))
+    assert not np.any(np.asarray(f)[:, 3])
+    # slot 3 holds a prior draw now, and the likelihoods returned are those of the parameters
+    assert not np.allclose(np.asarray(params["policy"][3]), np.asarray(s.params["policy"][3]))
+    np.testing.assert_allclose(np.asarray(log_lik), np.asarray(em.log_likelihoods(params, data)[0]), atol=1e-10)
+    # the gain is the score's change, and it is positive
+    gain = float(merge_score(em, data, hyper, f, z)[0] - merge_score(em, data, hyper, s.features, s.z)[0])
+    np.testing.assert_allclose(float(info.gain), gain, rtol=1e-10)
+    assert gain > 0
+    # merging a true skill into another lowers the score: the state is returned unchanged
+    for j in (1, 2):
+        out = merge_at(jax.random.PRNGKey(0), j, *args)
+        assert bool(out[-1].possible) and not bool(out[-1].accepted) and float(out[-1].gain) < 0, j
+        assert _tree_equal(out[:4], (s.features, s.z, s.params, s.log_lik))
+    # an unused slot cannot be merged
+    assert not bool(merge_at(jax.random.PRNGKey(0), 4, *args)[-1].possible)
+    # the random trial is reproducible
+    merge = jax.jit(greedy_merge, static_argnums=1)
+    assert _tree_equal(merge(jax.random.PRNGKey(5), *args), merge(jax.random.PRNGKey(5), *args))
+
+
+def test_greedy_merges_run_only_in_warmup_and_remove_a_copy_gibbs_keeps():
+    for bad in ({"greedy_merge": -1}, {"greedy_merge": 1.5}, {"greedy_from": 1.0}, {"greedy_from": "half"},
+                {"greedy_from": True}):
+        with pytest.raises(ValueError, match="moves.greedy_"):
+            BPHMMKernel(PolicyEmission(4, 3), planted_policy_data()[0], max_skills=3, moves=bad)
+    gibbs, data, z_true, s_gibbs = _copy_start(None, num_warmup=4)
+    greedy, _, _, s_greedy = _copy_start({"greedy_merge": 2, "greedy_from": 0.25}, num_warmup=4)
+    assert _tree_equal(s_gibbs, s_greedy)
+    # two chains, vectorised as numpyro runs them (the warmup test is shared by the chains)
+    two = lambda s: jax.tree.map(lambda x: jnp.stack([x, x]), s)  # noqa: E731
+    stack = two(s_gibbs)
+    stack = stack._replace(rng_key=jax.random.split(jax.random.PRNGKey(7), 2))
+    run_gibbs = jax.jit(lambda s: gibbs.sample(s, (), {}))
+    run_greedy = jax.jit(lambda s: greedy.sample(s, (), {}))
+    a = b = stack
+    skills_gibbs, skills_greedy = [], []
+    for step in range(8):
+        a, b = run_gibbs(a), run_greedy(b)
+        skills_gibbs.append(np.asarray(a.num_skills).tolist())
+        skills_greedy.append(np.asarray(b.num_skills).tolist())
+        if step < 1:  # before greedy_from * warmup = sweep 1: the same sweeps
+            assert _tree_equal(a, b), step
+    assert skills_gibbs[3] == [4, 4], skills_gibbs  # Gibbs keeps the copy through warmup
+    assert skills_greedy[3] == [3, 3] and skills_greedy[-1] == [3, 3], skills_greedy
+    # after warmup the greedy kernel's sweep is the Gibbs sweep, even from the copy
+    for seed in range(3):
+        late = stack._replace(step=jnp.full(2, 4, jnp.int32), rng_key=jax.random.split(jax.random.PRNGKey(seed), 2))
+        assert _tree_equal(run_greedy(late), run_gibbs(late)), seed
+
+
+def test_policy_evidence_is_the_prior_expectation_of_the_likelihood():
+    """Exact Dirichlet-multinomial evidence against a Monte Carlo average over the prior."""
+    data, _ = planted_policy_data(seed=3, N=2, T=6, S=2, A=3)
+    em = PolicyEmission(2, 3, concentration=0.7)
+    rng = np.random.default_rng(0)
+    weights = jnp.asarray(rng.integers(0, 2, (2, 6, 2)).astype(float))
+    _, log_ev = em.fit_evidence(data, weights)
+    draws = jax.random.dirichlet(jax.random.PRNGKey(0), jnp.full((200000, 2, 3), 0.7))
+    ll = em.log_likelihoods({"policy": draws}, data)[0]  # (N, T, draws)
+    per_draw = jnp.einsum("ntd,ntm->dm", ll, weights)  # (draws, M)
+    mc = np.asarray(jax.scipy.special.logsumexp(per_draw, axis=0) - np.log(draws.shape[0]))
+    np.testing.assert_allclose(np.asarray(log_ev), mc, atol=0.03)
+
+
+def test_reward_laplace_evidence_is_close_to_importance_sampling():
+    """The reward emission's Laplace evidence against an importance-sampling estimate of
+    log E_prior[p(steps | theta)] (proposal: a wide Gaussian around the fit), on a gridworld."""
+    from gridworld import gridworld
+
+    from npbrs.domains.demos import generate_demonstrations
+    from npbrs.inference.fit import make_emission
+    from npbrs.models.emissions import HMMData
+
+    dom = gridworld(size=3)
+    demos = generate_demonstrations(dom, num_trajectories=2, length=30, switch_prob=0.05, seed=1)
+    data = HMMData.from_demonstrations(demos)
+    em = make_emission("reward", dom.mdp, prior_scale=3.0)
+    z = np.zeros(data.mask.shape, int)
+    for i, s in enumerate(demos.skills):
+        z[i, :len(s)] = s
+    weights = jax.nn.one_hot(jnp.asarray(z), 3) * data.mask[..., None]
+    fits, log_ev = em.fit_evidence(data, weights)
+    # importance sampling: q = N(fit, (2 * Laplace sd)^2) per skill
+    from npbrs.models.reward import fisher_information
+
+    counts = em._counts(data, weights)  # (3, S, A)
+    step_ll = jax.jit(lambda theta: em.log_likelihoods({"theta": theta}, data)[0])
+    estimates = []
+    for m in range(3):
+        F = fisher_information(em.solver, fits["theta"][m], counts[m]) + jnp.eye(3) / 3.0 ** 2
+        cov = 4.0 * jnp.linalg.inv(F)
+        q = __import__("numpyro").distributions.MultivariateNormal(fits["theta"][m], cov)
+        theta = q.sample(jax.random.PRNGKey(m), (4000,))
+        ll = jnp.einsum("ntd,nt->d", step_ll(theta), weights[..., m])
+        log_w = ll + em.log_prior({"theta": theta}) - q.log_prob(theta)
+        estimates.append(float(jax.scipy.special.logsumexp(log_w) - np.log(theta.shape[0])))
+    np.testing.assert_allclose(np.asarray(log_ev), estimates, atol=0.3)
