@@ -188,6 +188,9 @@ class _Compiled:
 
 _COMPILED: "OrderedDict[str, _Compiled]" = OrderedDict()
 _COMPILED_MAX = 4
+# greedy merge trials per warmup sweep when the configuration does not say (emissions with
+# fit_evidence): the paper's domains keep copies of a skill without them (issue 5, README)
+DEFAULT_GREEDY_MERGES = 2
 
 
 def _compiled(cfg: ModelConfig, em: Emission, em_key: str, demos: Demonstrations) -> _Compiled:
@@ -208,6 +211,16 @@ def _compiled(cfg: ModelConfig, em: Emission, em_key: str, demos: Demonstrations
     while len(_COMPILED) > _COMPILED_MAX:
         _COMPILED.popitem(last=False)
     return entry
+
+
+def default_moves(cfg: ModelConfig, emission: Emission) -> ModelConfig:
+    """``cfg`` with greedy merges on (``DEFAULT_GREEDY_MERGES`` trials per sweep in the second
+    half of warmup) where the configuration does not set ``greedy_merge``, the emission has
+    ``fit_evidence`` and there is more than one skill slot; the run's configuration records it."""
+    if "greedy_merge" in cfg.sampler.moves or cfg.max_skills < 2 or not emission.supports_greedy_merge():
+        return cfg
+    moves = {**cfg.sampler.moves, "greedy_merge": DEFAULT_GREEDY_MERGES}
+    return cfg.replace(sampler=dataclasses.replace(cfg.sampler, moves=moves))
 
 
 # ------------------------------------------------------------------------------ the run
@@ -333,7 +346,10 @@ def fit(mdp, demos: Demonstrations, config: Union[ModelConfig, dict, str, os.Pat
         alpha, kappa, gamma: BP-HMM hyperparameters (IBP mass, stickiness, transition concentration).
         hyperpriors: {"alpha"|"kappa"|"gamma": (shape, rate)}: sample those under Gamma hyperpriors.
         init_skills, init_window: the initial segmentation (see :class:`BPHMMKernel`).
-        moves: options of the kernel's trans-dimensional moves, e.g. {"birth_death": True}.
+        moves: options of the kernel's trans-dimensional moves, e.g. {"birth_death": 2}. Unless
+            it says otherwise, greedy merges run in the second half of warmup
+            (``{"greedy_merge": 2}``) for emissions with ``fit_evidence`` (the reward and
+            policy emissions); ``{"greedy_merge": 0}`` turns them off.
         init_segmentation: start every chain from this segmentation instead of random windows:
             per trajectory an integer label per step (any integers, e.g. a previous result's
             ``segmentation`` or hand labels), or a FitResult. The skills' initial parameters are
@@ -375,6 +391,7 @@ def fit(mdp, demos: Demonstrations, config: Union[ModelConfig, dict, str, os.Pat
     if fixed is not None and cfg.max_skills != fixed:
         # e.g. unsegmented IRL ("single"): one skill slot for every step
         cfg = cfg.replace(max_skills=int(fixed), sampler=dataclasses.replace(cfg.sampler, init_skills=None))
+    cfg = default_moves(cfg, em)
     compiled = _compiled(cfg, em, em_key, demos)
     kernel = compiled.kernel
     z0 = None

@@ -29,7 +29,7 @@ from npbrs.models.bphmm import (Hyper, bphmm_model, eta_from_gammas, eta_gamma_s
 from npbrs.models.emissions import Emission, HMMData
 from npbrs.models.hmm import batch_backward_sample, batch_forward_filter, transition_counts
 
-from .greedy_merge import greedy_merge
+from .greedy import greedy_merge, greedy_split
 from .moves import birth_death
 from .split_merge import split_merge
 
@@ -105,9 +105,10 @@ class BPHMMKernel(MCMCKernel):
             sequential allocation, "start": the sweep (counted from 0, warmup included) from
             which the moves run; before it a sweep is plain Gibbs, "greedy_merge": greedy
             merge trials per sweep in the warmup sweeps from ``greedy_from`` x warmup on (0:
-            off; the emission needs ``fit_evidence``; see ``npbrs.inference.greedy_merge``:
-            not an MCMC move, so it never runs in the sampling sweeps), "greedy_from": that
-            fraction of warmup, in [0, 1)}.
+            off; the emission needs ``fit_evidence``; see ``npbrs.inference.greedy``:
+            not an MCMC move, so it never runs in the sampling sweeps), "greedy_split": greedy
+            split trials per sweep there (the emission also needs ``fit_point``),
+            "greedy_from": that fraction of warmup, in [0, 1)}.
     """
 
     sample_field = "params"
@@ -127,14 +128,18 @@ class BPHMMKernel(MCMCKernel):
         if self.moves["split_merge"] and not emission.supports_split_merge():
             raise ValueError(f"moves.split_merge: the {emission.name!r} emission has no fit_point, which "
                              "split-merge moves need; use birth_death moves or implement Emission.fit_point")
-        if self.moves["greedy_merge"] and not emission.supports_greedy_merge():
-            raise ValueError(f"moves.greedy_merge: the {emission.name!r} emission has no fit_evidence, which "
-                             "greedy merges need; implement Emission.fit_evidence")
+        for name in ("greedy_merge", "greedy_split"):
+            if self.moves[name] and not emission.supports_greedy_merge():
+                raise ValueError(f"moves.{name}: the {emission.name!r} emission has no fit_evidence, which greedy "
+                                 "moves need; implement Emission.fit_evidence")
+        if self.moves["greedy_split"] and not emission.supports_split_merge():
+            raise ValueError(f"moves.greedy_split: the {emission.name!r} emission has no fit_point, which greedy "
+                             "splits need; implement Emission.fit_point")
         self._num_warmup = 0
         self._init_fns = {}
 
     _MOVE_DEFAULTS = {"birth_death": 0, "window": (10, 50), "split_merge": 0, "blocks": 2, "start": 0,
-                      "greedy_merge": 0, "greedy_from": 0.5}
+                      "greedy_merge": 0, "greedy_split": 0, "greedy_from": 0.5}
 
     @classmethod
     def check_moves(cls, moves):
@@ -144,7 +149,7 @@ class BPHMMKernel(MCMCKernel):
             if name not in out:
                 raise ValueError(f"unknown move option {name!r}; expected one of {sorted(out)}")
             out[name] = value
-        for name in ("birth_death", "split_merge", "greedy_merge"):
+        for name in ("birth_death", "split_merge", "greedy_merge", "greedy_split"):
             if not isinstance(out[name], int) or isinstance(out[name], bool) or out[name] < 0:
                 raise ValueError(f"moves.{name} must be a number of trials >= 0, got {out[name]!r}")
         if not isinstance(out["blocks"], int) or isinstance(out["blocks"], bool) or out["blocks"] < 1:
@@ -381,16 +386,24 @@ class BPHMMKernel(MCMCKernel):
             # eta changes here only for trajectories a move touched; the next line redraws it all
             (features, _, z, params, log_lik), splits = gated(
                 splits_run, (features, state.eta, z, params, log_lik), splits)
-        if self.moves["greedy_merge"]:
+        if self.moves["greedy_merge"] or self.moves["greedy_split"]:
             greedy_on = (step < num_warmup) & (step >= jnp.floor(self.moves["greedy_from"] * num_warmup))
-
-            def greedy_trial(carry, key):
-                f, zz, p, ll = carry
-                f, zz, p, ll, info = greedy_merge(key, self.emission, self.data, state.hyper, f, zz, p, ll)
-                return (f, zz, p, ll), info.accepted
+            blocks = min(self.moves["blocks"], N)
 
             def greedy_run(ops):
-                return jax.lax.scan(greedy_trial, ops, jax.random.split(k_gm, self.moves["greedy_merge"]))[0]
+                def trial(move):
+                    def one(carry, key):
+                        f, zz, p, ll, info = move(key, self.emission, self.data, state.hyper, *carry)
+                        return (f, zz, p, ll), info.accepted
+                    return one
+
+                k_merge, k_split = jax.random.split(k_gm)
+                if self.moves["greedy_merge"]:
+                    ops = jax.lax.scan(trial(greedy_merge), ops, jax.random.split(k_merge, self.moves["greedy_merge"]))[0]
+                if self.moves["greedy_split"]:
+                    split = lambda key, *a: greedy_split(key, *a, num_blocks=blocks)  # noqa: E731
+                    ops = jax.lax.scan(trial(split), ops, jax.random.split(k_split, self.moves["greedy_split"]))[0]
+                return ops
 
             features, z, params, log_lik = jax.lax.cond(greedy_on, greedy_run, lambda ops: ops,
                                                         (features, z, params, log_lik))

@@ -6,9 +6,9 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from npbrs.inference.greedy_merge import greedy_merge, greedy_merge_at, merge_score
+from npbrs.inference.greedy import greedy_merge, greedy_merge_at, merge_score
 from npbrs.inference.kernel import BPHMMKernel
-from npbrs.models.emissions import PolicyEmission
+from npbrs.models.emissions import Emission, PolicyEmission
 from test_kernel import planted_policy_data
 
 
@@ -62,10 +62,23 @@ def test_a_copy_is_merged_into_its_skill_and_distinct_skills_are_not():
 
 
 def test_greedy_merges_run_only_in_warmup_and_remove_a_copy_gibbs_keeps():
-    for bad in ({"greedy_merge": -1}, {"greedy_merge": 1.5}, {"greedy_from": 1.0}, {"greedy_from": "half"},
-                {"greedy_from": True}):
+    data3 = planted_policy_data()[0]
+    for bad in ({"greedy_merge": -1}, {"greedy_merge": 1.5}, {"greedy_split": -2}, {"greedy_from": 1.0},
+                {"greedy_from": "half"}, {"greedy_from": True}):
         with pytest.raises(ValueError, match="moves.greedy_"):
-            BPHMMKernel(PolicyEmission(4, 3), planted_policy_data()[0], max_skills=3, moves=bad)
+            BPHMMKernel(PolicyEmission(4, 3), data3, max_skills=3, moves=bad)
+
+    class NoEvidence(PolicyEmission):
+        fit_evidence = Emission.fit_evidence
+
+    class NoPoint(PolicyEmission):
+        fit_point = Emission.fit_point
+
+    for emission, moves, missing in ((NoEvidence(4, 3), {"greedy_merge": 1}, "fit_evidence"),
+                                     (NoEvidence(4, 3), {"greedy_split": 1}, "fit_evidence"),
+                                     (NoPoint(4, 3), {"greedy_split": 1}, "fit_point")):
+        with pytest.raises(ValueError, match=missing):
+            BPHMMKernel(emission, data3, max_skills=3, moves=moves)
     gibbs, data, z_true, s_gibbs = _copy_start(None, num_warmup=4)
     greedy, _, _, s_greedy = _copy_start({"greedy_merge": 2, "greedy_from": 0.25}, num_warmup=4)
     assert _tree_equal(s_gibbs, s_greedy)
@@ -138,3 +151,62 @@ def test_reward_laplace_evidence_is_close_to_importance_sampling():
         log_w = ll + em.log_prior({"theta": theta}) - q.log_prob(theta)
         estimates.append(float(jax.scipy.special.logsumexp(log_w) - np.log(theta.shape[0])))
     np.testing.assert_allclose(np.asarray(log_ev), estimates, atol=0.3)
+
+
+def test_a_lumped_pair_is_split_and_a_true_skill_is_not():
+    from npbrs.inference.greedy import greedy_split_at
+
+    data, z_true = planted_policy_data(seed=1, N=6, T=40)
+    mask = np.asarray(data.mask)
+    z = np.where(z_true == 2, 1, z_true)  # skills 1 and 2 share slot 1
+    kernel = BPHMMKernel(PolicyEmission(4, 3), data, max_skills=5, moves={"greedy_split": 1})
+    s = kernel.init(jax.random.PRNGKey(1), 0, {"z": jnp.asarray(z)}, (), {})
+    assert int(s.num_skills) == 2
+    args = (kernel.emission, data, kernel.hyper0, s.features, s.z, s.params, s.log_lik)
+    split_at = jax.jit(greedy_split_at, static_argnums=2)
+    where = lambda k: [(i, t) for i in range(6) for t in range(40) if mask[i, t] and z_true[i, t] == k]  # noqa: E731
+    a, b = where(1)[3], where(2)[5]
+    f, zz, params, log_lik, info = split_at(jax.random.PRNGKey(0), (*a, *b), *args)
+    assert bool(info.possible) and bool(info.accepted) and float(info.gain) > 0
+    k2 = int(info.k)
+    assert k2 not in (0, 1)
+    zz = np.asarray(zz)
+    # the split separates the two true skills (up to a few steps the actions do not tell apart)
+    agree = np.mean(np.where(z_true == 2, zz == k2, zz == z_true)[mask])
+    assert agree > 0.9, agree
+    np.testing.assert_array_equal(np.asarray(f)[:, k2], np.any((zz == k2) & mask, axis=1))
+    np.testing.assert_allclose(np.asarray(log_lik), np.asarray(kernel.emission.log_likelihoods(params, data)[0]),
+                               atol=1e-10)
+    gain = float(merge_score(kernel.emission, data, kernel.hyper0, f, jnp.asarray(zz))[0]
+                 - merge_score(kernel.emission, data, kernel.hyper0, s.features, s.z)[0])
+    np.testing.assert_allclose(float(info.gain), gain, rtol=1e-8)
+    # splitting true skill 0 at two of its steps lowers the score: nothing changes
+    c, d = where(0)[2], where(0)[-3]
+    out = split_at(jax.random.PRNGKey(0), (*c, *d), *args)
+    assert bool(out[-1].possible) and not bool(out[-1].accepted), float(out[-1].gain)
+    assert _tree_equal(out[:4], (s.features, s.z, s.params, s.log_lik))
+
+
+def test_fit_runs_greedy_merges_by_default_where_the_emission_supports_them():
+    import importlib
+
+    from gridworld import gridworld
+
+    from npbrs.domains.demos import generate_demonstrations
+    from npbrs.inference import ModelConfig, fit
+    from npbrs.models.autoregressive import AutoregressiveEmission
+
+    fit_module = importlib.import_module("npbrs.inference.fit")
+    dom = gridworld(size=3)
+    demos = generate_demonstrations(dom, num_trajectories=2, length=12, seed=0)
+    result = fit(dom.mdp, demos, emission="policy", num_chains=1, num_warmup=2, num_samples=1, max_skills=3,
+                 progress_bar=False)
+    assert result.config["sampler"]["moves"]["greedy_merge"] == 2  # recorded in the run
+    policy = PolicyEmission(9, 5)
+    moves = lambda cfg: fit_module.default_moves(cfg, policy).sampler.moves  # noqa: E731
+    assert moves(ModelConfig.from_dict({"sampler": {"moves": {"greedy_merge": 0}}})) == {"greedy_merge": 0}
+    assert moves(ModelConfig.from_dict({"sampler": {"moves": {"birth_death": 1}}})) == {"birth_death": 1,
+                                                                                        "greedy_merge": 2}
+    assert moves(ModelConfig.from_dict({"max_skills": 1})) == {}  # one slot: nothing to merge
+    cfg = ModelConfig()
+    assert fit_module.default_moves(cfg, AutoregressiveEmission.__new__(AutoregressiveEmission)) is cfg
