@@ -188,9 +188,11 @@ class _Compiled:
 
 _COMPILED: "OrderedDict[str, _Compiled]" = OrderedDict()
 _COMPILED_MAX = 4
-# greedy merge trials per warmup sweep when the configuration does not say (emissions with
-# fit_evidence): the paper's domains keep copies of a skill without them (issue 5, README)
+# greedy merge and split trials per warmup sweep when the configuration does not say
+# (emissions with fit_evidence): from random windows the Gibbs sweeps keep copies of a skill,
+# or lump two skills, in some runs on the paper's domains (README, "Reproduction")
 DEFAULT_GREEDY_MERGES = 2
+DEFAULT_GREEDY_SPLITS = 1
 
 
 def _compiled(cfg: ModelConfig, em: Emission, em_key: str, demos: Demonstrations) -> _Compiled:
@@ -214,12 +216,18 @@ def _compiled(cfg: ModelConfig, em: Emission, em_key: str, demos: Demonstrations
 
 
 def default_moves(cfg: ModelConfig, emission: Emission) -> ModelConfig:
-    """``cfg`` with greedy merges on (``DEFAULT_GREEDY_MERGES`` trials per sweep in the second
-    half of warmup) where the configuration does not set ``greedy_merge``, the emission has
-    ``fit_evidence`` and there is more than one skill slot; the run's configuration records it."""
-    if "greedy_merge" in cfg.sampler.moves or cfg.max_skills < 2 or not emission.supports_greedy_merge():
+    """``cfg`` with the warmup's greedy moves on where the configuration does not set them and
+    there is more than one skill slot: ``DEFAULT_GREEDY_MERGES`` merge trials per sweep if the
+    emission has ``fit_evidence``, ``DEFAULT_GREEDY_SPLITS`` split trials if it also has
+    ``fit_point`` (in the second half of warmup; see ``npbrs.inference.greedy``). The run's
+    configuration records them."""
+    moves = dict(cfg.sampler.moves)
+    if cfg.max_skills >= 2 and emission.supports_greedy_merge():
+        moves.setdefault("greedy_merge", DEFAULT_GREEDY_MERGES)
+        if emission.supports_split_merge():
+            moves.setdefault("greedy_split", DEFAULT_GREEDY_SPLITS)
+    if moves == cfg.sampler.moves:
         return cfg
-    moves = {**cfg.sampler.moves, "greedy_merge": DEFAULT_GREEDY_MERGES}
     return cfg.replace(sampler=dataclasses.replace(cfg.sampler, moves=moves))
 
 
@@ -347,9 +355,10 @@ def fit(mdp, demos: Demonstrations, config: Union[ModelConfig, dict, str, os.Pat
         hyperpriors: {"alpha"|"kappa"|"gamma": (shape, rate)}: sample those under Gamma hyperpriors.
         init_skills, init_window: the initial segmentation (see :class:`BPHMMKernel`).
         moves: options of the kernel's trans-dimensional moves, e.g. {"birth_death": 2}. Unless
-            it says otherwise, greedy merges run in the second half of warmup
-            (``{"greedy_merge": 2}``) for emissions with ``fit_evidence`` (the reward and
-            policy emissions); ``{"greedy_merge": 0}`` turns them off.
+            it says otherwise, greedy merges and splits run in the second half of warmup
+            (``{"greedy_merge": 2, "greedy_split": 1}``) for emissions with ``fit_evidence``
+            and ``fit_point`` (the reward and policy emissions); ``{"greedy_merge": 0,
+            "greedy_split": 0}`` turns them off.
         init_segmentation: start every chain from this segmentation instead of random windows:
             per trajectory an integer label per step (any integers, e.g. a previous result's
             ``segmentation`` or hand labels), or a FitResult. The skills' initial parameters are
