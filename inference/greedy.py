@@ -33,7 +33,7 @@ conditional).
 
 A greedy split is the converse, for a start that lumps two true skills into one slot (highway
 seed 2 from the default start: 2 true skills in one slot of 5389 steps, Hungarian accuracy
-0.663). It picks a used skill k1 uniformly and two of its steps uniformly, allocates k1's steps
+0.663). It picks a used skill k1 and two of its steps (see :func:`greedy_split`), allocates k1's steps
 between k1 and a free slot k2 by the split-merge move's deterministic sequential allocation
 (:func:`npbrs.inference.split_merge._allocate`, point fits refitted as the allocation grows),
 gives k2 the features of the trajectories that use it, and keeps the split when the same score
@@ -136,16 +136,20 @@ def _score_change(hyper, mask, z, features, z_new, f_new):
 
 
 def greedy_split(key, emission, data, hyper, features, z, params, log_lik, num_blocks: int = 2):
-    """One greedy split trial of a used skill chosen uniformly, at two of its steps chosen
-    uniformly: returns (features, z, params, log_lik, info) (see :func:`greedy_split_at`)."""
+    """One greedy split trial: returns (features, z, params, log_lik, info) (see
+    :func:`greedy_split_at`). The skill is drawn in proportion to its steps (a lumped pair is
+    large), the first anchor uniformly among its steps, the second among its other steps in
+    proportion to exp(-log-likelihood) under the skill (steps it explains badly are likely the
+    other skill's). No reverse move is needed, so the choice may look at the state."""
     N, T = data.mask.shape
     K = features.shape[1]
     k_pick, k_a, k_b, k_move = jax.random.split(key, 4)
     flat = (jax.nn.one_hot(z, K, dtype=bool) & data.mask[..., None]).reshape(N * T, K)
-    used = jnp.any(flat, axis=0)
-    k1 = jax.random.categorical(k_pick, jnp.where(used, 0.0, -jnp.inf))
+    counts = jnp.sum(flat, axis=0)
+    k1 = jax.random.categorical(k_pick, jnp.where(counts > 0, jnp.log(jnp.maximum(counts, 1)), -jnp.inf))
     a = jax.random.categorical(k_a, jnp.where(flat[:, k1], 0.0, -jnp.inf))
-    b = jax.random.categorical(k_b, jnp.where(flat[:, k1] & (jnp.arange(N * T) != a), 0.0, -jnp.inf))
+    badness = -log_lik.reshape(N * T, K)[:, k1]
+    b = jax.random.categorical(k_b, jnp.where(flat[:, k1] & (jnp.arange(N * T) != a), badness, -jnp.inf))
     return greedy_split_at(k_move, (a // T, a % T, b // T, b % T), emission, data, hyper, features, z, params,
                            log_lik, num_blocks)
 
@@ -166,7 +170,7 @@ def greedy_split_at(key, anchors, emission, data, hyper, features, z, params, lo
     priority = jax.random.uniform(key, (N,)).at[ib].set(-1.0).at[ia].set(-2.0)
     order = jnp.argsort(priority).astype(jnp.int32)
     theta_k1 = jax.tree.map(lambda p: p[k1], params)
-    z_new, _ = _allocate(emission, data, z, features, k1, k2, anchors, order, theta_k1, num_blocks)
+    z_new, alloc_fits = _allocate(emission, data, z, features, k1, k2, anchors, order, theta_k1, num_blocks)
     z_new = z_new.astype(z.dtype)
     used_a = jnp.any((z_new == k1) & mask, axis=1)
     used_b = jnp.any((z_new == k2) & mask, axis=1)
@@ -176,7 +180,8 @@ def greedy_split_at(key, anchors, emission, data, hyper, features, z, params, lo
     steps_a = ((z_new == k1) & mask).astype(jnp.float64)
     steps_b = ((z_new == k2) & mask).astype(jnp.float64)
     w = jnp.stack([steps_a, steps_b, steps_a + steps_b], -1)
-    init = jax.tree.map(lambda p: jnp.stack([p, p, p]), theta_k1)
+    # the two parts' fits start at the allocation's, the whole's at k1's current parameters
+    init = jax.tree.map(lambda a, p: jnp.stack([a[0], a[1], p]), alloc_fits, theta_k1)
     fits, log_ev = emission.fit_evidence(data, w, init)
     gain = log_ev[0] + log_ev[1] - log_ev[2] + _score_change(hyper, mask, z, features, z_new, f_new)
     two = jax.tree.map(lambda f: f[:2], fits)

@@ -4,7 +4,8 @@ One sweep (jitted whole, static shapes: K = ``max_skills`` slots with an active 
 
 1. features f_ik, one skill at a time for all trajectories at once, from their conditional
    with the skill sequences summed out (forward filter with f_ik = 0 and f_ik = 1);
-2. skill sequences z_i by forward filtering, backward sampling;
+2. skill sequences z_i by forward filtering, backward sampling (then, when on, split-merge
+   trials, and in warmup only greedy merges and splits, ``npbrs.inference.greedy``);
 3. transition weights eta_i from their conjugate (Gamma-Dirichlet) conditional given z_i, and
    skill popularities omega_k | F ~ Beta(alpha/K + m_k, 1 + N - m_k) (independent given z, F);
 4. emission parameters with the emission's own move given the steps assigned to each skill;

@@ -85,7 +85,10 @@ proposal's mixture did not change that (tried, not kept). With ``moves={"start":
 moves only after 20 Gibbs sweeps) no trial was accepted on quadcopter seeds 0-4, so the fits
 equal Gibbs alone at 2-3x the wall time. From one initial skill with one trial per sweep the
 moves split merged skills (highway seed 2: 3 skills, accuracy 0.978, against 0.663 without) but
-also true ones (highway seeds 0-4: 4, 7, 3, 5, 5 skills).
+also true ones (highway seeds 0-4: 4, 7, 3, 5, 5 skills). What removed the copies in the end
+is not an MCMC move: the warmup's greedy merges and splits (``npbrs.inference.greedy``), which
+compare states by the evidence with the parameters integrated out instead of by proposal
+densities.
 """
 
 from __future__ import annotations

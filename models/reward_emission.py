@@ -234,15 +234,16 @@ class RewardEmission(Emission):
         return {"theta": fit / self.temperature}
 
     def fit_evidence(self, data, weights, init=None):
-        """IRL fits (M, D) to weighted steps (N, T, M), ``fit_steps`` L-BFGS steps from ``init``
-        (or theta = 0), and each skill's Laplace log evidence at its fit,
+        """IRL fits (M, D) to weighted steps (N, T, M), ``refit_steps`` L-BFGS steps from
+        ``init`` (or ``fit_steps`` from theta = 0), and each skill's Laplace log evidence at its fit,
         log p(steps | theta) + log p0(theta) + D/2 log 2 pi - 1/2 log det(F + I / sigma^2)
         (F: the Fisher information, the observed one's stand-in, as in the proposal)."""
         counts = self._counts(data, weights)  # (M, S, A)
         M, D = counts.shape[0], self.num_features
         theta0 = jnp.zeros((M, D)) if init is None else self._scaled(init["theta"])
+        steps = self.fit_steps if init is None else self.refit_steps
         fit, log_lik, V, _, _ = fit_reward(self.solver, counts, theta0, jnp.zeros((M, self.num_states)),
-                                           self.prior_scale, self.fit_steps, epsilon=self.epsilon)
+                                           self.prior_scale, steps, epsilon=self.epsilon)
         theta = fit / self.temperature
         F = fisher_information(self.solver, fit, counts, V) * self.temperature ** 2  # (M, D, D)
         precision = F + jnp.eye(D) / self.prior_scale ** 2
