@@ -55,7 +55,7 @@ import jax.numpy as jnp
 
 from npbrs.models.bphmm import collapsed_feature_log_prob, collapsed_sequence_log_prob
 
-from .split_merge import _allocate
+from .split_merge import _allocate, _skill_counts
 
 __all__ = ["GreedyInfo", "greedy_merge", "greedy_merge_at", "greedy_split", "greedy_split_at", "merge_score"]
 
@@ -74,16 +74,24 @@ class GreedyInfo(NamedTuple):
 def merge_score(emission, data, hyper, features, z, init=None):
     """log p(x, z, F) up to a constant: the log joint given the skill sequences with eta,
     omega and each used skill's parameters integrated out (the parameters by
-    ``emission.fit_evidence``, fits started at ``init`` (K, ...) when given). Returns
-    (score, fits (K, ...), log evidence per skill (K,), 0 for unused skills)."""
+    ``emission.fit_evidence``, fits started at ``init`` (K, ...) when given). The moves keep
+    a change when it raises this score; they compute only the terms that change."""
     K = features.shape[1]
-    mask = data.mask
-    onehot = jax.nn.one_hot(z, K, dtype=jnp.float64) * mask[..., None]
-    used = jnp.sum(onehot, axis=(0, 1)) > 0
-    fits, log_ev = emission.fit_evidence(data, onehot, init)
-    log_ev = jnp.where(used, log_ev, 0.0)
-    seq = jnp.sum(collapsed_sequence_log_prob(z, mask, features, hyper.kappa, hyper.gamma))
-    return jnp.sum(log_ev) + seq + collapsed_feature_log_prob(features, hyper.alpha), fits, log_ev
+    onehot = jax.nn.one_hot(z, K, dtype=jnp.float64) * data.mask[..., None]
+    _, log_ev = emission.fit_evidence(data, onehot, init)
+    used = _skill_counts(z, data.mask, K) > 0
+    return jnp.sum(jnp.where(used, log_ev, 0.0)) + _structure_log_prob(hyper, data.mask, z, features)
+
+
+def _structure_log_prob(hyper, mask, z, features):
+    """log p(z | F) + log p(F), eta and omega integrated out."""
+    return (jnp.sum(collapsed_sequence_log_prob(z, mask, features, hyper.kappa, hyper.gamma))
+            + collapsed_feature_log_prob(features, hyper.alpha))
+
+
+def _keep(accept, info, new, old):
+    """The new (features, z, params, log_lik) where accepted, else the old, and the info."""
+    return (*jax.tree.map(lambda x, y: jnp.where(accept, x, y), new, old), info)
 
 
 def greedy_merge(key, emission, data, hyper, features, z, params, log_lik):
@@ -91,7 +99,7 @@ def greedy_merge(key, emission, data, hyper, features, z, params, log_lik):
     log_lik, info) (see :func:`greedy_merge_at`)."""
     K = features.shape[1]
     k_pick, k_move = jax.random.split(key)
-    used = jnp.any(jax.nn.one_hot(z, K, dtype=bool) & data.mask[..., None], axis=(0, 1))
+    used = _skill_counts(z, data.mask, K) > 0
     j = jax.random.categorical(k_pick, jnp.where(used, 0.0, -jnp.inf))
     return greedy_merge_at(k_move, j, emission, data, hyper, features, z, params, log_lik)
 
@@ -117,22 +125,16 @@ def greedy_merge_at(key, j, emission, data, hyper, features, z, params, log_lik)
     w = jnp.stack([steps_j, onehot[..., k], steps_j + onehot[..., k]], -1)
     init = jax.tree.map(lambda p: jnp.stack([p[j], p[k], p[k]]), params)
     fits, log_ev = emission.fit_evidence(data, w, init)
-    gain = log_ev[2] - log_ev[0] - log_ev[1] + _score_change(hyper, mask, z, features, z_new, f_new)
+    gain = log_ev[2] - log_ev[0] - log_ev[1] + (_structure_log_prob(hyper, mask, z_new, f_new)
+                                               - _structure_log_prob(hyper, mask, z, features))
     prior_j = emission.sample_prior_one(key)
     two = jax.tree.map(lambda a, b: jnp.stack([a[2], b]), fits, prior_j)  # new k, new j
     new_params = jax.tree.map(lambda p, t: p.at[k].set(t[0]).at[j].set(t[1]), params, two)
     cols, _ = emission.log_likelihoods(two, data, emission.init_cache(2))  # (N, T, 2)
     new_log_lik = log_lik.at[..., k].set(cols[..., 0]).at[..., j].set(cols[..., 1])
     accept = possible & jnp.isfinite(gain) & (gain > 0)
-    pick = lambda a, b: jax.tree.map(lambda x, y: jnp.where(accept, x, y), a, b)  # noqa: E731
     info = GreedyInfo(j, k, possible, accept, jnp.where(possible, gain, -jnp.inf))
-    return pick(f_new, features), pick(z_new, z), pick(new_params, params), pick(new_log_lik, log_lik), info
-
-
-def _score_change(hyper, mask, z, features, z_new, f_new):
-    seq = lambda zz, ff: jnp.sum(collapsed_sequence_log_prob(zz, mask, ff, hyper.kappa, hyper.gamma))  # noqa: E731
-    return (seq(z_new, f_new) - seq(z, features)
-            + collapsed_feature_log_prob(f_new, hyper.alpha) - collapsed_feature_log_prob(features, hyper.alpha))
+    return _keep(accept, info, (f_new, z_new, new_params, new_log_lik), (features, z, params, log_lik))
 
 
 def greedy_split(key, emission, data, hyper, features, z, params, log_lik, num_blocks: int = 2):
@@ -159,12 +161,11 @@ def greedy_split_at(key, anchors, emission, data, hyper, features, z, params, lo
     (i_b, t_b) of the same skill going to the new slot, if that raises :func:`merge_score`
     (see the module notes): returns (features, z, params, log_lik, info). ``key`` orders the
     allocation's trajectories after the anchors'."""
-    N, T = data.mask.shape
-    K = features.shape[1]
+    N = data.mask.shape[0]
     mask = data.mask
     ia, ta, ib, tb = anchors
     k1 = z[ia, ta]
-    free = (features.sum(0) == 0) & ~jnp.any(jax.nn.one_hot(z, K, dtype=bool) & mask[..., None], axis=(0, 1))
+    free = features.sum(0) == 0  # no trajectory may use the slot, so z does not
     k2 = jnp.argmax(free)
     possible = jnp.any(free) & (z[ib, tb] == k1) & ~((ia == ib) & (ta == tb)) & mask[ia, ta] & mask[ib, tb]
     priority = jax.random.uniform(key, (N,)).at[ib].set(-1.0).at[ia].set(-2.0)
@@ -183,12 +184,12 @@ def greedy_split_at(key, anchors, emission, data, hyper, features, z, params, lo
     # the two parts' fits start at the allocation's, the whole's at k1's current parameters
     init = jax.tree.map(lambda a, p: jnp.stack([a[0], a[1], p]), alloc_fits, theta_k1)
     fits, log_ev = emission.fit_evidence(data, w, init)
-    gain = log_ev[0] + log_ev[1] - log_ev[2] + _score_change(hyper, mask, z, features, z_new, f_new)
+    gain = log_ev[0] + log_ev[1] - log_ev[2] + (_structure_log_prob(hyper, mask, z_new, f_new)
+                                               - _structure_log_prob(hyper, mask, z, features))
     two = jax.tree.map(lambda f: f[:2], fits)
     new_params = jax.tree.map(lambda p, t: p.at[k1].set(t[0]).at[k2].set(t[1]), params, two)
     cols, _ = emission.log_likelihoods(two, data, emission.init_cache(2))  # (N, T, 2)
     new_log_lik = log_lik.at[..., k1].set(cols[..., 0]).at[..., k2].set(cols[..., 1])
     accept = possible & jnp.any(used_a) & jnp.any(used_b) & jnp.isfinite(gain) & (gain > 0)
-    pick = lambda a, b: jax.tree.map(lambda x, y: jnp.where(accept, x, y), a, b)  # noqa: E731
     info = GreedyInfo(k1, k2, possible, accept, jnp.where(possible, gain, -jnp.inf))
-    return pick(f_new, features), pick(z_new, z), pick(new_params, params), pick(new_log_lik, log_lik), info
+    return _keep(accept, info, (f_new, z_new, new_params, new_log_lik), (features, z, params, log_lik))

@@ -233,38 +233,38 @@ class RewardEmission(Emission):
                                      steps, epsilon=self.epsilon)
         return {"theta": fit / self.temperature}
 
-    def fit_evidence(self, data, weights, init=None):
-        """IRL fits (M, D) to weighted steps (N, T, M), ``refit_steps`` L-BFGS steps from
-        ``init`` (or ``fit_steps`` from theta = 0), and each skill's Laplace log evidence at its fit,
-        log p(steps | theta) + log p0(theta) + D/2 log 2 pi - 1/2 log det(F + I / sigma^2)
-        (F: the Fisher information, the observed one's stand-in, as in the proposal)."""
-        counts = self._counts(data, weights)  # (M, S, A)
+    def _laplace(self, counts, init=None):
+        """IRL fits (M, D) to count tables (M, S, A), ``refit_steps`` L-BFGS steps from ``init``
+        (or ``fit_steps`` from theta = 0), their log-likelihoods (M,) and the posterior
+        precisions (M, D, D) at the fits, F + I / sigma^2 (F: the Fisher information, the
+        observed one's stand-in), symmetrised. Shared by the proposal and the evidence."""
         M, D = counts.shape[0], self.num_features
         theta0 = jnp.zeros((M, D)) if init is None else self._scaled(init["theta"])
         steps = self.fit_steps if init is None else self.refit_steps
         fit, log_lik, V, _, _ = fit_reward(self.solver, counts, theta0, jnp.zeros((M, self.num_states)),
                                            self.prior_scale, steps, epsilon=self.epsilon)
-        theta = fit / self.temperature
         F = fisher_information(self.solver, fit, counts, V) * self.temperature ** 2  # (M, D, D)
         precision = F + jnp.eye(D) / self.prior_scale ** 2
-        _, logdet = jnp.linalg.slogdet(0.5 * (precision + jnp.swapaxes(precision, -1, -2)))
-        log_ev = log_lik + self.log_prior({"theta": theta}) + 0.5 * D * jnp.log(2 * jnp.pi) - 0.5 * logdet
+        return fit / self.temperature, log_lik, 0.5 * (precision + jnp.swapaxes(precision, -1, -2))
+
+    def fit_evidence(self, data, weights, init=None):
+        """IRL fits (M, D) to weighted steps (N, T, M) and each skill's Laplace log evidence at
+        its fit, log p(steps | theta) + log p0(theta) + D/2 log 2 pi - 1/2 log det(precision)
+        (see :meth:`_laplace`)."""
+        theta, log_lik, precision = self._laplace(self._counts(data, weights), init)
+        _, logdet = jnp.linalg.slogdet(precision)
+        log_ev = (log_lik + self.log_prior({"theta": theta}) + 0.5 * self.num_features * jnp.log(2 * jnp.pi)
+                  - 0.5 * logdet)
         return {"theta": theta}, log_ev
 
     def _proposal(self, data, weights, init=None):
         """Mean (D,) and Cholesky factor (D, D) of the proposal fitted to weighted steps."""
-        counts = self._counts(data, weights)  # (S, A)
         D = self.num_features
-        theta0 = jnp.zeros((1, D)) if init is None else self._scaled(init["theta"])[None]
-        fit, _, V, _, _ = fit_reward(self.solver, counts[None], theta0, jnp.zeros((1, self.num_states)),
-                                     self.prior_scale, self.fit_steps if init is None else self.refit_steps,
-                                     epsilon=self.epsilon)
-        mean = fit[0] / self.temperature
-        F = fisher_information(self.solver, self._scaled(mean), counts, V[0]) * self.temperature ** 2
-        precision = F + jnp.eye(D) / self.prior_scale ** 2
-        cov = jnp.linalg.inv(0.5 * (precision + precision.T)) * self.proposal_inflation ** 2
+        one = None if init is None else {"theta": init["theta"][None]}
+        mean, _, precision = self._laplace(self._counts(data, weights)[None], one)
+        cov = jnp.linalg.inv(precision[0]) * self.proposal_inflation ** 2
         chol = jnp.linalg.cholesky(0.5 * (cov + cov.T) + 1e-12 * jnp.eye(D))
-        return mean, chol
+        return mean[0], chol
 
     def _draw(self, key, mean, chol, broad_weight):
         """A draw of the proposal around mean; broad_weight 0: the narrow Gaussian only."""
