@@ -38,8 +38,9 @@ A TOML variant (every key optional; these are the defaults)::
     # blocks = 4               # refits of a split's sequential allocation
     # window = [10, 50]
     # start = 20               # the sweep from which the moves run (plain Gibbs before it)
-    # greedy_merge = 2         # greedy merge trials per sweep in the second half of warmup
-    # greedy_from = 0.5        # ... from this fraction of warmup on
+    # greedy_merge = 1         # greedy merge and split trials per sweep late in warmup
+    # greedy_split = 1         # (fit's default for emissions with fit_evidence)
+    # greedy_from = 0.75       # ... from this fraction of warmup on
 """
 
 from __future__ import annotations

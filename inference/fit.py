@@ -191,8 +191,11 @@ _COMPILED_MAX = 4
 # greedy merge and split trials per warmup sweep when the configuration does not say
 # (emissions with fit_evidence): from random windows the Gibbs sweeps keep copies of a skill,
 # or lump two skills, in some runs on the paper's domains (README, "Reproduction")
-DEFAULT_GREEDY_MERGES = 2
+# (one trial of each in the last quarter of warmup: with two merges from half-way, highway-500
+# fits took 70 s per chain; these took about 40 s with the same skills and accuracy)
+DEFAULT_GREEDY_MERGES = 1
 DEFAULT_GREEDY_SPLITS = 1
+DEFAULT_GREEDY_FROM = 0.75
 
 
 def _compiled(cfg: ModelConfig, em: Emission, em_key: str, demos: Demonstrations) -> _Compiled:
@@ -219,13 +222,15 @@ def default_moves(cfg: ModelConfig, emission: Emission) -> ModelConfig:
     """``cfg`` with the warmup's greedy moves on where the configuration does not set them and
     there is more than one skill slot: ``DEFAULT_GREEDY_MERGES`` merge trials per sweep if the
     emission has ``fit_evidence``, ``DEFAULT_GREEDY_SPLITS`` split trials if it also has
-    ``fit_point`` (in the second half of warmup; see ``npbrs.inference.greedy``). The run's
-    configuration records them."""
+    ``fit_point``, from ``DEFAULT_GREEDY_FROM`` x warmup on (unless ``greedy_from`` is set; see
+    ``npbrs.inference.greedy``). The run's configuration records them."""
     moves = dict(cfg.sampler.moves)
     if cfg.max_skills >= 2 and emission.supports_greedy_merge():
         moves.setdefault("greedy_merge", DEFAULT_GREEDY_MERGES)
         if emission.supports_split_merge():
             moves.setdefault("greedy_split", DEFAULT_GREEDY_SPLITS)
+        if moves.get("greedy_merge", 0) or moves.get("greedy_split", 0):
+            moves.setdefault("greedy_from", DEFAULT_GREEDY_FROM)
     if moves == cfg.sampler.moves:
         return cfg
     return cfg.replace(sampler=dataclasses.replace(cfg.sampler, moves=moves))
@@ -355,8 +360,8 @@ def fit(mdp, demos: Demonstrations, config: Union[ModelConfig, dict, str, os.Pat
         hyperpriors: {"alpha"|"kappa"|"gamma": (shape, rate)}: sample those under Gamma hyperpriors.
         init_skills, init_window: the initial segmentation (see :class:`BPHMMKernel`).
         moves: options of the kernel's trans-dimensional moves, e.g. {"birth_death": 2}. Unless
-            it says otherwise, greedy merges and splits run in the second half of warmup
-            (``{"greedy_merge": 2, "greedy_split": 1}``) for emissions with ``fit_evidence``
+            it says otherwise, greedy merges and splits run in the last quarter of warmup
+            (``{"greedy_merge": 1, "greedy_split": 1, "greedy_from": 0.75}``) for emissions with ``fit_evidence``
             and ``fit_point`` (the reward and policy emissions); ``{"greedy_merge": 0,
             "greedy_split": 0}`` turns them off.
         init_segmentation: start every chain from this segmentation instead of random windows:

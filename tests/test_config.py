@@ -159,7 +159,8 @@ def test_a_registered_toy_emission_fits_through_the_config_by_name(tmp_path):
     result = fit(mdp, demos, path, progress_bar=False)
     assert result.emission == {"name": "toy_policy", "concentration": 0.3, "note": "mine"}
     # the run records the configuration it ran, with fit's default greedy merges filled in
-    ran = TOY.replace(sampler=dataclasses.replace(TOY.sampler, moves={"greedy_merge": 2, "greedy_split": 1}))
+    ran = TOY.replace(sampler=dataclasses.replace(TOY.sampler, moves={"greedy_merge": 1, "greedy_split": 1,
+                                                                   "greedy_from": 0.75}))
     assert result.model_config == ran
     assert result.samples["policy"].shape == (1, 4, 3, 4, 3)
     # keyword arguments override the config (same model, so no new compilation)

@@ -208,18 +208,19 @@ def test_fit_runs_greedy_merges_by_default_where_the_emission_supports_them():
     demos = generate_demonstrations(dom, num_trajectories=2, length=12, seed=0)
     result = fit(dom.mdp, demos, emission="policy", num_chains=1, num_warmup=2, num_samples=1, max_skills=3,
                  progress_bar=False)
-    assert result.config["sampler"]["moves"] == {"greedy_merge": 2, "greedy_split": 1}  # recorded in the run
+    # recorded in the run
+    assert result.config["sampler"]["moves"] == {"greedy_merge": 1, "greedy_split": 1, "greedy_from": 0.75}
     policy = PolicyEmission(9, 5)
     moves = lambda cfg, em=policy: fit_module.default_moves(cfg, em).sampler.moves  # noqa: E731
-    assert moves(ModelConfig.from_dict({"sampler": {"moves": {"greedy_merge": 0}}})) == {"greedy_merge": 0,
-                                                                                         "greedy_split": 1}
+    assert moves(ModelConfig.from_dict({"sampler": {"moves": {"greedy_merge": 0}}})) == {
+        "greedy_merge": 0, "greedy_split": 1, "greedy_from": 0.75}
     assert moves(ModelConfig.from_dict({"sampler": {"moves": {"birth_death": 1}}})) == {
-        "birth_death": 1, "greedy_merge": 2, "greedy_split": 1}
+        "birth_death": 1, "greedy_merge": 1, "greedy_split": 1, "greedy_from": 0.75}
     assert moves(ModelConfig.from_dict({"max_skills": 1})) == {}  # one slot: nothing to merge
 
     class NoPoint(PolicyEmission):
         fit_point = Emission.fit_point
 
-    assert moves(ModelConfig(), NoPoint(9, 5)) == {"greedy_merge": 2}  # splits need fit_point
+    assert moves(ModelConfig(), NoPoint(9, 5)) == {"greedy_merge": 1, "greedy_from": 0.75}  # splits need fit_point
     cfg = ModelConfig()
     assert fit_module.default_moves(cfg, AutoregressiveEmission.__new__(AutoregressiveEmission)) is cfg

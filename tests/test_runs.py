@@ -162,8 +162,8 @@ def test_a_saved_run_holds_the_draws_segmentation_skills_and_description(workdir
     assert idata.posterior["policy"].dims == ("chain", "draw", "skill", "policy_dim_0", "policy_dim_1")
     attrs = idata.constant_data.attrs
     given = ModelConfig.from_toml(workdir / "model.toml")  # with fit's default greedy merges filled in
-    ran = given.replace(sampler=dataclasses.replace(given.sampler, moves={**given.sampler.moves, "greedy_merge": 2,
-                                                                            "greedy_split": 1}))
+    ran = given.replace(sampler=dataclasses.replace(given.sampler, moves={**given.sampler.moves, "greedy_merge": 1,
+                                                                            "greedy_split": 1, "greedy_from": 0.75}))
     assert ModelConfig.from_dict(json.loads(attrs["config"])) == ran
     assert attrs["fingerprint"] == Demonstrations.load(workdir / "demos.npz").fingerprint()
     assert whole_run.demos == Demonstrations.load(workdir / "demos.npz")
