@@ -48,7 +48,8 @@ class BPHMMState(NamedTuple):
     log_joint: the model's log density, num_skills: skills used by z, num_switches: mean
     switches per trajectory, accept: the emission move's mean acceptance, birth_accept: the
     fraction of birth/death trials accepted in the last sweep, split_accept: likewise for
-    split-merge trials, best_*: the
+    split-merge trials, greedy_merges, greedy_splits: the greedy merges and splits kept so far
+    (they run in warmup only, so a draw shows warmup's totals), best_*: the
     highest-log-joint state seen after warmup.
     """
 
@@ -70,6 +71,8 @@ class BPHMMState(NamedTuple):
     accept: jax.Array
     birth_accept: jax.Array
     split_accept: jax.Array
+    greedy_merges: jax.Array
+    greedy_splits: jax.Array
     best_log_joint: jax.Array
     best_z: jax.Array
     best_params: Dict[str, jax.Array]
@@ -175,7 +178,7 @@ class BPHMMKernel(MCMCKernel):
     @property
     def default_fields(self):
         return ("params", "log_joint", "num_skills", "num_switches", "features", "accept", "birth_accept",
-                "split_accept")
+                "split_accept", "greedy_merges", "greedy_splits")
 
     def get_diagnostics_str(self, state):
         return f"log joint {float(state.log_joint):.1f}, skills {int(state.num_skills)}"
@@ -272,7 +275,7 @@ class BPHMMKernel(MCMCKernel):
             cache=self.emission.init_cache(K), hyper=hyper, z=z,
             log_lik=jnp.zeros((N, T, K)), log_marginals=jnp.zeros(N), log_joint=zero,
             num_skills=jnp.int32(0), num_switches=zero, accept=zero, birth_accept=zero, split_accept=zero,
-            best_log_joint=jnp.float64(-jnp.inf), best_z=z, best_params=params, best_features=features)
+            greedy_merges=jnp.int32(0), greedy_splits=jnp.int32(0), best_log_joint=jnp.float64(-jnp.inf), best_z=z, best_params=params, best_features=features)
         return self._finish(state)
 
     def _sample_eta(self, key, z, features, hyper):
@@ -399,15 +402,21 @@ class BPHMMKernel(MCMCKernel):
                     return one
 
                 k_merge, k_split = jax.random.split(k_gm)
-                if self.moves["greedy_merge"]:
-                    ops = jax.lax.scan(trial(greedy_merge), ops, jax.random.split(k_merge, self.moves["greedy_merge"]))[0]
-                if self.moves["greedy_split"]:
-                    split = lambda key, *a: greedy_split(key, *a, num_blocks=blocks)  # noqa: E731
-                    ops = jax.lax.scan(trial(split), ops, jax.random.split(k_split, self.moves["greedy_split"]))[0]
-                return ops
+                kept = []
+                for name, move, k in (("greedy_merge", greedy_merge, k_merge),
+                                      ("greedy_split", partial(greedy_split, num_blocks=blocks), k_split)):
+                    if self.moves[name]:
+                        ops, accepted = jax.lax.scan(trial(move), ops, jax.random.split(k, self.moves[name]))
+                        kept.append(jnp.sum(accepted, dtype=jnp.int32))
+                    else:
+                        kept.append(jnp.int32(0))
+                return ops, tuple(kept)
 
-            features, z, params, log_lik = jax.lax.cond(greedy_on, greedy_run, lambda ops: ops,
-                                                        (features, z, params, log_lik))
+            (features, z, params, log_lik), (merged, split) = jax.lax.cond(
+                greedy_on, greedy_run, lambda ops: (ops, (jnp.int32(0), jnp.int32(0))), (features, z, params, log_lik))
+            greedy_kept = dict(greedy_merges=state.greedy_merges + merged, greedy_splits=state.greedy_splits + split)
+        else:
+            greedy_kept = {}
         # eta | z, F and omega | F are conditionally independent: one block
         eta, omega = self._sample_eta_omega(k_eta, z, features, state.hyper)
         weights = _skill_weights(z, mask, K)
@@ -415,7 +424,8 @@ class BPHMMKernel(MCMCKernel):
                                                    state.step < state.num_warmup)
         accept = jnp.asarray(info.get("accept", 1.0) if isinstance(info, dict) else 1.0, jnp.float64)
         new = state._replace(rng_key=key, omega=omega, features=features, eta=eta, params=params, cache=cache,
-                             z=z, accept=jnp.mean(accept), birth_accept=births, split_accept=splits)
+                             z=z, accept=jnp.mean(accept), birth_accept=births, split_accept=splits,
+                             **greedy_kept)
         if self.hyperpriors:
             new = new._replace(hyper=self._sample_hyper(k_hyp, new))
         new = self._finish(new)

@@ -43,7 +43,8 @@ class FitResult:
         skill_slots: the sampler's slot index of each skill.
         best_chain: the chain of the best draw; best_log_joint: its log joint.
         stats: per chain and draw (C, D): "log_joint", "num_skills", "num_switches", "accept"
-            and any other per-draw scalar the kernel reports.
+            and any other per-draw scalar the kernel reports (e.g. "greedy_merges" and
+            "greedy_splits", the warmup's greedy moves kept so far).
         samples: posterior draws {site: (C, D, ...)}: the emission parameters (skill slots on
             axis 2), "features" (C, D, N, K), "skill_steps" (C, D, K) the steps assigned to
             each slot, and sampled hyperparameters.
@@ -195,6 +196,10 @@ class FitResult:
         lines = [f"{self.num_skills} skills in {len(lengths)} trajectories ({sum(lengths)} steps); "
                  f"{switches:.2f} switches per trajectory; best log joint {self.best_log_joint:.1f} (chain {self.best_chain})",
                  "steps per skill: " + ", ".join(f"{k}: {c}" for k, c in enumerate(counts))]
+        if "greedy_merges" in self.stats and "greedy_splits" in self.stats:
+            kept = [np.asarray(self.stats[n])[:, -1].tolist() for n in ("greedy_merges", "greedy_splits")]
+            if any(kept[0]) or any(kept[1]):
+                lines.append(f"warmup's greedy moves kept per chain: merges {kept[0]}, splits {kept[1]}")
         rhat, ess = self.rhat, self.ess
         lines.append("label-invariant diagnostics: " + "; ".join(
             f"{n} R-hat {rhat[n]:.3f} ESS {ess[n]:.0f}" for n in LABEL_INVARIANT))

@@ -98,6 +98,9 @@ def test_greedy_merges_run_only_in_warmup_and_remove_a_copy_gibbs_keeps():
             assert _tree_equal(a, b), step
     assert skills_gibbs[3] == [4, 4], skills_gibbs  # Gibbs keeps the copy through warmup
     assert skills_greedy[3] == [3, 3] and skills_greedy[-1] == [3, 3], skills_greedy
+    # the state counts the moves kept (warmup's totals): a merge per chain, no splits (off)
+    assert np.all(np.asarray(b.greedy_merges) >= 1) and not np.any(np.asarray(b.greedy_splits))
+    assert not np.any(np.asarray(a.greedy_merges)) and not np.any(np.asarray(a.greedy_splits))
     # after warmup the greedy kernel's sweep is the Gibbs sweep, even from the copy
     for seed in range(3):
         late = stack._replace(step=jnp.full(2, 4, jnp.int32), rng_key=jax.random.split(jax.random.PRNGKey(seed), 2))
