@@ -416,7 +416,8 @@ def fit(mdp, demos: Demonstrations, config: Union[ModelConfig, dict, str, os.Pat
     total = W + S
     method = _chain_method(sampler.chain_method, C)
     meta = {"config": cfg.to_dict(), "emission": em.describe(), "fingerprint": demos.fingerprint(),
-            "seed": sampler.seed, "num_chains": C, "total_sweeps": total}
+            "seed": sampler.seed, "num_chains": C, "total_sweeps": total,
+            "init": None if z0 is None else hashlib.sha256(z0.tobytes()).hexdigest()}
     keys = jax.random.split(jax.random.PRNGKey(sampler.seed), C)
 
     state, draws, done, wall = None, {}, 0, 0.0
@@ -476,7 +477,7 @@ def fit(mdp, demos: Demonstrations, config: Union[ModelConfig, dict, str, os.Pat
     wall += time.perf_counter() - start
     return FitResult.from_states(chains.state(), draws, demos, config=cfg.to_dict(), emission=em.describe(),
                                  feature_names=tuple(getattr(mdp, "feature_names", ())), wall_time=wall,
-                                 sample_names=compiled.hyper_names)
+                                 sample_names=compiled.hyper_names, init_segmentation=z0)
 
 
 def _read_checkpoint(path, meta):
@@ -492,6 +493,11 @@ def _read_checkpoint(path, meta):
         diff = sorted(_differences(ours, theirs))
         raise ValueError(f"{path}: the checkpoint was written with another configuration (differs in "
                          f"{', '.join(diff) or 'its layout'})")
+    if saved.get("init") != meta["init"]:
+        started = {None: "random windows"}
+        raise ValueError(f"{path}: the checkpoint's chains started from "
+                         f"{started.get(saved.get('init'), 'another init_segmentation')}, not from "
+                         f"{started.get(meta['init'], 'this init_segmentation')}")
     if saved.get("emission") != json.loads(json.dumps(meta["emission"])):
         raise ValueError(f"{path}: the checkpoint was written with another emission ({saved.get('emission')})")
     done = int(saved["sweeps_done"])

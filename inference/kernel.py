@@ -346,6 +346,7 @@ class BPHMMKernel(MCMCKernel):
         k_gm = jax.random.fold_in(k_sm, 1)
         features = self._sample_features(k_feat, state) if self.sample_features else state.features
         params, log_lik = state.params, state.log_lik
+        blocks = min(self.moves["blocks"], N)  # refits of a split's allocation (split-merge, greedy splits)
         step, num_warmup = (state.step, state.num_warmup) if clock is None else clock
         if self.moves["start"]:
             moves_on = step >= self.moves["start"]
@@ -375,8 +376,6 @@ class BPHMMKernel(MCMCKernel):
         z = batch_backward_sample(k_z, log_trans, log_alpha, mask, active)
         splits = jnp.zeros(())
         if self.moves["split_merge"]:
-            blocks = min(self.moves["blocks"], N)
-
             def sm_trial(carry, key):
                 f, e, zz, p, ll = carry
                 f, e, zz, p, ll, info = split_merge(key, self.emission, self.data, state.hyper, f, e, zz, p, ll,
@@ -392,7 +391,6 @@ class BPHMMKernel(MCMCKernel):
                 splits_run, (features, state.eta, z, params, log_lik), splits)
         if self.moves["greedy_merge"] or self.moves["greedy_split"]:
             greedy_on = (step < num_warmup) & (step >= jnp.floor(self.moves["greedy_from"] * num_warmup))
-            blocks = min(self.moves["blocks"], N)
 
             def greedy_run(ops):
                 def trial(move):

@@ -19,6 +19,14 @@ def _chains(x, num_chains):
     return x if num_chains > 1 else x[None]
 
 
+def _rows(z, lengths) -> Optional[List[np.ndarray]]:
+    """Per-trajectory int64 rows of a padded (N, T) array (None stays None)."""
+    if z is None:
+        return None
+    z = np.asarray(z)
+    return [z[i, :n].astype(np.int64) for i, n in enumerate(lengths)]
+
+
 def _compact(z_rows: List[np.ndarray]):
     """Relabel slot indices to 0..n-1 in order of first appearance; returns (rows, slots)."""
     slots: List[int] = []
@@ -55,6 +63,10 @@ class FitResult:
         feature_names: the MDP's reward feature names (for per-skill summaries).
         chain_best_z: (C, N, T) every chain's best segmentation in slot labels (-1 on padding).
         demos: the demonstrations, when known.
+        init_segmentation: per trajectory, the segmentation every chain started from when
+            ``fit`` was given one (relabelled 0, 1, ... in order of value); None for the
+            default start from random windows. ``fit(..., init_segmentation=...)`` with it
+            repeats the run.
     """
 
     segmentation: List[np.ndarray]
@@ -72,11 +84,12 @@ class FitResult:
     feature_names: tuple = ()
     chain_best_z: Optional[np.ndarray] = None
     demos: Optional[object] = None
+    init_segmentation: Optional[List[np.ndarray]] = None
 
     @classmethod
     def from_states(cls, last_state, draws: Dict[str, np.ndarray], demos, *, config: Optional[dict] = None,
                     emission: Optional[dict] = None, feature_names=(), wall_time: float = float("nan"),
-                    sample_names=()) -> "FitResult":
+                    sample_names=(), init_segmentation=None) -> "FitResult":
         """Assemble a result from the chains' last kernel states and their draws.
 
         Args:
@@ -84,6 +97,7 @@ class FitResult:
                 ``best_z``, ``best_params`` are used).
             draws: {name: (C, D, ...)}; per-draw scalars become ``stats`` unless named in
                 ``sample_names``, the rest ``samples``.
+            init_segmentation: the (N, T) start the chains were given (-1 on padding), if any.
         """
         best_lj = np.asarray(last_state.best_log_joint)
         chain = int(np.argmax(best_lj))
@@ -98,7 +112,7 @@ class FitResult:
                    best_chain=chain, best_log_joint=float(best_lj[chain]), stats=stats, samples=samples,
                    config=dict(config or {}), fingerprint=demos.fingerprint(), wall_time=float(wall_time),
                    emission=dict(emission or {}), feature_names=tuple(feature_names), chain_best_z=chain_best_z,
-                   demos=demos)
+                   demos=demos, init_segmentation=_rows(init_segmentation, demos.lengths))
 
     @property
     def model_config(self):
@@ -146,6 +160,10 @@ class FitResult:
                 and (self.chain_best_z is None or same(self.chain_best_z, other.chain_best_z))
                 and ((self.demos is None) == (other.demos is None))
                 and (self.demos is None or self.demos == other.demos)
+                and ((self.init_segmentation is None) == (other.init_segmentation is None))
+                and (self.init_segmentation is None
+                     or (len(self.init_segmentation) == len(other.init_segmentation)
+                         and all(same(a, b) for a, b in zip(self.init_segmentation, other.init_segmentation))))
                 and (not wall_time or same(self.wall_time, other.wall_time)))
 
     @property
@@ -200,6 +218,9 @@ class FitResult:
             kept = [np.asarray(self.stats[n])[:, -1].tolist() for n in ("greedy_merges", "greedy_splits")]
             if any(kept[0]) or any(kept[1]):
                 lines.append(f"warmup's greedy moves kept per chain: merges {kept[0]}, splits {kept[1]}")
+        if self.init_segmentation is not None:
+            used = len(np.unique(np.concatenate(self.init_segmentation)))
+            lines.append(f"started from a given segmentation ({used} skills)")
         rhat, ess = self.rhat, self.ess
         lines.append("label-invariant diagnostics: " + "; ".join(
             f"{n} R-hat {rhat[n]:.3f} ESS {ess[n]:.0f}" for n in LABEL_INVARIANT))

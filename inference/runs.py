@@ -92,6 +92,8 @@ def to_inference_data(result):
     for name, v in result.skill_params.items():
         v = np.asarray(v)
         constant["best_" + name] = (["skill"] + [f"{name}_dim_{i}" for i in range(v.ndim - 1)], v)
+    if result.init_segmentation is not None:
+        constant["init_segmentation"] = (["trajectory", "step"], _padded(result.init_segmentation))
     if result.chain_best_z is not None:
         constant["chain_best_z"] = (["chain", "trajectory", "step"], np.asarray(result.chain_best_z, np.int64))
     attrs = {"npbrs_format": RUN_FORMAT, "npbrs_version": RUN_VERSION,
@@ -148,7 +150,9 @@ def from_inference_data(idata):
                      wall_time=float(attrs["wall_time"]), emission=json.loads(attrs["emission"]),
                      feature_names=tuple(json.loads(attrs["feature_names"])),
                      chain_best_z=(np.asarray(const["chain_best_z"].values) if "chain_best_z" in const else None),
-                     demos=demos)
+                     demos=demos, init_segmentation=(
+                         [np.asarray(const["init_segmentation"].values)[i, :n].astype(np.int64)
+                          for i, n in enumerate(lengths)] if "init_segmentation" in const else None))
 
 
 def save_run(result, path) -> None:

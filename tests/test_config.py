@@ -9,7 +9,7 @@ import pytest
 
 from npbrs.domains.demos import Demonstrations
 from npbrs.domains.mdp import TabularMDP
-from npbrs.inference import EmissionConfig, Hyperparameter, ModelConfig, PriorConfig, SamplerConfig, fit
+from npbrs.inference import EmissionConfig, Hyperparameter, ModelConfig, PriorConfig, SamplerConfig, fit, load
 from npbrs.inference.metrics import hungarian_accuracy
 from npbrs.models.emissions import EMISSIONS, PolicyEmission, register_emission
 
@@ -213,7 +213,7 @@ def test_demonstrations_outside_the_mdp_are_a_value_error_before_compilation(no_
         fit(mdp, bad, TOY, progress_bar=False)
 
 
-def test_fit_starts_from_a_given_segmentation():
+def test_fit_starts_from_a_given_segmentation(tmp_path):
     mdp, demos = small_problem()
     truth = [(np.arange(20) // 7 + i) % 3 for i in range(3)]  # the skill (preferred action) of each step
     labels = [7 * t - 2 for t in truth]  # any integers: relabelled in order of value
@@ -223,6 +223,16 @@ def test_fit_starts_from_a_given_segmentation():
     np.testing.assert_array_equal(z0[:, :20], np.stack(truth))
     # one sweep from the true segmentation keeps it (three well-separated action skills)
     assert hungarian_accuracy(truth, result.segmentation) == 1.0
-    # a FitResult stands for its segmentation
+    # the run records its start (relabelled), through a file too
+    assert [r.tolist() for r in result.init_segmentation] == [t.tolist() for t in truth]
+    assert "started from a given segmentation (3 skills)" in result.summary()
+    result.save(tmp_path / "run.nc")
+    assert load(tmp_path / "run.nc").equals(result)
+    # a FitResult stands for its segmentation; the recorded start repeats the run bit for bit
     again = fit(mdp, demos, TOY, num_warmup=0, num_samples=1, init_segmentation=result, progress_bar=False)
     assert hungarian_accuracy(truth, again.segmentation) == 1.0
+    repeat = fit(mdp, demos, result.model_config, init_segmentation=result.init_segmentation, progress_bar=False)
+    assert repeat.equals(result)
+    default = fit(mdp, demos, TOY, num_warmup=0, num_samples=1, progress_bar=False)
+    assert default.init_segmentation is None and "started from" not in default.summary()
+    assert not default.equals(result)

@@ -140,7 +140,7 @@ def no_compilation(monkeypatch):
     monkeypatch.setattr(fit_module._Compiled, "step", refuse)
 
 
-def test_resume_refuses_a_checkpoint_of_other_demonstrations_or_another_config(workdir, killed, no_compilation):
+def test_resume_refuses_a_checkpoint_of_other_demonstrations_config_or_start(workdir, killed, no_compilation):
     mdp, demos = load_mdp(workdir / "mdp.npz"), Demonstrations.load(workdir / "demos.npz")
     path = workdir / "killed.checkpoint.npz"
     with pytest.raises(ValueError, match="sampler.seed"):
@@ -150,6 +150,10 @@ def test_resume_refuses_a_checkpoint_of_other_demonstrations_or_another_config(w
     other = Demonstrations(demos.states, [np.zeros_like(a) for a in demos.actions])
     with pytest.raises(ValueError, match="other demonstrations"):
         fit(mdp, other, workdir / "model.toml", checkpoint_path=path, resume=True, progress_bar=False)
+    # its chains started from random windows, not from a given segmentation
+    with pytest.raises(ValueError, match="started from random windows, not from this init_segmentation"):
+        fit(mdp, demos, workdir / "model.toml", checkpoint_path=path, resume=True, progress_bar=False,
+            init_segmentation=[np.zeros(n, int) for n in demos.lengths])
 
 
 def test_a_saved_run_holds_the_draws_segmentation_skills_and_description(workdir, killed):
