@@ -361,9 +361,9 @@ def fit(mdp, demos: Demonstrations, config: Union[ModelConfig, dict, str, os.Pat
         init_skills, init_window: the initial segmentation (see :class:`BPHMMKernel`).
         moves: options of the kernel's trans-dimensional moves, e.g. {"birth_death": 2}. Unless
             it says otherwise, greedy merges and splits run in the last quarter of warmup
-            (``{"greedy_merge": 1, "greedy_split": 1, "greedy_from": 0.75}``) for emissions with ``fit_evidence``
-            and ``fit_point`` (the reward and policy emissions); ``{"greedy_merge": 0,
-            "greedy_split": 0}`` turns them off.
+            (``{"greedy_merge": 1, "greedy_split": 1, "greedy_from": 0.75}``) for emissions
+            with ``fit_evidence`` and ``fit_point`` (the reward and policy emissions);
+            ``{"greedy_merge": 0, "greedy_split": 0}`` turns them off.
         init_segmentation: start every chain from this segmentation instead of random windows:
             per trajectory an integer label per step (any integers, e.g. a previous result's
             ``segmentation`` or hand labels), or a FitResult. The skills' initial parameters are

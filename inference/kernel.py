@@ -275,7 +275,8 @@ class BPHMMKernel(MCMCKernel):
             cache=self.emission.init_cache(K), hyper=hyper, z=z,
             log_lik=jnp.zeros((N, T, K)), log_marginals=jnp.zeros(N), log_joint=zero,
             num_skills=jnp.int32(0), num_switches=zero, accept=zero, birth_accept=zero, split_accept=zero,
-            greedy_merges=jnp.int32(0), greedy_splits=jnp.int32(0), best_log_joint=jnp.float64(-jnp.inf), best_z=z, best_params=params, best_features=features)
+            greedy_merges=jnp.int32(0), greedy_splits=jnp.int32(0), best_log_joint=jnp.float64(-jnp.inf), best_z=z,
+            best_params=params, best_features=features)
         return self._finish(state)
 
     def _sample_eta(self, key, z, features, hyper):
