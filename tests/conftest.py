@@ -7,6 +7,7 @@ import tempfile
 import jax
 
 jax.config.update("jax_enable_x64", True)
+os.environ.setdefault("NPBRS_CACHE_DIR", "off")  # the command line, run in this process, keeps the cache below
 _cache = os.environ.get("NPBRS_TEST_JAX_CACHE") or os.path.join(tempfile.gettempdir(), "npbrs-test-jax-cache")
 jax.config.update("jax_compilation_cache_dir", _cache)
 jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.5)

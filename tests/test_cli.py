@@ -12,7 +12,7 @@ import pytest
 
 from npbrs.domains.mdp import TabularMDP
 from npbrs.inference import ModelConfig, load, save_mdp
-from npbrs.inference.cli import main
+from npbrs.inference.cli import compilation_cache_dir, main
 
 
 def run_main(argv):
@@ -39,6 +39,30 @@ def test_the_console_entry_point_lists_the_commands():
     assert out.returncode == 0
     for command in ("generate", "fit", "report", "demo"):
         assert command in out.stdout
+
+
+def test_the_command_line_keeps_compiled_sweeps_in_a_cache_folder(tmp_path):
+    assert compilation_cache_dir({"NPBRS_CACHE_DIR": "/x/c"}) == "/x/c"
+    assert compilation_cache_dir({"XDG_CACHE_HOME": "/x"}) == os.path.join("/x", "npbrs", "jax")
+    assert compilation_cache_dir({}) == os.path.join(os.path.expanduser("~"), ".cache", "npbrs", "jax")
+    for off in ({"NPBRS_CACHE_DIR": ""}, {"NPBRS_CACHE_DIR": "off"}, {"JAX_COMPILATION_CACHE_DIR": "/j"},
+                {"JAX_COMPILATION_CACHE_DIR": "/j", "NPBRS_CACHE_DIR": "/x"}):
+        assert compilation_cache_dir(off) is None, off
+    # `npbrs fit` points JAX at it (in a fresh process: this one has its own cache), and what JAX
+    # compiles then lands there
+    cache = tmp_path / "cache"
+    env = {k: v for k, v in os.environ.items() if k != "JAX_COMPILATION_CACHE_DIR"}
+    env.update(NPBRS_CACHE_DIR=str(cache), JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS="0", JAX_PLATFORMS="cpu")
+    script = ("import jax, jax.numpy as jnp\n"
+              "from npbrs.inference.cli import main\n"
+              "main(['fit', 'missing.npz', '--domain', 'highway', '-o', 'x.nc'])\n"
+              "print(jax.config.jax_compilation_cache_dir)\n"
+              "jax.jit(lambda x: jnp.sin(x) * 2)(jnp.ones(3)).block_until_ready()\n")
+    out = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, env=env, cwd=tmp_path,
+                         timeout=120)
+    assert out.stdout.splitlines() == [str(cache)], out.stderr
+    assert "missing.npz" in out.stderr  # the fit itself failed: no such file
+    assert any(cache.iterdir())
 
 
 @pytest.fixture(scope="module")
