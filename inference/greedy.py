@@ -79,7 +79,7 @@ def merge_score(emission, data, hyper, features, z, init=None):
     K = features.shape[1]
     onehot = jax.nn.one_hot(z, K, dtype=jnp.float64) * data.mask[..., None]
     _, log_ev = emission.fit_evidence(data, onehot, init)
-    used = _skill_counts(z, data.mask, K) > 0
+    used = jnp.sum(onehot, axis=(0, 1)) > 0
     return jnp.sum(jnp.where(used, log_ev, 0.0)) + _structure_log_prob(hyper, data.mask, z, features)
 
 

@@ -102,7 +102,7 @@ class FitResult:
         best_lj = np.asarray(last_state.best_log_joint)
         chain = int(np.argmax(best_lj))
         chain_best_z = np.asarray(last_state.best_z).astype(np.int64)
-        rows = [chain_best_z[chain, i, :n] for i, n in enumerate(demos.lengths)]
+        rows = _rows(chain_best_z[chain], demos.lengths)
         segmentation, slots = _compact(rows)
         best_params = {k: np.asarray(v)[chain][slots] for k, v in last_state.best_params.items()}
         draws = {k: np.asarray(v) for k, v in draws.items()}

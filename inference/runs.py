@@ -121,7 +121,7 @@ def from_inference_data(idata):
     :func:`to_inference_data`."""
     from npbrs.domains.demos import Demonstrations
 
-    from .results import LABEL_INVARIANT, FitResult
+    from .results import LABEL_INVARIANT, FitResult, _rows
 
     if "constant_data" not in idata.groups() or idata.constant_data.attrs.get("npbrs_format") != RUN_FORMAT:
         raise ValueError("not an npbrs run (no constant_data group with npbrs_format = 'npbrs-run')")
@@ -131,7 +131,7 @@ def from_inference_data(idata):
         raise ValueError(f"run format version {attrs['npbrs_version']} is newer than this npbrs reads ({RUN_VERSION})")
     lengths = np.asarray(const["lengths"].values)
     seg = np.asarray(const["segmentation"].values)
-    segmentation = [seg[i, :n].astype(np.int64) for i, n in enumerate(lengths)]
+    segmentation = _rows(seg, lengths)
     skill_params = {name[5:]: np.asarray(const[name].values) for name in const.data_vars if name.startswith("best_")}
     samples = {name: np.asarray(v.values) for name, v in idata.posterior.data_vars.items()
                if name not in LABEL_INVARIANT}
@@ -150,9 +150,8 @@ def from_inference_data(idata):
                      wall_time=float(attrs["wall_time"]), emission=json.loads(attrs["emission"]),
                      feature_names=tuple(json.loads(attrs["feature_names"])),
                      chain_best_z=(np.asarray(const["chain_best_z"].values) if "chain_best_z" in const else None),
-                     demos=demos, init_segmentation=(
-                         [np.asarray(const["init_segmentation"].values)[i, :n].astype(np.int64)
-                          for i, n in enumerate(lengths)] if "init_segmentation" in const else None))
+                     demos=demos, init_segmentation=(_rows(const["init_segmentation"].values, lengths)
+                                                     if "init_segmentation" in const else None))
 
 
 def save_run(result, path) -> None:
