@@ -1,14 +1,116 @@
-"""Test-session settings: float64, and JAX's persistent compilation cache so that the many
-samplers the tests build (identical programs around different objects) compile once."""
+"""Test-session settings: float64; JAX's persistent compilation cache in a folder of this run
+so that the many samplers the tests build (identical programs around different objects)
+compile once; and every compiled program released after each test module.
 
+Why the release: a loaded CPU executable holds about 20 memory mappings (the LLVM JIT's code
+and data sections), and the kernel allows a process 65530 (``vm.max_map_count``). The whole
+suite in one process compiles about 3,000 programs, so without the release it ran out of
+mappings near its end and XLA crashed (a segmentation fault or an abort inside
+``put_executable_and_time``, whichever allocation failed first) at about 7 GB.
+
+The suite runs in two pytest-xdist worker processes (``addopts`` in pyproject.toml), each
+test file in one of them: on two cores that is about a sixth faster than one process.
+
+Under ``CI=true`` the cache must be a fresh, empty folder named by ``NPBRS_TEST_JAX_CACHE``
+(``.ci/run`` makes one per run), so that CI compiles what a new machine compiles.
+"""
+
+import ctypes
+import gc
 import os
+import sys
 import tempfile
 
 import jax
+import pytest
 
 jax.config.update("jax_enable_x64", True)
 os.environ.setdefault("NPBRS_CACHE_DIR", "off")  # the command line, run in this process, keeps the cache below
-_cache = os.environ.get("NPBRS_TEST_JAX_CACHE") or os.path.join(tempfile.gettempdir(), "npbrs-test-jax-cache")
-jax.config.update("jax_compilation_cache_dir", _cache)
+
+CACHE_ENV = "NPBRS_TEST_JAX_CACHE"
+_cache = os.environ.get(CACHE_ENV) or os.path.join(tempfile.gettempdir(), "npbrs-test-jax-cache")
+# each pytest-xdist worker writes a folder of its own: JAX writes an entry in place, so a
+# worker could otherwise read another's half-written file
+_worker = os.environ.get("PYTEST_XDIST_WORKER")
+jax.config.update("jax_compilation_cache_dir", os.path.join(_cache, _worker) if _worker else _cache)
 jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.5)
 jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
+
+
+def check_fresh_cache(environ, cache_dir) -> str:
+    """Why this test run may not start under CI, or "" if it may: CI must name its own
+    compilation cache folder, and that folder must be empty (nothing from an earlier run)."""
+    if environ.get("CI", "").lower() not in ("true", "1"):
+        return ""
+    if not environ.get(CACHE_ENV):
+        return (f"CI=true but {CACHE_ENV} is not set: CI must compile into an empty cache folder of its own "
+                "(see .ci/run), or it would reuse programs a new machine has to compile")
+    if os.path.isdir(cache_dir) and os.listdir(cache_dir):
+        return (f"CI=true but the compilation cache {cache_dir} already holds {len(os.listdir(cache_dir))} entries "
+                "from an earlier run; CI must start from an empty folder (see .ci/run)")
+    return ""
+
+
+def pytest_configure(config):
+    if hasattr(config, "workerinput"):  # a pytest-xdist worker: the controller has checked
+        return
+    problem = check_fresh_cache(os.environ, _cache)
+    if problem:
+        raise pytest.UsageError(problem)
+
+
+def map_count() -> int:
+    """Memory mappings this process holds (compiled programs hold most of them)."""
+    try:
+        with open("/proc/self/maps") as f:
+            return sum(1 for _ in f)
+    except OSError:  # not Linux
+        return 0
+
+
+def map_limit() -> int:
+    try:
+        with open("/proc/sys/vm/max_map_count") as f:
+            return int(f.read())
+    except (OSError, ValueError):
+        return 65530
+
+
+def _return_freed_memory():
+    """Hand the C heap's free pages back to the system (glibc keeps them otherwise)."""
+    try:
+        ctypes.CDLL("libc.so.6").malloc_trim(0)
+    except (OSError, AttributeError):  # not glibc
+        pass
+
+
+@pytest.fixture(autouse=True, scope="module")
+def _release_compiled_programs(request):
+    """After each module (its own fixtures are torn down first): forget npbrs's kernels and
+    JAX's compiled programs, so that the process's memory mappings stay bounded; an error
+    (on the module's last test) when a module leaves more than half the allowed mappings in
+    use, or when they are not released: the crash would otherwise come back silently."""
+    yield
+    held = map_count()
+    fit_module = sys.modules.get("npbrs.inference.fit")  # (the package's ``fit`` is the function)
+    if fit_module is not None:
+        fit_module._COMPILED.clear()
+    jax.clear_caches()
+    gc.collect()
+    _return_freed_memory()
+    left, limit = map_count(), map_limit()
+    if held > limit // 2 or left > limit // 4:
+        raise RuntimeError(f"{request.module.__name__}: {held} memory mappings in use at its end and {left} after "
+                           f"releasing the compiled programs, of {limit} allowed; compiled programs are not being "
+                           "released (see tests/conftest.py)")
+
+
+def pytest_terminal_summary(terminalreporter, exitstatus, config):
+    try:
+        import resource
+    except ImportError:  # not Unix
+        return
+    own = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024 ** 2
+    workers = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 1024 ** 2
+    terminalreporter.write_line(f"npbrs: peak memory of the test process {own:.2f} GB, of its largest finished "
+                                f"child process {workers:.2f} GB")

@@ -1,0 +1,46 @@
+"""The test run itself: under CI it compiles into an empty cache of its own, as a new machine
+does, and compiled programs are released so that the process's memory mappings stay bounded."""
+
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+
+from conftest import CACHE_ENV, check_fresh_cache, map_count
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def test_ci_refuses_a_compilation_cache_shared_with_earlier_runs(tmp_path):
+    empty, used = tmp_path / "empty", tmp_path / "used"
+    empty.mkdir()
+    used.mkdir()
+    (used / "jit_sweep-0123-cache").write_bytes(b"x")
+    assert check_fresh_cache({}, str(used)) == ""  # a developer's run may reuse its cache
+    assert check_fresh_cache({"CI": "true", CACHE_ENV: str(empty)}, str(empty)) == ""
+    assert "not set" in check_fresh_cache({"CI": "true"}, str(empty))
+    assert "1 entries from an earlier run" in check_fresh_cache({"CI": "true", CACHE_ENV: str(used)}, str(used))
+
+
+def test_a_ci_run_with_a_used_cache_stops_before_any_test(tmp_path):
+    (tmp_path / "jit_sweep-0123-cache").write_bytes(b"x")
+    env = {**os.environ, "CI": "true", CACHE_ENV: str(tmp_path)}
+    proc = subprocess.run([sys.executable, "-m", "pytest", "-q", "-n", "0", "-p", "no:cacheprovider",
+                           "tests/test_mdp.py"], cwd=ROOT, env=env, capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 4, proc.stdout[-2000:] + proc.stderr[-2000:]  # pytest's usage error
+    assert "earlier run" in proc.stdout + proc.stderr
+
+
+def test_clearing_jax_caches_releases_the_memory_mappings_of_compiled_programs():
+    # what tests/conftest.py relies on after each module: ~20 mappings per compiled program
+    before = map_count()
+    fns = [jax.jit(lambda x, i=i: jnp.cumsum(x) * i) for i in range(30)]
+    for i, f in enumerate(fns):
+        f(jnp.ones(i + 1)).block_until_ready()
+    grown = map_count()
+    jax.clear_caches()
+    assert grown - before > 150, (before, grown)
+    assert map_count() < before + 0.3 * (grown - before), (before, grown, map_count())
