@@ -199,6 +199,15 @@ class FitResult:
 
         return self._diagnostic(effective_sample_size)
 
+    def log_predictive(self, mdp, demos, **options):
+        """The held-out log-likelihood of demonstrations that were not in the fit: per
+        trajectory and per step, with Monte Carlo standard errors (a
+        :class:`~npbrs.inference.predictive.HeldOut`; options: ``num_samples``, ``num_draws``,
+        ``seed``, ``emission``; see :func:`npbrs.inference.predictive.log_predictive`)."""
+        from .predictive import log_predictive
+
+        return log_predictive(self, mdp, demos, **options)
+
     def to_arviz(self):
         """ArviZ InferenceData: draws, label-invariant sample stats, the best segmentation and
         the run's description (the layout of saved runs, see :mod:`npbrs.inference.runs`)."""

@@ -31,7 +31,7 @@ from .hmm import batch_forward_filter
 jax.config.update("jax_enable_x64", True)
 
 __all__ = ["Hyper", "prior_distributions", "hmm_parameters", "eta_gamma_shapes", "eta_from_gammas",
-           "log_marginal_likelihoods",
+           "log_marginal_likelihoods", "predictive_log_likelihoods",
            "bphmm_model", "log_joint_terms",
            "collapsed_feature_log_prob", "collapsed_sequence_log_prob"]
 
@@ -100,6 +100,35 @@ def log_marginal_likelihoods(features, eta, log_lik, mask):
     log_init, log_trans, active = hmm_parameters(features, eta)
     log_marg, _ = batch_forward_filter(log_init, log_trans, log_lik, mask, active)
     return log_marg
+
+
+def predictive_log_likelihoods(key, log_lik, mask, counts, num_trajectories: int, hyper: Hyper, num_samples: int):
+    """log p(x_i | f, eta, params) of new trajectories for ``num_samples`` draws of their skill
+    sets and transition weights from the BP-HMM's predictive given a posterior draw.
+
+    With omega integrated out given the draw's features, a new trajectory's f_k are independent
+    Bernoulli((m_k + alpha/K) / (N + 1 + alpha/K)) (the weak-limit beta-Bernoulli predictive);
+    its eta comes from the prior (``prior_distributions``); the skill sequence is summed out by
+    the forward filter. A skill set with no skill cannot emit (-inf).
+
+    Args:
+        key: PRNG key. log_lik: (N_new, T, K) per-step log-likelihoods of the new trajectories
+            under the draw's skills; mask: (N_new, T) bool.
+        counts: (K,) m_k, the fitted trajectories using each skill in the draw.
+        num_trajectories: N, the number of fitted trajectories.
+        hyper: the draw's hyperparameters.
+    Returns:
+        (num_samples, N_new) log-likelihoods, one per (f, eta) sample.
+    """
+    n_new, _, K = log_lik.shape
+    a = hyper.alpha / K
+    p_on = (counts + a) / (num_trajectories + 1.0 + a)
+    k_f, k_eta = jax.random.split(key)
+    features = jax.random.bernoulli(k_f, p_on, (num_samples, n_new, K)).astype(log_lik.dtype)
+    eta = prior_distributions(n_new, K, hyper)["eta"].sample(k_eta, (num_samples,))
+    eta = jnp.maximum(eta, 1e-300)
+    log_marg = jax.vmap(lambda f, e: log_marginal_likelihoods(f, e, log_lik, mask))(features, eta)
+    return jnp.where(jnp.sum(features, -1) > 0, log_marg, -jnp.inf)
 
 
 def collapsed_feature_log_prob(features, alpha):

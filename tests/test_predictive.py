@@ -1,0 +1,114 @@
+"""Held-out log-likelihood under a fit: the posterior predictive against brute-force enumeration
+of skill sets and skill sequences (transition weights integrated exactly, Dirichlet-multinomial),
+and a true model scoring above a wrong one."""
+
+import itertools
+
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from scipy.special import logsumexp
+
+from npbrs.domains import Demonstrations, TabularMDP
+from npbrs.inference.fit import resolve_config
+from npbrs.inference.results import FitResult
+from npbrs.models.bphmm import collapsed_sequence_log_prob
+
+S, A, K = 2, 2, 2
+ALPHA, KAPPA, GAMMA = 1.5, 2.0, 0.7
+
+
+def two_state_mdp():  # (the dynamics do not enter the policy emission)
+    return TabularMDP.from_dense(np.ones((S, A, S)) / S)
+
+
+def policy_run(policies, features):
+    """A FitResult of the policy emission with the given draws: policies (C, D, K, S, A),
+    features (C, D, N, K)."""
+    C, D = policies.shape[:2]
+    cfg = resolve_config(None, emission="policy", max_skills=K, alpha=ALPHA, kappa=KAPPA, gamma=GAMMA)
+    zeros = np.zeros((C, D))
+    return FitResult(segmentation=[], num_skills=K, skill_params={}, skill_slots=np.arange(K), best_chain=0,
+                     best_log_joint=0.0, stats={"log_joint": zeros, "num_skills": zeros, "num_switches": zeros},
+                     samples={"policy": policies, "features": features}, config=cfg.to_dict())
+
+
+def exact_log_predictive(policies, features, states, actions):
+    """log mean_s sum_f p(f | F_s) sum_z p(z | f) prod_t pi_{z_t}(a_t | s_t), by enumeration."""
+    C, D, N, _ = features.shape
+    T = len(states)
+    per_draw = []
+    for c in range(C):
+        for d in range(D):
+            m = features[c, d].sum(0)
+            p_on = (m + ALPHA / K) / (N + 1 + ALPHA / K)
+            log_emit = np.log(policies[c, d][:, states, actions]).T  # (T, K)
+            terms = []
+            for f in itertools.product([0, 1], repeat=K):
+                if not any(f):
+                    continue
+                log_pf = np.sum(np.where(np.array(f) == 1, np.log(p_on), np.log1p(-p_on)))
+                zs = np.array(list(itertools.product(range(K), repeat=T)))
+                lz = np.asarray(collapsed_sequence_log_prob(jnp.asarray(zs), jnp.ones(zs.shape, bool),
+                                                            jnp.tile(jnp.asarray(f, jnp.float64), (len(zs), 1)),
+                                                            KAPPA, GAMMA))
+                le = log_emit[np.arange(T), zs].sum(1)
+                terms.append(log_pf + logsumexp(lz + le))
+            per_draw.append(logsumexp(terms))
+    return logsumexp(per_draw) - np.log(len(per_draw))
+
+
+def draws(seed):
+    rng = np.random.default_rng(seed)
+    policies = rng.dirichlet(np.ones(A), size=(1, 3, K, S))  # (C, D, K, S, A)
+    features = (rng.random((1, 3, 4, K)) < 0.6).astype(np.float64)
+    features[..., 0] = 1.0
+    return policies, features
+
+
+def test_log_predictive_equals_enumeration_within_its_standard_error():
+    policies, features = draws(0)
+    run = policy_run(policies, features)
+    demos = Demonstrations([np.array([0, 1, 1, 0, 1]), np.array([1, 0, 0])],
+                           [np.array([1, 1, 0, 0, 1]), np.array([0, 0, 1])])
+    out = run.log_predictive(two_state_mdp(), demos, num_samples=4000, seed=1)
+    for i in range(2):
+        exact = exact_log_predictive(policies, features, demos.states[i], demos.actions[i])
+        se = out.per_trajectory_se[i]
+        assert 0 < se < 0.05, se
+        assert abs(out.per_trajectory[i] - exact) < 4 * se + 1e-3, (i, out.per_trajectory[i], exact, se)
+    assert out.num_steps == 8 and out.per_step == pytest.approx(out.per_trajectory.sum() / 8)
+    again = run.log_predictive(two_state_mdp(), demos, num_samples=4000, seed=1)
+    np.testing.assert_array_equal(again.per_trajectory, out.per_trajectory)  # the same seed, the same answer
+
+
+def test_the_generating_policies_score_above_wrong_ones_on_held_out_data():
+    rng = np.random.default_rng(3)
+    true = np.array([[[0.9, 0.1], [0.9, 0.1]], [[0.1, 0.9], [0.1, 0.9]]])  # skill 0: action 0; skill 1: action 1
+    states, actions = [], []
+    for _ in range(6):
+        s = rng.integers(0, S, 40)
+        z = np.repeat(rng.integers(0, K, 4), 10)
+        states.append(s)
+        actions.append((rng.random(40) < true[z, s, 1]).astype(np.int64))
+    demos = Demonstrations(states, actions)
+    features = np.ones((1, 4, 6, K))
+    good = policy_run(np.broadcast_to(true, (1, 4, K, S, A)).copy(), features)
+    one_skill = policy_run(np.full((1, 4, K, S, A), 0.5), features)
+    weak = policy_run(np.broadcast_to(0.5 + (true - 0.5) * 0.25, (1, 4, K, S, A)).copy(), features)
+    scores = {name: r.log_predictive(two_state_mdp(), demos, num_samples=64).per_step
+              for name, r in (("true", good), ("one", one_skill), ("weak", weak))}
+    assert scores["true"] > scores["weak"] + 0.1 > scores["one"] + 0.1, scores
+
+
+def test_bad_input_names_what_is_wrong():
+    policies, features = draws(1)
+    run = policy_run(policies, features)
+    demos = Demonstrations([np.array([0, 1])], [np.array([1, 2])])
+    with pytest.raises(ValueError, match="action"):
+        run.log_predictive(two_state_mdp(), demos)
+    ok = Demonstrations([np.array([0, 1])], [np.array([1, 0])])
+    with pytest.raises(ValueError, match="num_samples"):
+        run.log_predictive(two_state_mdp(), ok, num_samples=0)
+    with pytest.raises(ValueError, match="no trajector"):
+        run.log_predictive(two_state_mdp(), Demonstrations([], []))
