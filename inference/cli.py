@@ -1,8 +1,10 @@
-"""The ``npbrs`` command line: ``generate``, ``fit``, ``report`` and ``demo``.
+"""The ``npbrs`` command line: ``generate``, ``fit``, ``report``, ``score``, ``compare`` and ``demo``.
 
     npbrs generate highway --trajectories 16 --length 500 -o demos.npz
     npbrs fit demos.npz --domain highway [--config model.toml] -o run.nc [--resume]
     npbrs report run.nc --plots plots/
+    npbrs score run.nc held_out.npz --domain highway
+    npbrs compare reward.nc single.nc --domain highway
     npbrs demo [--quick] [--out DIR]
 """
 
@@ -292,7 +294,9 @@ def build_parser() -> argparse.ArgumentParser:
     _add_fit(sub)
     _add_report(sub)
     _add_demo(sub)
-    from . import reproduce
+    from . import cli_score, reproduce
+
+    cli_score.add_parsers(sub)
 
     reproduce.add_parser(sub)
     return parser

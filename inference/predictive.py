@@ -26,7 +26,7 @@ import numpy as np
 from npbrs.models.bphmm import Hyper, predictive_log_likelihoods
 from npbrs.models.emissions import Emission, HMMData
 
-__all__ = ["HeldOut", "log_predictive"]
+__all__ = ["HeldOut", "log_predictive", "pointwise_log_likelihood"]
 
 _NOT_PARAMS = ("features", "skill_steps", "alpha", "kappa", "gamma")
 
@@ -73,14 +73,44 @@ def log_predictive(result, mdp, demos, *, num_samples: int = 64, num_draws: int 
     Raises:
         ValueError: demonstrations outside the MDP, an MDP unlike the run's, bad options.
     """
-    from .fit import make_emission
-
-    if not isinstance(num_samples, int) or isinstance(num_samples, bool) or num_samples < 1:
-        raise ValueError(f"num_samples must be an integer >= 1, got {num_samples!r}")
-    if not isinstance(num_draws, int) or isinstance(num_draws, bool) or num_draws < 1:
-        raise ValueError(f"num_draws must be an integer >= 1, got {num_draws!r}")
+    _check_counts(num_samples=num_samples, num_draws=num_draws)
     if len(demos.lengths) == 0:
         raise ValueError("the held-out demonstrations hold no trajectory")
+    C, D = np.shape(result.stats["log_joint"])
+    moments = _draw_moments(result, mdp, demos, _draw_indices(C, D, num_draws), num_samples, seed, emission,
+                            leave_one_out=False)
+    return _summarise(moments.reshape(-1, 2, len(demos.lengths)), num_samples, demos)
+
+
+def pointwise_log_likelihood(result, mdp, *, num_samples: int = 32, seed: int = 0,
+                             emission: Optional[Emission] = None) -> np.ndarray:
+    """Each fitted trajectory's log-likelihood under each posterior draw, (C, D, N): the
+    ``log_likelihood`` group ArviZ's ``loo`` and ``compare`` read.
+
+    Trajectory i's value under draw s is log p(x_i | theta_s, F_s without row i): its own skill
+    set (from the beta-Bernoulli predictive of the other trajectories' features) and transition
+    weights (their prior) integrated out by Monte Carlo (``num_samples`` per draw), the skill
+    sequence by the forward filter.
+    """
+    _check_counts(num_samples=num_samples)
+    if result.demos is None:
+        raise ValueError("the run does not hold its demonstrations, which the pointwise log-likelihood needs")
+    C, D = np.shape(result.stats["log_joint"])
+    moments = _draw_moments(result, mdp, result.demos, np.arange(D), num_samples, seed, emission, leave_one_out=True)
+    return moments[:, :, 0, :]
+
+
+def _check_counts(**values):
+    for name, value in values.items():
+        if not isinstance(value, int) or isinstance(value, bool) or value < 1:
+            raise ValueError(f"{name} must be an integer >= 1, got {value!r}")
+
+
+def _draw_moments(result, mdp, demos, idx, num_samples, seed, emission, leave_one_out):
+    """Per chain and chosen draw, the log first and second moments over the (f, eta) samples of
+    every trajectory's likelihood, (C, len(idx), 2, n)."""
+    from .fit import make_emission
+
     demos.validate(mdp)
     cfg = result.model_config
     if emission is None:
@@ -99,26 +129,27 @@ def log_predictive(result, mdp, demos, *, num_samples: int = 64, num_draws: int 
                          f"{features_known}: a run and an MDP that do not belong together")
     data = HMMData.from_demonstrations(demos)
     hyper_fixed = {n: float(getattr(cfg.prior, n).value) for n in ("alpha", "kappa", "gamma")}
-    idx = _draw_indices(C, D, num_draws)
+    others = N - 1 if leave_one_out else N
 
     @jax.jit
     def one_draw(key, params, counts, hyper, data):
         log_lik, _ = emission.log_likelihoods(params, data, emission.init_cache(K))
-        lm = predictive_log_likelihoods(key, log_lik, data.mask, counts, N, hyper, num_samples)  # (M, n)
-        # the first and second moments of the likelihood over the (f, eta) samples, in logs
+        lm = predictive_log_likelihoods(key, log_lik, data.mask, counts, others, hyper, num_samples)  # (M, n)
         lse = jax.scipy.special.logsumexp
         return jnp.stack([lse(lm, axis=0), lse(2 * lm, axis=0)]) - jnp.log(num_samples)
 
     keys = jax.random.split(jax.random.PRNGKey(seed), C * len(idx)).reshape(C, len(idx), -1)
-    per_draw = np.empty((C, len(idx), 2, len(demos.lengths)))
+    out = np.empty((C, len(idx), 2, len(demos.lengths)))
     for c in range(C):
         for j, d in enumerate(idx):
             params = {k: jnp.asarray(v[c, d]) for k, v in params_all.items()}
-            counts = jnp.asarray(samples["features"][c, d].sum(0), jnp.float64)
+            f = samples["features"][c, d]
+            # a fitted trajectory's own row is left out of the popularity counts
+            counts = jnp.asarray(f.sum(0) - f if leave_one_out else f.sum(0), jnp.float64)
             hyper = Hyper(*(jnp.float64(samples[n][c, d] if n in samples else hyper_fixed[n])
                             for n in ("alpha", "kappa", "gamma")))
-            per_draw[c, j] = np.asarray(one_draw(keys[c, j], params, counts, hyper, data))
-    return _summarise(per_draw.reshape(-1, 2, len(demos.lengths)), num_samples, demos)
+            out[c, j] = np.asarray(one_draw(keys[c, j], params, counts, hyper, data))
+    return out
 
 
 def _summarise(moments: np.ndarray, num_samples: int, demos) -> HeldOut:

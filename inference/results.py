@@ -67,6 +67,9 @@ class FitResult:
             ``fit`` was given one (relabelled 0, 1, ... in order of value); None for the
             default start from random windows. ``fit(..., init_segmentation=...)`` with it
             repeats the run.
+        log_likelihood: (C, D, N) each fitted trajectory's log-likelihood under each draw, once
+            :meth:`add_log_likelihood` has computed it (saved as the ArviZ ``log_likelihood``
+            group, which ``az.loo`` and ``az.compare`` read); None before.
     """
 
     segmentation: List[np.ndarray]
@@ -85,6 +88,7 @@ class FitResult:
     chain_best_z: Optional[np.ndarray] = None
     demos: Optional[object] = None
     init_segmentation: Optional[List[np.ndarray]] = None
+    log_likelihood: Optional[np.ndarray] = None
 
     @classmethod
     def from_states(cls, last_state, draws: Dict[str, np.ndarray], demos, *, config: Optional[dict] = None,
@@ -164,6 +168,8 @@ class FitResult:
                 and (self.init_segmentation is None
                      or (len(self.init_segmentation) == len(other.init_segmentation)
                          and all(same(a, b) for a, b in zip(self.init_segmentation, other.init_segmentation))))
+                and ((self.log_likelihood is None) == (other.log_likelihood is None))
+                and (self.log_likelihood is None or same(self.log_likelihood, other.log_likelihood))
                 and (not wall_time or same(self.wall_time, other.wall_time)))
 
     @property
@@ -207,6 +213,15 @@ class FitResult:
         from .predictive import log_predictive
 
         return log_predictive(self, mdp, demos, **options)
+
+    def add_log_likelihood(self, mdp, **options) -> np.ndarray:
+        """Compute and keep :attr:`log_likelihood` (C, D, N), so that ``az.loo(result.to_arviz())``
+        and ``az.compare`` work (options: ``num_samples``, ``seed``, ``emission``; see
+        :func:`npbrs.inference.predictive.pointwise_log_likelihood`). Returns it."""
+        from .predictive import pointwise_log_likelihood
+
+        self.log_likelihood = pointwise_log_likelihood(self, mdp, **options)
+        return self.log_likelihood
 
     def to_arviz(self):
         """ArviZ InferenceData: draws, label-invariant sample stats, the best segmentation and

@@ -20,7 +20,10 @@ over the target, so a crash leaves either the old file or the new one, never hal
   ``describe()`` as JSON), ``fingerprint`` (of the demonstrations), ``feature_names`` (JSON),
   ``best_chain``, ``best_log_joint``, ``wall_time``;
 - ``observed_data`` (when the result carries them): the demonstrations, ``states``, ``actions``
-  and, when known, ``skills`` (trajectory, step; -1 on padding) with ``lengths``.
+  and, when known, ``skills`` (trajectory, step; -1 on padding) with ``lengths``;
+- ``log_likelihood`` (after ``FitResult.add_log_likelihood``): ``demonstrations`` (chain, draw,
+  trajectory), each trajectory's log-likelihood under each draw, its skill set and transition
+  weights integrated (what ``az.loo`` and ``az.compare`` read).
 
 **Checkpoint** (``.npz``, no pickles): ``meta`` (a JSON string: format "npbrs-checkpoint",
 version, config, emission description, fingerprint, seed, sweeps done and total, chains,
@@ -113,6 +116,9 @@ def to_inference_data(result):
         if demos.skills is not None:
             observed["skills"] = (["trajectory", "step"], _padded(demos.skills))
         groups["observed_data"] = xr.Dataset(observed)
+    if result.log_likelihood is not None:
+        groups["log_likelihood"] = xr.Dataset(
+            {"demonstrations": (["chain", "draw", "trajectory"], np.asarray(result.log_likelihood))}, coords=chain_draw)
     return az.InferenceData(**groups)
 
 
@@ -151,7 +157,9 @@ def from_inference_data(idata):
                      feature_names=tuple(json.loads(attrs["feature_names"])),
                      chain_best_z=(np.asarray(const["chain_best_z"].values) if "chain_best_z" in const else None),
                      demos=demos, init_segmentation=(_rows(const["init_segmentation"].values, lengths)
-                                                     if "init_segmentation" in const else None))
+                                                     if "init_segmentation" in const else None),
+                     log_likelihood=(np.asarray(idata.log_likelihood["demonstrations"].values)
+                                     if "log_likelihood" in idata.groups() else None))
 
 
 def save_run(result, path) -> None:

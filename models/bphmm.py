@@ -114,7 +114,8 @@ def predictive_log_likelihoods(key, log_lik, mask, counts, num_trajectories: int
     Args:
         key: PRNG key. log_lik: (N_new, T, K) per-step log-likelihoods of the new trajectories
             under the draw's skills; mask: (N_new, T) bool.
-        counts: (K,) m_k, the fitted trajectories using each skill in the draw.
+        counts: (K,) m_k, the fitted trajectories using each skill in the draw, or (N_new, K)
+            counts per new trajectory (a fitted trajectory's leave-one-out predictive).
         num_trajectories: N, the number of fitted trajectories.
         hyper: the draw's hyperparameters.
     Returns:

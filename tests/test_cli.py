@@ -26,7 +26,7 @@ def run_main(argv):
     return code, out.getvalue(), err.getvalue()
 
 
-@pytest.mark.parametrize("command", ["generate", "fit", "report", "demo"])
+@pytest.mark.parametrize("command", ["generate", "fit", "report", "demo", "score", "compare"])
 def test_every_command_has_help(command):
     code, out, _ = run_main([command, "--help"])
     assert code == 0
@@ -134,3 +134,26 @@ def test_fit_errors_name_what_is_wrong(demo, tmp_path):
     code, _, err = run_main(["report", tmp_path / "missing.nc"])
     assert code == 2 and "missing.nc" in err
     assert not (tmp_path / "x.nc").exists()
+
+
+def test_score_and_compare_held_out_demonstrations(demo, tmp_path):
+    import shutil
+
+    out, _ = demo
+    code, _, stderr = run_main(["generate", "highway", "--trajectories", "2", "--length", "30", "--seed", "9",
+                                "-o", tmp_path / "held.npz"])
+    assert code == 0, stderr
+    code, stdout, stderr = run_main(["score", out / "run.nc", tmp_path / "held.npz", "--domain", "highway",
+                                     "--samples", "8", "--draws", "4"])
+    assert code == 0, stderr
+    per_step = float(stdout.split("held-out log-likelihood: ")[1].split()[0])
+    assert -np.log(3) - 1.0 < per_step < 0  # 3 actions: uniform is -1.10 nats per step
+    shutil.copy(out / "run.nc", tmp_path / "again.nc")
+    code, stdout, stderr = run_main(["compare", out / "run.nc", tmp_path / "again.nc", "--domain", "highway",
+                                     "--samples", "8"])
+    assert code == 0, stderr
+    assert "elpd_loo" in stdout and "again" in stdout
+    code, _, stderr = run_main(["score", out / "run.nc", tmp_path / "nothere.npz", "--domain", "highway"])
+    assert code == 2 and "nothere.npz" in stderr and "Traceback" not in stderr
+    code, _, stderr = run_main(["compare", out / "run.nc", "--domain", "highway"])
+    assert code == 2 and "at least two" in stderr

@@ -112,3 +112,41 @@ def test_bad_input_names_what_is_wrong():
         run.log_predictive(two_state_mdp(), ok, num_samples=0)
     with pytest.raises(ValueError, match="no trajector"):
         run.log_predictive(two_state_mdp(), Demonstrations([], []))
+
+
+def test_arviz_loo_ranks_the_true_model_first_as_held_out_data_does(tmp_path):
+    import arviz as az
+
+    from npbrs.inference import load
+
+    rng = np.random.default_rng(5)
+    true = np.array([[[0.9, 0.1], [0.8, 0.2]], [[0.1, 0.9], [0.3, 0.7]]])
+
+    def demos(n):
+        states, actions = [], []
+        for _ in range(n):
+            s = rng.integers(0, S, 30)
+            z = np.repeat(rng.integers(0, K, 3), 10)
+            states.append(s)
+            actions.append((rng.random(30) < true[z, s, 1]).astype(np.int64))
+        return Demonstrations(states, actions)
+
+    train, held = demos(8), demos(6)
+    C, D = 2, 6
+    features = np.ones((C, D, 8, K))
+    runs = {"true": policy_run(np.broadcast_to(true, (C, D, K, S, A)).copy(), features),
+            "single": policy_run(np.full((C, D, K, S, A), 0.5), features)}
+    held_out = {}
+    for name, run in runs.items():
+        run.demos, run.segmentation = train, [np.zeros(len(s), np.int64) for s in train.states]
+        ll = run.add_log_likelihood(two_state_mdp(), num_samples=64)
+        assert ll.shape == (C, D, 8) and np.all(np.isfinite(ll))
+        held_out[name] = run.log_predictive(two_state_mdp(), held, num_samples=64).per_step
+    loo = {name: az.loo(run.to_arviz()) for name, run in runs.items()}
+    assert loo["true"].elpd_loo > loo["single"].elpd_loo
+    table = az.compare({name: run.to_arviz() for name, run in runs.items()})
+    assert list(table.index) == ["true", "single"] and held_out["true"] > held_out["single"]
+    runs["true"].save(tmp_path / "run.nc")  # the group survives a save and a load
+    back = load(tmp_path / "run.nc")
+    np.testing.assert_array_equal(back.log_likelihood, runs["true"].log_likelihood)
+    assert back.equals(runs["true"])
