@@ -23,10 +23,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from npbrs.models.bphmm import Hyper, predictive_log_likelihoods
+from npbrs.models.bphmm import Hyper, feature_predictive, predictive_log_likelihoods
 from npbrs.models.emissions import Emission, HMMData
 
-__all__ = ["HeldOut", "log_predictive", "pointwise_log_likelihood"]
+__all__ = ["HeldOut", "SkillProbabilities", "log_predictive", "pointwise_log_likelihood", "segment"]
 
 _NOT_PARAMS = ("features", "skill_steps", "alpha", "kappa", "gamma")
 
@@ -46,6 +46,19 @@ class HeldOut(NamedTuple):
     per_step_se: float
     num_steps: int
     num_draws: int
+
+
+class SkillProbabilities(NamedTuple):
+    """Posterior skill probabilities of demonstrations under a fit.
+
+    probs: per trajectory, (T_i, L) the probability of each of the run's L skills (labelled as
+    in ``result.segmentation``) at every step; a row sums to the probability that the step
+    belongs to one of them (below 1 where some draws put it in a skill the run's best draw
+    does not have). labels: per trajectory, (T_i,) the most probable of them.
+    """
+
+    probs: list
+    labels: list
 
 
 def _draw_indices(num_chains: int, num_draws_run: int, num_draws: int) -> np.ndarray:
@@ -100,15 +113,65 @@ def pointwise_log_likelihood(result, mdp, *, num_samples: int = 32, seed: int = 
     return moments[:, :, 0, :]
 
 
+def segment(result, mdp, demos=None, *, num_samples: int = 32, num_draws: int = 100, seed: int = 0,
+            emission: Optional[Emission] = None) -> SkillProbabilities:
+    """Posterior probabilities of the run's skills at every step, averaged over its draws.
+
+    For new demonstrations, a trajectory's skill set follows the beta-Bernoulli predictive of
+    each draw's features and its transition weights their prior; for the fitted ones
+    (``demos=None``), its skill set is the draw's own. Either way the transition weights and
+    (for new ones) the skill set are integrated by self-normalised importance sampling
+    (``num_samples`` per draw, weighted by the trajectory's likelihood), and the skill sequence's
+    marginals come from the forward filter and smoother. Every chain's skill slots are mapped
+    to the run's skills by :func:`npbrs.inference.diagnostics.relabel`.
+
+    Returns:
+        :class:`SkillProbabilities`.
+    """
+    from .diagnostics import relabel
+
+    _check_counts(num_samples=num_samples, num_draws=num_draws)
+    fitted = demos is None
+    if fitted:
+        if result.demos is None:
+            raise ValueError("the run does not hold its demonstrations; pass the demonstrations to segment")
+        demos = result.demos
+    if len(demos.lengths) == 0:
+        raise ValueError("the demonstrations hold no trajectory")
+    mapping = relabel(result)  # (C, K): the run's skill of every chain's slot, -1 for none
+    C, D = np.shape(result.stats["log_joint"])
+    idx = _draw_indices(C, D, num_draws)
+    L = result.num_skills
+    n, T = len(demos.lengths), int(np.max(demos.lengths))
+    total = np.full(n, -np.inf)
+    acc = np.full((n, T, L), -np.inf)
+    for c, j, lm, post in _draw_moments(result, mdp, demos, idx, num_samples, seed, emission,
+                                        leave_one_out=False, marginals=True, own_features=fitted):
+        total = np.logaddexp(total, lm)
+        for k, skill in enumerate(mapping[c]):
+            if skill >= 0:
+                acc[..., skill] = np.logaddexp(acc[..., skill], post[..., k])
+    if not np.all(np.isfinite(total)):
+        bad = int(np.argmin(np.isfinite(total)))
+        raise ValueError(f"trajectory {bad} has probability 0 under every posterior draw")
+    probs = np.exp(acc - total[:, None, None])
+    rows = [probs[i, :m] for i, m in enumerate(demos.lengths)]
+    return SkillProbabilities(probs=rows, labels=[np.argmax(r, axis=-1) for r in rows])
+
+
 def _check_counts(**values):
     for name, value in values.items():
         if not isinstance(value, int) or isinstance(value, bool) or value < 1:
             raise ValueError(f"{name} must be an integer >= 1, got {value!r}")
 
 
-def _draw_moments(result, mdp, demos, idx, num_samples, seed, emission, leave_one_out):
+def _draw_moments(result, mdp, demos, idx, num_samples, seed, emission, leave_one_out, marginals=False,
+                  own_features=False):
     """Per chain and chosen draw, the log first and second moments over the (f, eta) samples of
-    every trajectory's likelihood, (C, len(idx), 2, n)."""
+    every trajectory's likelihood, (C, len(idx), 2, n). With ``marginals``, instead a generator
+    of (chain, draw, log sum_m p_m (n,), log sum_m p_m p(z_t = k | ...)_m (n, T, K)) with p_m the
+    trajectory's likelihood under sample m; ``own_features``: the draw's own skill sets (fitted
+    trajectories) instead of the predictive."""
     from .fit import make_emission
 
     demos.validate(mdp)
@@ -131,25 +194,46 @@ def _draw_moments(result, mdp, demos, idx, num_samples, seed, emission, leave_on
     hyper_fixed = {n: float(getattr(cfg.prior, n).value) for n in ("alpha", "kappa", "gamma")}
     others = N - 1 if leave_one_out else N
 
+    lse = jax.scipy.special.logsumexp
+
     @jax.jit
     def one_draw(key, params, counts, hyper, data):
         log_lik, _ = emission.log_likelihoods(params, data, emission.init_cache(K))
-        lm = predictive_log_likelihoods(key, log_lik, data.mask, counts, others, hyper, num_samples)  # (M, n)
-        lse = jax.scipy.special.logsumexp
+        p_on = feature_predictive(counts, others, hyper.alpha)
+        lm = predictive_log_likelihoods(key, log_lik, data.mask, p_on, hyper, num_samples)  # (M, n)
         return jnp.stack([lse(lm, axis=0), lse(2 * lm, axis=0)]) - jnp.log(num_samples)
 
-    keys = jax.random.split(jax.random.PRNGKey(seed), C * len(idx)).reshape(C, len(idx), -1)
+    @jax.jit
+    def one_draw_marginals(key, params, p_on, hyper, data):
+        log_lik, _ = emission.log_likelihoods(params, data, emission.init_cache(K))
+        lm, post = predictive_log_likelihoods(key, log_lik, data.mask, p_on, hyper, num_samples, marginals=True)
+        return lse(lm, axis=0), lse(lm[..., None, None] + post, axis=0)
+
+    draws = _each_draw(samples, params_all, hyper_fixed, idx, seed, C)
+    if marginals:
+        def marginal_draws():
+            for c, j, key, params, f, hyper in draws:
+                p_on = f if own_features else feature_predictive(f.sum(0), others, float(hyper.alpha))
+                lm, post = one_draw_marginals(key, params, jnp.asarray(p_on, jnp.float64), hyper, data)
+                yield c, j, np.asarray(lm), np.asarray(post)
+        return marginal_draws()
     out = np.empty((C, len(idx), 2, len(demos.lengths)))
+    for c, j, key, params, f, hyper in draws:
+        # a fitted trajectory's own row is left out of the popularity counts
+        counts = jnp.asarray(f.sum(0) - f if leave_one_out else f.sum(0), jnp.float64)
+        out[c, j] = np.asarray(one_draw(key, params, counts, hyper, data))
+    return out
+
+
+def _each_draw(samples, params_all, hyper_fixed, idx, seed, C):
+    """(chain, index in idx, key, emission parameters, features (N, K), Hyper) of every chosen draw."""
+    keys = jax.random.split(jax.random.PRNGKey(seed), C * len(idx)).reshape(C, len(idx), -1)
     for c in range(C):
         for j, d in enumerate(idx):
             params = {k: jnp.asarray(v[c, d]) for k, v in params_all.items()}
-            f = samples["features"][c, d]
-            # a fitted trajectory's own row is left out of the popularity counts
-            counts = jnp.asarray(f.sum(0) - f if leave_one_out else f.sum(0), jnp.float64)
             hyper = Hyper(*(jnp.float64(samples[n][c, d] if n in samples else hyper_fixed[n])
                             for n in ("alpha", "kappa", "gamma")))
-            out[c, j] = np.asarray(one_draw(keys[c, j], params, counts, hyper, data))
-    return out
+            yield c, j, keys[c, j], params, samples["features"][c, d], hyper
 
 
 def _summarise(moments: np.ndarray, num_samples: int, demos) -> HeldOut:

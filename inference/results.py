@@ -214,6 +214,16 @@ class FitResult:
 
         return log_predictive(self, mdp, demos, **options)
 
+    def segment(self, mdp, demos=None, **options):
+        """Posterior probabilities of this run's skills at every step of new demonstrations (or,
+        with ``demos=None``, of the fitted ones), averaged over the draws: a
+        :class:`~npbrs.inference.predictive.SkillProbabilities` (``probs`` per trajectory (T, L),
+        ``labels`` the most probable skill); options ``num_samples``, ``num_draws``, ``seed``,
+        ``emission`` (see :func:`npbrs.inference.predictive.segment`)."""
+        from .predictive import segment
+
+        return segment(self, mdp, demos, **options)
+
     def add_log_likelihood(self, mdp, **options) -> np.ndarray:
         """Compute and keep :attr:`log_likelihood` (C, D, N), so that ``az.loo(result.to_arviz())``
         and ``az.compare`` work (options: ``num_samples``, ``seed``, ``emission``; see

@@ -31,7 +31,7 @@ from .hmm import batch_forward_filter
 jax.config.update("jax_enable_x64", True)
 
 __all__ = ["Hyper", "prior_distributions", "hmm_parameters", "eta_gamma_shapes", "eta_from_gammas",
-           "log_marginal_likelihoods", "predictive_log_likelihoods",
+           "log_marginal_likelihoods", "feature_predictive", "predictive_log_likelihoods",
            "bphmm_model", "log_joint_terms",
            "collapsed_feature_log_prob", "collapsed_sequence_log_prob"]
 
@@ -102,34 +102,49 @@ def log_marginal_likelihoods(features, eta, log_lik, mask):
     return log_marg
 
 
-def predictive_log_likelihoods(key, log_lik, mask, counts, num_trajectories: int, hyper: Hyper, num_samples: int):
-    """log p(x_i | f, eta, params) of new trajectories for ``num_samples`` draws of their skill
-    sets and transition weights from the BP-HMM's predictive given a posterior draw.
-
-    With omega integrated out given the draw's features, a new trajectory's f_k are independent
-    Bernoulli((m_k + alpha/K) / (N + 1 + alpha/K)) (the weak-limit beta-Bernoulli predictive);
-    its eta comes from the prior (``prior_distributions``); the skill sequence is summed out by
-    the forward filter. A skill set with no skill cannot emit (-inf).
+def feature_predictive(counts, num_trajectories, alpha):
+    """P(f_k = 1) of a new trajectory given the other trajectories' features, omega integrated
+    out: (m_k + alpha/K) / (N + 1 + alpha/K), the weak-limit beta-Bernoulli predictive.
 
     Args:
-        key: PRNG key. log_lik: (N_new, T, K) per-step log-likelihoods of the new trajectories
-            under the draw's skills; mask: (N_new, T) bool.
-        counts: (K,) m_k, the fitted trajectories using each skill in the draw, or (N_new, K)
-            counts per new trajectory (a fitted trajectory's leave-one-out predictive).
-        num_trajectories: N, the number of fitted trajectories.
-        hyper: the draw's hyperparameters.
-    Returns:
-        (num_samples, N_new) log-likelihoods, one per (f, eta) sample.
+        counts: (..., K) m_k, the trajectories using each skill; num_trajectories: N.
     """
-    n_new, _, K = log_lik.shape
-    a = hyper.alpha / K
-    p_on = (counts + a) / (num_trajectories + 1.0 + a)
+    a = alpha / jnp.shape(counts)[-1]
+    return (counts + a) / (num_trajectories + 1.0 + a)
+
+
+def predictive_log_likelihoods(key, log_lik, mask, p_on, hyper: Hyper, num_samples: int, marginals: bool = False):
+    """log p(x_i | f, eta, params) of trajectories for ``num_samples`` draws of their skill sets
+    and transition weights: f_k ~ Bernoulli(p_on[k]) independently (``feature_predictive`` for a
+    new trajectory; 0/1 for a known skill set), eta from its prior (``prior_distributions``);
+    the skill sequence summed out by the forward filter. A skill set with no skill cannot emit
+    (-inf).
+
+    Args:
+        key: PRNG key. log_lik: (n, T, K) per-step log-likelihoods under a draw's skills;
+            mask: (n, T) bool.
+        p_on: (K,) or (n, K) probabilities that each skill is in a trajectory's set.
+        hyper: the draw's hyperparameters.
+        marginals: also return the posterior marginals of the skill sequence.
+    Returns:
+        (num_samples, n) log-likelihoods, one per (f, eta) sample; with ``marginals``, also
+        (num_samples, n, T, K) log p(z_t | x, f, eta, params) (``NEG_LOG`` at padding).
+    """
+    from .hmm import batch_smooth
+
+    n, _, K = log_lik.shape
     k_f, k_eta = jax.random.split(key)
-    features = jax.random.bernoulli(k_f, p_on, (num_samples, n_new, K)).astype(log_lik.dtype)
-    eta = prior_distributions(n_new, K, hyper)["eta"].sample(k_eta, (num_samples,))
-    eta = jnp.maximum(eta, 1e-300)
-    log_marg = jax.vmap(lambda f, e: log_marginal_likelihoods(f, e, log_lik, mask))(features, eta)
-    return jnp.where(jnp.sum(features, -1) > 0, log_marg, -jnp.inf)
+    features = jax.random.bernoulli(k_f, p_on, (num_samples, n, K)).astype(log_lik.dtype)
+    eta = jnp.maximum(prior_distributions(n, K, hyper)["eta"].sample(k_eta, (num_samples,)), 1e-300)
+
+    def one(f, e):
+        log_init, log_trans, active = hmm_parameters(f, e)
+        log_marg, log_alpha = batch_forward_filter(log_init, log_trans, log_lik, mask, active)
+        return log_marg, (batch_smooth(log_trans, log_alpha, mask, active) if marginals else None)
+
+    log_marg, post = jax.vmap(one)(features, eta)
+    log_marg = jnp.where(jnp.sum(features, -1) > 0, log_marg, -jnp.inf)
+    return (log_marg, post) if marginals else log_marg
 
 
 def collapsed_feature_log_prob(features, alpha):

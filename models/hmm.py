@@ -1,4 +1,4 @@
-"""Hidden Markov model inference on arrays: forward filter, backward sampler, Viterbi.
+"""Hidden Markov model inference on arrays: forward filter, backward sampler, smoother, Viterbi.
 
 Pure JAX functions in log space, one ``lax.scan`` over time each, jit- and vmap-friendly.
 They know nothing about emission models: an emission supplies the ``(T, K)`` array of
@@ -29,8 +29,8 @@ import jax.numpy as jnp
 
 jax.config.update("jax_enable_x64", True)
 
-__all__ = ["NEG_LOG", "forward_filter", "backward_sample", "path_log_prob", "viterbi", "batch_forward_filter",
-           "batch_backward_sample", "batch_viterbi", "transition_counts", "initial_counts"]
+__all__ = ["NEG_LOG", "forward_filter", "backward_sample", "smooth", "path_log_prob", "viterbi", "batch_forward_filter",
+           "batch_backward_sample", "batch_smooth", "batch_viterbi", "transition_counts", "initial_counts"]
 
 # Stands in for log 0. exp(NEG_LOG) is exactly 0 in float32 and float64, and sums of a few of
 # them stay far from overflow; any real log-likelihood is far above it.
@@ -129,6 +129,39 @@ def backward_sample(key, log_trans, log_alpha, mask=None, active=None) -> jax.Ar
 
     _, z = jax.lax.scan(step, jnp.int32(-1), (jnp.arange(T), log_alpha, mask), reverse=True)
     return z
+
+
+def smooth(log_trans, log_alpha, mask=None, active=None) -> jax.Array:
+    """Posterior marginals log p(z_t | x_{1:T}) from the filter's output (a backward pass over
+    the filtered probabilities: p(z_t | x) = p(z_t | x_{1:t}) sum_k pi(z_t, k) p(z_{t+1} = k | x)
+    / p(z_{t+1} = k | x_{1:t})).
+
+    Args:
+        log_trans: (K, K) log transition weights, as given to :func:`forward_filter`.
+        log_alpha: (T, K) filtered log-probabilities from :func:`forward_filter`.
+        mask: (T,) bool, real steps (default all).
+        active: (K,) bool, as given to :func:`forward_filter`.
+    Returns:
+        (T, K) normalised log-probabilities; ``NEG_LOG`` everywhere at masked steps.
+    """
+    log_alpha = jnp.asarray(log_alpha)
+    T, K = log_alpha.shape
+    mask = jnp.ones(T, dtype=bool) if mask is None else jnp.asarray(mask, dtype=bool)
+    _, log_trans = _prepare(None, jnp.asarray(log_trans), active)
+
+    def step(carry, inputs):
+        after, seen = carry  # the next real step's marginals, and whether there is one
+        filt, real = inputs
+        pred = jax.nn.logsumexp(filt[:, None] + log_trans, axis=0)
+        back = jax.nn.logsumexp(log_trans + jnp.maximum(after - pred, NEG_LOG)[None, :], axis=1)
+        post = jnp.where(seen, filt + back, filt)
+        post = post - jax.nn.logsumexp(post)
+        new = (jnp.where(real, post, after), seen | real)
+        return new, jnp.where(real, post, NEG_LOG)
+
+    init = (jnp.zeros(K, log_alpha.dtype), jnp.bool_(False))
+    _, out = jax.lax.scan(step, init, (log_alpha, mask), reverse=True)
+    return out
 
 
 def path_log_prob(log_init, log_trans, log_lik, z, mask=None, active=None) -> jax.Array:
@@ -233,6 +266,13 @@ def batch_backward_sample(key, log_trans, log_alpha, mask=None, active=None) -> 
     keys = jax.random.split(key, jnp.shape(log_alpha)[0])
     axes = (0, _axis(log_trans, 3), 0, _axis(mask, 2), _axis(active, 2))
     return jax.vmap(backward_sample, in_axes=axes)(keys, log_trans, log_alpha, mask, active)
+
+
+def batch_smooth(log_trans, log_alpha, mask=None, active=None) -> jax.Array:
+    """:func:`smooth` over N trajectories: log_trans (K, K) or (N, K, K), log_alpha (N, T, K),
+    mask (N, T), active None, (K,) or (N, K). Returns (N, T, K)."""
+    axes = (_axis(log_trans, 3), 0, _axis(mask, 2), _axis(active, 2))
+    return jax.vmap(smooth, in_axes=axes)(log_trans, log_alpha, mask, active)
 
 
 def batch_viterbi(log_init, log_trans, log_lik, mask=None, active=None):

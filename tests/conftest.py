@@ -8,6 +8,10 @@ suite in one process compiles about 3,000 programs, so without the release it ra
 mappings near its end and XLA crashed (a segmentation fault or an abort inside
 ``put_executable_and_time``, whichever allocation failed first) at about 7 GB.
 
+Compiling is most of the suite's time, so its processes (and the command-line runs they start)
+ask LLVM for its cheapest optimisation level, unless ``XLA_FLAGS`` already sets one: 20% less
+wall time on two cores, the same results (XLA's own graph optimisations still run).
+
 The suite runs in two pytest-xdist worker processes (``addopts`` in pyproject.toml), each
 test file in one of them: on two cores that is about a sixth faster than one process.
 
@@ -21,8 +25,12 @@ import os
 import sys
 import tempfile
 
-import jax
-import pytest
+# (before JAX starts its backend, which reads XLA_FLAGS once)
+if "xla_backend_optimization_level" not in os.environ.get("XLA_FLAGS", ""):
+    os.environ["XLA_FLAGS"] = (os.environ.get("XLA_FLAGS", "") + " --xla_backend_optimization_level=0").strip()
+
+import jax  # noqa: E402
+import pytest  # noqa: E402
 
 jax.config.update("jax_enable_x64", True)
 os.environ.setdefault("NPBRS_CACHE_DIR", "off")  # the command line, run in this process, keeps the cache below

@@ -7,8 +7,8 @@ import pytest
 from scipy import stats
 from scipy.special import logsumexp
 
-from npbrs.models.hmm import (backward_sample, batch_backward_sample, batch_forward_filter, batch_viterbi,
-                              forward_filter, initial_counts, transition_counts, viterbi)
+from npbrs.models.hmm import (NEG_LOG, backward_sample, batch_backward_sample, batch_forward_filter, batch_smooth,
+                              batch_viterbi, forward_filter, initial_counts, smooth, transition_counts, viterbi)
 
 
 def random_hmm(seed, K, T):
@@ -50,6 +50,35 @@ def test_viterbi_equals_the_brute_force_argmax_path(seed, K, T):
     paths, logp = path_table(log_init, log_trans, log_lik)
     np.testing.assert_array_equal(z, paths[np.argmax(logp)])
     np.testing.assert_allclose(log_prob, logp.max(), rtol=1e-12)
+
+
+@pytest.mark.parametrize("seed, K, T", CASES)
+def test_the_smoother_equals_brute_force_posterior_marginals(seed, K, T):
+    log_init, log_trans, log_lik = random_hmm(seed, K, T)
+    _, log_alpha = forward_filter(log_init, log_trans, log_lik)
+    post = np.exp(jax.jit(smooth)(log_trans, log_alpha))
+    paths, logp = path_table(log_init, log_trans, log_lik)
+    weights = np.exp(logp - logsumexp(logp))
+    expected = np.array([[weights[paths[:, t] == k].sum() for k in range(K)] for t in range(T)])
+    np.testing.assert_allclose(post, expected, atol=1e-12)
+
+
+def test_the_smoother_skips_padding_and_inactive_skills_and_batches():
+    log_init, log_trans, log_lik = random_hmm(7, 3, 5)
+    active = np.array([True, False, True])
+    _, log_alpha = forward_filter(log_init, log_trans, log_lik, active=active)
+    alone = np.exp(smooth(log_trans, log_alpha, active=active))
+    assert np.all(alone[:, 1] == 0)
+    # the same trajectory padded to 8 steps, beside an unpadded random one, in one batch
+    pad = np.concatenate([log_lik, np.full((3, 3), np.nan)])
+    other = np.random.default_rng(1).normal(size=(8, 3))
+    lls, mask = np.stack([pad, other]), np.array([[True] * 5 + [False] * 3, [True] * 8])
+    act = np.stack([active, np.ones(3, bool)])
+    _, alphas = batch_forward_filter(log_init, log_trans, lls, mask, act)
+    both = batch_smooth(log_trans, alphas, mask, act)
+    np.testing.assert_allclose(np.exp(both[0, :5]), alone, atol=1e-12)
+    assert np.all(np.asarray(both[0, 5:]) == NEG_LOG)
+    np.testing.assert_allclose(np.exp(both[1]).sum(-1), 1.0, rtol=1e-12)
 
 
 def path_frequencies(z, K):

@@ -30,7 +30,8 @@ def policy_run(policies, features):
     zeros = np.zeros((C, D))
     return FitResult(segmentation=[], num_skills=K, skill_params={}, skill_slots=np.arange(K), best_chain=0,
                      best_log_joint=0.0, stats={"log_joint": zeros, "num_skills": zeros, "num_switches": zeros},
-                     samples={"policy": policies, "features": features}, config=cfg.to_dict())
+                     samples={"policy": policies, "features": features, "skill_steps": np.ones((C, D, K))},
+                     config=cfg.to_dict())
 
 
 def exact_log_predictive(policies, features, states, actions):
@@ -150,3 +151,62 @@ def test_arviz_loo_ranks_the_true_model_first_as_held_out_data_does(tmp_path):
     back = load(tmp_path / "run.nc")
     np.testing.assert_array_equal(back.log_likelihood, runs["true"].log_likelihood)
     assert back.equals(runs["true"])
+
+
+def with_segmentations(run, demos):
+    """The run's best segmentation and chains' best segmentations: skill k is slot k."""
+    rows = [np.arange(len(s)) % K for s in demos.states]
+    run.segmentation, run.demos = rows, demos
+    T = max(demos.lengths)
+    C = run.samples["features"].shape[0]
+    run.chain_best_z = np.stack([np.stack([np.pad(r, (0, T - len(r)), constant_values=-1) for r in rows])] * C)
+    return run
+
+
+def exact_marginals(policies, features, states, actions, own=None):
+    """p(z_t = k | x, fit) by enumeration: draws weighted by p(x | draw); own: each draw's fixed
+    skill set of this trajectory instead of the predictive."""
+    C, D, N, _ = features.shape
+    T = len(states)
+    zs = np.array(list(itertools.product(range(K), repeat=T)))
+    joint = np.zeros((T, K))
+    for c in range(C):
+        for d in range(D):
+            m = features[c, d].sum(0)
+            p_on = (m + ALPHA / K) / (N + 1 + ALPHA / K)
+            log_emit = np.log(policies[c, d][:, states, actions]).T
+            for f in itertools.product([0, 1], repeat=K):
+                if not any(f):
+                    continue
+                if own is not None:
+                    if tuple(own[c, d]) != f:
+                        continue
+                    log_pf = 0.0
+                else:
+                    log_pf = np.sum(np.where(np.array(f) == 1, np.log(p_on), np.log1p(-p_on)))
+                lz = np.asarray(collapsed_sequence_log_prob(jnp.asarray(zs), jnp.ones(zs.shape, bool),
+                                                            jnp.tile(jnp.asarray(f, jnp.float64), (len(zs), 1)),
+                                                            KAPPA, GAMMA))
+                w = np.exp(log_pf + lz + log_emit[np.arange(T), zs].sum(1))
+                for t in range(T):
+                    joint[t] += np.bincount(zs[:, t], weights=w, minlength=K)
+    return joint / joint.sum(1, keepdims=True)
+
+
+def test_segment_equals_enumerated_posterior_marginals():
+    policies, features = draws(2)
+    demos = Demonstrations([np.array([0, 1, 1, 0, 1]), np.array([1, 0, 0, 1]), np.array([0, 0, 1]),
+                            np.array([1, 1, 0, 1])],
+                           [np.array([1, 1, 0, 0, 1]), np.array([0, 0, 1, 1]), np.array([1, 0, 0]),
+                            np.array([0, 1, 1, 0])])
+    run = with_segmentations(policy_run(policies, features), demos)
+    new = run.segment(two_state_mdp(), demos, num_samples=3000, seed=2)
+    for i in range(4):
+        expected = exact_marginals(policies, features, demos.states[i], demos.actions[i])
+        np.testing.assert_allclose(new.probs[i], expected, atol=0.02)
+        np.testing.assert_array_equal(new.labels[i], np.argmax(expected, 1))
+    # the same trajectories as the fitted ones: each draw's own skill sets (rows of its features)
+    fitted = run.segment(two_state_mdp(), num_samples=3000, seed=2)
+    for i in range(4):
+        expected = exact_marginals(policies, features, demos.states[i], demos.actions[i], own=features[:, :, i])
+        np.testing.assert_allclose(fitted.probs[i], expected, atol=0.02)
