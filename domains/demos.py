@@ -8,6 +8,7 @@ A file holds ``states`` and ``actions`` (every trajectory's integers, concatenat
 from __future__ import annotations
 
 import hashlib
+import os
 from typing import Optional, Sequence
 
 import numpy as np
@@ -173,12 +174,31 @@ class Demonstrations:
 
     @classmethod
     def load(cls, path) -> "Demonstrations":
-        """Read a file written by :meth:`save` (or any ``.npz`` with the same arrays)."""
-        with np.load(path, allow_pickle=False) as data:
-            missing = [k for k in ("states", "actions", "lengths") if k not in data.files]
-            if missing:
-                raise ValueError(f"{path}: missing array{'s' if len(missing) > 1 else ''} {', '.join(missing)}")
-            arrays = {k: np.asarray(data[k]) for k in data.files if k in ("states", "actions", "lengths", "skills")}
+        """Read a file written by :meth:`save` (or any ``.npz`` with the same arrays).
+
+        Raises:
+            FileNotFoundError: no such file. ValueError naming the file: not an ``.npz`` of
+            integer arrays (npbrs never reads pickled data), missing or inconsistent arrays.
+        """
+        import zipfile
+
+        if not os.path.exists(path):
+            raise FileNotFoundError(f"no demonstrations file {path}")
+        try:
+            with np.load(path, allow_pickle=False) as data:
+                if not hasattr(data, "files"):
+                    raise ValueError("a single array, not an .npz archive")
+                missing = [k for k in ("states", "actions", "lengths") if k not in data.files]
+                if missing:
+                    raise ValueError(f"{path}: missing array{'s' if len(missing) > 1 else ''} {', '.join(missing)}")
+                arrays = {k: np.asarray(data[k]) for k in data.files if k in ("states", "actions", "lengths", "skills")}
+        except (zipfile.BadZipFile, EOFError, OSError, ValueError) as e:
+            if str(e).startswith(f"{path}:"):
+                raise
+            reason = ("its contents are not arrays npbrs reads (pickled or unknown data)"
+                      if "pickle" in str(e) else f"{type(e).__name__}: {e}")
+            raise ValueError(f"{path}: not a demonstrations file (an .npz with states, actions and lengths); "
+                             f"{reason}") from None
         lengths = arrays["lengths"]
         if lengths.ndim != 1 or lengths.dtype.kind not in "iu" or np.any(lengths < 0):
             raise ValueError(f"{path}: lengths must be a 1-D array of non-negative integers")

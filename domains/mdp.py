@@ -181,9 +181,11 @@ class TabularMDP:
         """Build from a gymnasium toy-text environment exposing ``env.unwrapped.P``.
 
         ``P[s][a]`` is a list of ``(prob, next_state, reward, terminated)``. Terminal next
-        states become absorbing (every action returns to them with probability 1). When no
-        features are given, the environment's own reward becomes the single feature
-        ``"env_reward"`` (its expectation over next states), so ``theta = [1]`` recovers it.
+        states become absorbing (every action returns to them with probability 1). Features:
+        an (S, A, D) array; None (the default), one-hot state features as in
+        :meth:`from_dense` (a reward weight per state, so every goal can be a skill); or
+        ``"env_reward"``, the environment's own reward as the single feature (its expectation
+        over next states), so ``theta = [1]`` recovers it.
         """
         base = getattr(env, "unwrapped", env)
         if not hasattr(base, "P"):
@@ -205,7 +207,9 @@ class TabularMDP:
             dense[s] = 0.0
             dense[s, :, s] = 1.0
             reward[s] = 0.0
-        if features is None:
+        if isinstance(features, str):
+            if features != "env_reward":
+                raise ValueError(f"features must be an array, None (one-hot states) or 'env_reward', got {features!r}")
             features = reward[..., None]
             kwargs.setdefault("feature_names", ("env_reward",))
         kwargs.setdefault("name", getattr(getattr(env, "spec", None), "id", None) or type(base).__name__)

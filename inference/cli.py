@@ -131,7 +131,7 @@ def fit_command(args) -> int:
                      num_chains=args.chains, num_samples=args.samples, num_warmup=args.warmup, seed=args.seed,
                      progress_bar=not args.no_progress, checkpoint_path=checkpoint,
                      checkpoint_every=args.checkpoint_every or None, resume=args.resume, init_segmentation=init)
-    except ValueError as e:
+    except (OSError, ValueError) as e:  # a missing or unreadable --config among them
         return _error("fit", e)
     except KeyboardInterrupt:
         where = (f"; the checkpoint {checkpoint} is kept: run the same command with --resume to continue"
@@ -299,6 +299,9 @@ def build_parser() -> argparse.ArgumentParser:
     cli_score.add_parsers(sub)
 
     reproduce.add_parser(sub)
+    # no prefix matching: `--chain 2` is an error, not `--chains 2`
+    for p in [parser, *sub.choices.values()]:
+        p.allow_abbrev = False
     return parser
 
 

@@ -372,7 +372,8 @@ def fit(mdp, demos: Demonstrations, config: Union[ModelConfig, dict, str, os.Pat
         checkpoint_path: write a checkpoint (``.npz``) there every ``checkpoint_every`` sweeps,
             at the end, and on Ctrl-C (then KeyboardInterrupt is re-raised).
         checkpoint_every: sweeps between checkpoints (default 100).
-        resume: continue from ``checkpoint_path`` when it exists (it must hold the same
+        resume: continue from ``checkpoint_path`` when it exists (without ``resume`` an existing
+            checkpoint is refused, never overwritten; it must hold the same
             demonstrations and configuration); the result equals an uninterrupted run's.
     Returns:
         a :class:`~npbrs.inference.results.FitResult`.
@@ -394,6 +395,10 @@ def fit(mdp, demos: Demonstrations, config: Union[ModelConfig, dict, str, os.Pat
             raise ValueError("checkpoint_every given without checkpoint_path")
     if resume and checkpoint_path is None:
         raise ValueError("resume=True needs checkpoint_path")
+    if checkpoint_path is not None and not resume and os.path.exists(checkpoint_path):
+        # an interrupted run's only copy: a new run must not overwrite (and then delete) it
+        raise ValueError(f"{checkpoint_path} holds the checkpoint of an earlier, interrupted run; continue it "
+                         "with resume=True (npbrs fit --resume), or move it away, or write the new run elsewhere")
     every = int(checkpoint_every or 100)
     if isinstance(emission, Emission):
         em, em_key = emission, f"instance:{id(emission)}"

@@ -177,33 +177,51 @@ class FitResult:
         """(C, D) log joint density of every draw."""
         return self.stats["log_joint"]
 
-    def _diagnostic(self, fn) -> Dict[str, float]:
+    def _diagnostic(self, which: str) -> Dict[str, float]:
+        """ArviZ's rank-normalised split R-hat or bulk ESS of each label-invariant scalar: the
+        numbers ``convergence`` (``az.summary``) shows; NaN where undefined (a constant scalar,
+        or a run too short to split)."""
+        import logging
+        import warnings
+
+        import arviz as az
+
+        fn = az.rhat if which == "rhat" else az.ess
+        logger = logging.getLogger("arviz")
+        level = logger.level
+        logger.setLevel(logging.ERROR)  # one chain: "shape validation failed" is expected
         out = {}
-        for name in LABEL_INVARIANT:
-            x = np.asarray(self.stats[name], dtype=np.float64)
-            if x.shape[1] < 4 or np.all(x == x.flat[0]):
-                out[name] = float("nan") if x.shape[1] < 4 else (1.0 if fn.__name__ == "split_gelman_rubin"
-                                                                  else float(x.size))
-                continue
-            value = float(fn(x))
-            if fn.__name__ == "effective_sample_size":
-                value = min(value, float(x.size))  # a nearly constant short run can overflow the estimate
-            out[name] = value if np.isfinite(value) else float("nan")
+        try:
+            for name in LABEL_INVARIANT:
+                x = np.asarray(self.stats[name], dtype=np.float64)
+                with warnings.catch_warnings():
+                    warnings.simplefilter("ignore")
+                    value = float(fn(x)) if x.shape[1] >= 4 else float("nan")
+                out[name] = value if np.isfinite(value) else float("nan")
+        finally:
+            logger.setLevel(level)
         return out
 
     @property
     def rhat(self) -> Dict[str, float]:
-        """Split R-hat of the label-invariant scalars across chains (1.0 for a constant scalar)."""
-        from numpyro.diagnostics import split_gelman_rubin
-
-        return self._diagnostic(split_gelman_rubin)
+        """Rank-normalised split R-hat (ArviZ) of the label-invariant scalars across chains;
+        NaN where undefined (a constant scalar, fewer than 4 draws)."""
+        return self._diagnostic("rhat")
 
     @property
     def ess(self) -> Dict[str, float]:
-        """Effective sample size of the label-invariant scalars."""
-        from numpyro.diagnostics import effective_sample_size
+        """Bulk effective sample size (ArviZ) of the label-invariant scalars; NaN where undefined."""
+        return self._diagnostic("ess")
 
-        return self._diagnostic(effective_sample_size)
+    def convergence_warning(self) -> str:
+        """A line saying which label-invariant scalars have R-hat above 1.05 or ESS below 100,
+        and what to do; "" when none has."""
+        rhat, ess = self.rhat, self.ess
+        bad = [n for n in LABEL_INVARIANT if rhat[n] > 1.05 or ess[n] < 100]  # (NaN compares False)
+        if not bad:
+            return ""
+        return (f"not converged: {', '.join(bad)} (R-hat above 1.05 or ESS below 100); run more sweeps "
+                "(samples, warmup) or more chains before trusting the skills found")
 
     def log_predictive(self, mdp, demos, **options):
         """The held-out log-likelihood of demonstrations that were not in the fit: per
@@ -256,6 +274,13 @@ class FitResult:
             used = len(np.unique(np.concatenate(self.init_segmentation)))
             lines.append(f"started from a given segmentation ({used} skills)")
         rhat, ess = self.rhat, self.ess
-        lines.append("label-invariant diagnostics: " + "; ".join(
-            f"{n} R-hat {rhat[n]:.3f} ESS {ess[n]:.0f}" for n in LABEL_INVARIANT))
+
+        def shown(value, fmt):
+            return format(value, fmt) if np.isfinite(value) else "undefined"
+
+        lines.append("label-invariant diagnostics (ArviZ): " + "; ".join(
+            f"{n} R-hat {shown(rhat[n], '.3f')} ESS {shown(ess[n], '.0f')}" for n in LABEL_INVARIANT))
+        warning = self.convergence_warning()
+        if warning:
+            lines.append(warning)
         return "\n".join(lines)

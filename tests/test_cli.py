@@ -157,3 +157,32 @@ def test_score_and_compare_held_out_demonstrations(demo, tmp_path):
     assert code == 2 and "nothere.npz" in stderr and "Traceback" not in stderr
     code, _, stderr = run_main(["compare", out / "run.nc", "--domain", "highway"])
     assert code == 2 and "at least two" in stderr
+
+
+def test_bad_files_and_abbreviated_options_fail_with_one_line(demo, tmp_path):
+    out, _ = demo
+    fit = ["fit", out / "demos.npz", "--domain", "highway", "-o", tmp_path / "x.nc", "--no-progress"]
+    code, _, stderr = run_main(fit + ["--config", tmp_path / "nothere.toml"])
+    assert code == 2 and "nothere.toml" in stderr and "Traceback" not in stderr
+    code, _, stderr = run_main(fit + ["--chain", "2"])  # not taken as --chains
+    assert code == 2 and "--chain" in stderr
+    junk = tmp_path / "junk.npz"
+    junk.write_bytes(np.random.default_rng(0).bytes(4000))
+    truncated = tmp_path / "truncated.npz"
+    truncated.write_bytes((out / "demos.npz").read_bytes()[:300])
+    for bad in (junk, truncated):
+        code, _, stderr = run_main(["fit", bad, "--domain", "highway", "-o", tmp_path / "x.nc"])
+        assert code == 2, stderr
+        assert str(bad) in stderr and "not a demonstrations file" in stderr, stderr
+        assert "allow_pickle" not in stderr and "Traceback" not in stderr and len(stderr.strip().splitlines()) == 1
+    assert not (tmp_path / "x.nc").exists()
+
+
+def test_a_new_run_refuses_to_overwrite_another_runs_checkpoint(demo, tmp_path):
+    out, _ = demo
+    checkpoint = tmp_path / "y.nc.checkpoint.npz"
+    checkpoint.write_bytes(b"an interrupted run")
+    code, _, stderr = run_main(["fit", out / "demos.npz", "--domain", "highway", "-o", tmp_path / "y.nc",
+                                "--config", out / "config.toml", "--no-progress"])
+    assert code == 2 and "--resume" in stderr and str(checkpoint) in stderr
+    assert checkpoint.read_bytes() == b"an interrupted run" and not (tmp_path / "y.nc").exists()

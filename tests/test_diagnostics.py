@@ -107,3 +107,36 @@ def test_a_real_run_relabels_its_best_chain_to_itself_and_summarises_every_skill
     table = skill_summary(run, "policy")
     assert len(table) == run.num_skills * 4 * 3
     assert ((table["lower"] <= table["mean"]) & (table["mean"] <= table["upper"])).all()
+
+
+def _stats_result(log_joint, num_skills, num_switches):
+    from npbrs.inference.results import FitResult
+
+    return FitResult(segmentation=[np.array([0, 0, 1])], num_skills=2, skill_params={}, skill_slots=np.arange(2),
+                     best_chain=0, best_log_joint=0.0,
+                     stats={"log_joint": log_joint, "num_skills": num_skills, "num_switches": num_switches},
+                     samples={})
+
+
+def test_the_summary_shows_arviz_diagnostics_and_says_when_a_run_has_not_converged():
+    import arviz as az
+
+    rng = np.random.default_rng(0)
+    mixed = _stats_result(rng.normal(size=(4, 200)), rng.integers(2, 5, (4, 200)).astype(float),
+                          rng.normal(size=(4, 200)))
+    # the summary's numbers are ArviZ's, as in the convergence table
+    x = mixed.stats["log_joint"]
+    assert mixed.rhat["log_joint"] == pytest.approx(float(az.rhat(x))) and mixed.ess["log_joint"] == pytest.approx(
+        float(az.ess(x)))
+    assert "not converged" not in mixed.summary()
+    stuck = _stats_result(rng.normal(size=(2, 200)) + np.array([[0.0], [3.0]]), mixed.stats["num_skills"][:2],
+                          mixed.stats["num_switches"][:2])
+    assert stuck.rhat["log_joint"] > 1.05
+    text = stuck.summary()
+    assert "not converged: log_joint" in text and "more chains" in text
+    # too short to split, and constant: undefined, never an overflowed number
+    short = _stats_result(np.array([[1.0, 2.0, 3.0]]), np.full((1, 3), 3.0), np.array([[1.0, 1.0, 2.0]]))
+    text = short.summary()
+    assert "R-hat undefined ESS undefined" in text and "-1801" not in text
+    constant = _stats_result(rng.normal(size=(2, 50)), np.full((2, 50), 3.0), rng.normal(size=(2, 50)))
+    assert np.isnan(constant.rhat["num_skills"]) and "num_skills R-hat undefined" in constant.summary()

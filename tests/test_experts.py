@@ -59,7 +59,7 @@ def test_q_learning_reaches_95_percent_of_the_optimal_return_on_the_quadcopter(s
 
 def test_q_learning_uses_the_environment_reward_of_any_gymnasium_env():
     env = gym.make("FrozenLake-v1", is_slippery=False)
-    mdp = TabularMDP.from_gymnasium(env, discount=0.9)
+    mdp = TabularMDP.from_gymnasium(env, features="env_reward", discount=0.9)
     Q = q_learning(env, num_episodes=400, episode_length=50, epsilon=0.3, alpha=0.5, discount=0.9, seed=0)
     reward = mdp.reward([1.0])
     optimal = np.asarray(value_iteration(mdp, reward).V) @ mdp.initial

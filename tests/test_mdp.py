@@ -26,6 +26,14 @@ def test_frozenlake_transition_probabilities_match():
     table = env.unwrapped.P
     terminal = {s2 for s in table for a in table[s] for _, s2, _, done in table[s][a] if done}
     assert terminal == {5, 7, 11, 12, 15}
+    # no features: one-hot state features, as from_dense gives (every goal can be a skill)
+    dense = TabularMDP.from_dense(mdp.dense_transitions())
+    np.testing.assert_array_equal(mdp.features, dense.features)
+    assert mdp.feature_names == dense.feature_names and mdp.num_features == 16
+    own = TabularMDP.from_gymnasium(env, features="env_reward")
+    assert own.feature_names == ("env_reward",) and own.features[14, 2, 0] > 0  # right of 14 reaches the goal
+    with pytest.raises(ValueError, match="env_reward"):
+        TabularMDP.from_gymnasium(env, features="reward")
     for s in range(16):
         for a in range(4):
             expected = np.zeros(16)
