@@ -54,13 +54,17 @@ class Demonstrations:
         states: N sequences of state indices (a trajectory of length T_i has T_i states).
         actions: N sequences of action indices, the same lengths.
         skills: optional N sequences of true skill indices, the same lengths.
+        mdp_fingerprint: optional ``TabularMDP.fingerprint()`` of the MDP the demonstrations
+            were recorded in (``generate_demonstrations`` records it, files keep it):
+            :meth:`validate` then refuses another MDP.
 
     Values must be non-negative integers (integer-valued floats are accepted); a trajectory
     needs at least 2 steps. Ranges against an MDP are checked by :meth:`validate`.
     Bad input raises ValueError naming the trajectory and step at fault.
     """
 
-    def __init__(self, states: Sequence, actions: Sequence, skills: Optional[Sequence] = None):
+    def __init__(self, states: Sequence, actions: Sequence, skills: Optional[Sequence] = None,
+                 mdp_fingerprint: Optional[str] = None):
         states, actions = list(states), list(actions)
         skills = None if skills is None else list(skills)
         if len(states) != len(actions):
@@ -86,6 +90,7 @@ class Demonstrations:
         self.states = converted[0]
         self.actions = converted[1]
         self.skills = converted[2] if skills is not None else None
+        self.mdp_fingerprint = None if mdp_fingerprint is None else str(mdp_fingerprint)
 
     # ---------------------------------------------------------------- sizes
     @property
@@ -144,6 +149,9 @@ class Demonstrations:
         Raises:
             ValueError naming the trajectory, step and value at fault.
         """
+        if self.mdp_fingerprint is not None and self.mdp_fingerprint != mdp.fingerprint():
+            raise ValueError(f"these demonstrations were recorded in another MDP than {mdp.name!r} (MDP fingerprint "
+                             f"{self.mdp_fingerprint[:12]}..., this one {mdp.fingerprint()[:12]}...)")
         _check_range(self.states, "state", mdp.num_states)
         _check_range(self.actions, "action", mdp.num_actions)
         if check_transitions:
@@ -166,9 +174,13 @@ class Demonstrations:
 
     def save(self, path) -> None:
         """Write an ``.npz`` file at exactly ``path``, atomically (a temporary file, then a rename)."""
+        arrays = self._arrays()
+        if self.mdp_fingerprint is not None:
+            arrays["mdp_fingerprint"] = np.asarray(self.mdp_fingerprint)
+
         def write(tmp):
             with open(tmp, "wb") as f:
-                np.savez(f, **self._arrays())
+                np.savez(f, **arrays)
 
         atomic_write(path, write, suffix=".npz.tmp")
 
@@ -192,6 +204,7 @@ class Demonstrations:
                 if missing:
                     raise ValueError(f"{path}: missing array{'s' if len(missing) > 1 else ''} {', '.join(missing)}")
                 arrays = {k: np.asarray(data[k]) for k in data.files if k in ("states", "actions", "lengths", "skills")}
+                recorded = str(data["mdp_fingerprint"]) if "mdp_fingerprint" in data.files else None
         except (zipfile.BadZipFile, EOFError, OSError, ValueError) as e:
             if str(e).startswith(f"{path}:"):
                 raise
@@ -211,7 +224,7 @@ class Demonstrations:
             if arrays[name].shape != (total,):
                 raise ValueError(f"{path}: lengths sum to {total} but {name} has shape {arrays[name].shape}")
             columns[name] = np.split(arrays[name], bounds)
-        return cls(**columns)
+        return cls(**columns, mdp_fingerprint=recorded)
 
     def fingerprint(self) -> str:
         """SHA-256 hex digest of the content (lengths, states, actions, skills)."""
@@ -293,4 +306,4 @@ def generate_demonstrations(domain, num_trajectories: int = 16, length: int = 50
             if K > 1:
                 switch = rng.random(N) < switch_prob
                 k = np.where(switch, (k + rng.integers(1, K, size=N)) % K, k)
-    return Demonstrations(list(states), list(actions), list(skills))
+    return Demonstrations(list(states), list(actions), list(skills), mdp_fingerprint=mdp.fingerprint())

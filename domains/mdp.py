@@ -219,6 +219,21 @@ class TabularMDP:
         return cls.from_dense(dense, features=features, **kwargs)
 
     # --------------------------------------------------------------- views
+    def fingerprint(self) -> str:
+        """SHA-256 hex digest of the dynamics, features and discount: what a run or a set of
+        demonstrations records to recognise the MDP it belongs to (a domain's next-value
+        operator is code and is not part of it)."""
+        import hashlib
+
+        h = hashlib.sha256()
+        for name in ("successors", "probs", "features", "initial", "state_vectors"):
+            value = getattr(self, name, None)
+            if value is not None:
+                h.update(name.encode())
+                h.update(np.ascontiguousarray(value).tobytes())
+        h.update(repr((float(self.discount), tuple(self.feature_names))).encode())
+        return h.hexdigest()
+
     def dense_transitions(self) -> np.ndarray:
         """The dense transition tensor P[s, a, s'] (S, A, S); memory S*A*S floats."""
         S, A, _ = self.successors.shape

@@ -120,14 +120,8 @@ def resolve_config(config=None, **overrides) -> ModelConfig:
 
 # ------------------------------------------------------------------------------ compiled kernels
 def _mdp_key(mdp) -> str:
-    h = hashlib.sha256()
-    for name in ("successors", "probs", "features", "initial", "state_vectors"):
-        value = getattr(mdp, name, None)
-        if value is not None:
-            h.update(name.encode())
-            h.update(np.ascontiguousarray(value).tobytes())
-    h.update(repr((mdp.discount, tuple(mdp.feature_names), id(mdp.next_value_fn) if mdp.next_value_fn else 0)).encode())
-    return h.hexdigest()
+    # the MDP's arrays, and the identity of a domain's own next-value operator
+    return f"{mdp.fingerprint()}:{id(mdp.next_value_fn) if mdp.next_value_fn else 0}"
 
 
 class _Compiled:

@@ -125,6 +125,12 @@ def test_fit_errors_name_what_is_wrong(demo, tmp_path):
     tiny = TabularMDP.from_dense(np.full((2, 3, 2), 0.5))
     save_mdp(tiny, tmp_path / "tiny.npz")
     code, _, err = run_main(["fit", out / "demos.npz", "--mdp", tmp_path / "tiny.npz", "-o", tmp_path / "x.nc"])
+    assert code == 2 and "recorded in another MDP" in err  # the demo's file records the highway's
+    from npbrs.domains import Demonstrations
+
+    recorded = Demonstrations.load(out / "demos.npz")
+    Demonstrations(recorded.states, recorded.actions).save(tmp_path / "plain.npz")
+    code, _, err = run_main(["fit", tmp_path / "plain.npz", "--mdp", tmp_path / "tiny.npz", "-o", tmp_path / "x.nc"])
     assert code == 2 and "trajectory 0, step 0: state" in err
     code, _, err = run_main(["fit", tmp_path / "missing.npz", "--domain", "highway", "-o", tmp_path / "x.nc"])
     assert code == 2 and "missing.npz" in err

@@ -77,7 +77,8 @@ def test_npz_round_trip_is_exact(tmp_path, demos):
     loaded = Demonstrations.load(path)
     assert loaded == demos and loaded.fingerprint() == demos.fingerprint()
     with np.load(path) as data:
-        assert set(data.files) == {"states", "actions", "lengths", "skills"}
+        assert set(data.files) == {"states", "actions", "lengths", "skills", "mdp_fingerprint"}
+    assert loaded.mdp_fingerprint == demos.mdp_fingerprint is not None
     assert os.listdir(tmp_path) == ["demos.npz"]  # no temporary file left behind
 
     ragged = Demonstrations([[0, 1, 2], [3, 4]], [[1, 1, 0], [2, 0]])
@@ -180,3 +181,20 @@ def test_the_generate_command_writes_a_file(tmp_path, capsys, monkeypatch):
     assert "3 trajectories" in capsys.readouterr().out
     with pytest.raises(SystemExit):
         parser.parse_args(["generate", "toy-test", "--switch-prob", "1.5"])
+
+
+def test_demonstrations_remember_their_mdp_and_refuse_another(tmp_path):
+    highway, quadcopter = get_domain("highway"), get_domain("quadcopter")
+    demos = generate_demonstrations(highway, num_trajectories=2, length=20, seed=0)
+    assert demos.mdp_fingerprint == highway.mdp.fingerprint() != quadcopter.mdp.fingerprint()
+    demos.validate(highway.mdp)
+    # highway states (0..1079) are in the quadcopter's range (0..11663): only the record tells
+    with pytest.raises(ValueError, match="another MDP"):
+        demos.validate(quadcopter.mdp)
+    demos.save(tmp_path / "d.npz")
+    back = Demonstrations.load(tmp_path / "d.npz")
+    assert back == demos and back.mdp_fingerprint == demos.mdp_fingerprint
+    with pytest.raises(ValueError, match="another MDP"):
+        back.validate(quadcopter.mdp)
+    # without a record (a user's own arrays) only the ranges are checked
+    Demonstrations(demos.states, demos.actions).validate(quadcopter.mdp)
