@@ -69,10 +69,7 @@ def _add_fit(sub):
                                    "override it. A checkpoint RUN.nc.checkpoint.npz is written every "
                                    "--checkpoint-every sweeps and on Ctrl-C; --resume continues from it.")
     p.add_argument("demos", help="demonstrations file (.npz: states, actions, lengths[, skills])")
-    world = p.add_mutually_exclusive_group(required=True)
-    world.add_argument("--domain", help="a registered domain whose MDP the demonstrations live in")
-    world.add_argument("--mdp", help="an MDP file (.npz: successors, probs, features, feature_names, discount"
-                                     "[, initial, state_vectors, name])")
+    add_world_arguments(p)
     p.add_argument("--config", help="model configuration (TOML)")
     p.add_argument("--emission", help="emission model name (overrides the config)")
     p.add_argument("--max-skills", type=_at_least(1), help="truncation: skill slots (overrides the config)")
@@ -95,19 +92,29 @@ def checkpoint_path_for(output) -> str:
     return os.fspath(output) + ".checkpoint.npz"
 
 
-def _load_world(args):
-    from npbrs.domains.demos import Demonstrations
+def add_world_arguments(p, what: str = "the demonstrations live in"):
+    """The required choice of MDP: ``--domain NAME`` or ``--mdp FILE``."""
+    world = p.add_mutually_exclusive_group(required=True)
+    world.add_argument("--domain", help=f"a registered domain whose MDP {what}")
+    world.add_argument("--mdp", help=f"an MDP file {what} (.npz: successors, probs, features, feature_names, "
+                                     "discount[, initial, state_vectors, name])")
 
+
+def load_world_mdp(args):
+    """The MDP named by ``--domain`` or ``--mdp``."""
     from .runs import load_mdp
 
     if args.mdp is not None:
-        mdp = load_mdp(args.mdp)
-    else:
-        from npbrs.domains.registry import get_domain
+        return load_mdp(args.mdp)
+    from npbrs.domains.registry import get_domain
 
-        mdp = get_domain(args.domain).mdp
-    demos = Demonstrations.load(args.demos)
-    return mdp, demos
+    return get_domain(args.domain).mdp
+
+
+def _load_world(args):
+    from npbrs.domains.demos import Demonstrations
+
+    return load_world_mdp(args), Demonstrations.load(args.demos)
 
 
 def fit_command(args) -> int:

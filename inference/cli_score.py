@@ -14,9 +14,9 @@ __all__ = ["add_parsers"]
 
 
 def _world(p):
-    world = p.add_mutually_exclusive_group(required=True)
-    world.add_argument("--domain", help="the registered domain the run was fitted in")
-    world.add_argument("--mdp", help="the MDP file (.npz) the run was fitted in")
+    from .cli import add_world_arguments
+
+    add_world_arguments(p, "the run was fitted in")
     p.add_argument("--samples", type=_at_least(1), default=None,
                    help="Monte Carlo samples of a trajectory's skill set and transition weights per draw")
     p.add_argument("--seed", type=_at_least(0), default=0, help="seed of those samples (0)")
@@ -42,24 +42,14 @@ def add_parsers(sub):
     p.set_defaults(func=compare_command)
 
 
-def _mdp(args):
-    from .runs import load_mdp
-
-    if args.mdp is not None:
-        return load_mdp(args.mdp)
-    from npbrs.domains.registry import get_domain
-
-    return get_domain(args.domain).mdp
-
-
 def score_command(args) -> int:
     from npbrs.domains.demos import Demonstrations
 
-    from .cli import _error
+    from .cli import _error, load_world_mdp
     from .runs import load
 
     try:
-        mdp, run, demos = _mdp(args), load(args.run), Demonstrations.load(args.demos)
+        mdp, run, demos = load_world_mdp(args), load(args.run), Demonstrations.load(args.demos)
         options = {"num_draws": args.draws, "seed": args.seed}
         if args.samples is not None:
             options["num_samples"] = args.samples
@@ -76,13 +66,13 @@ def score_command(args) -> int:
 def compare_command(args) -> int:
     import arviz as az
 
-    from .cli import _error
+    from .cli import _error, load_world_mdp
     from .runs import load
 
     if len(args.runs) < 2:
         return _error("compare", "compare needs at least two runs")
     try:
-        mdp = _mdp(args)
+        mdp = load_world_mdp(args)
         runs = {}
         for path in args.runs:
             run = load(path)
