@@ -55,6 +55,7 @@ stationary distribution of their own dynamics, and no car level with the agent.
 
 from __future__ import annotations
 
+import dataclasses
 from functools import lru_cache
 from typing import Optional
 
@@ -66,7 +67,7 @@ from .domain import Domain
 from .mdp import TabularMDP
 
 __all__ = ["highway", "HighwayEnv", "SkillEnv", "encode", "decode", "sample_step", "render_highway", "CLOSING",
-           "APPEAR", "LANE_CHANGE_SLOWDOWN", "FEATURE_NAMES", "SKILL_WEIGHTS", "ENV_ID"]
+           "APPEAR", "LANE_CHANGE_SLOWDOWN", "FEATURE_NAMES", "SKILL_WEIGHTS", "ENV_ID", "WORLDS", "world_parameters"]
 
 ENV_ID = "npbrs/Highway-v0"
 NUM_POSITIONS = 5
@@ -83,6 +84,19 @@ NUM_ACTIONS = 3
 CLOSING = np.array([0.85, 0.25, 0.80])
 APPEAR = np.array([0.45, 0.50, 0.65])
 LANE_CHANGE_SLOWDOWN = 0.3
+
+#: Named worlds: the paper's and changed ones with the same features (other car speeds and
+#: appearance rates), for re-solving inferred rewards in a world that has changed:
+#: ``highway(world="slow_middle")``, ``gymnasium.make("npbrs/Highway-v0", world="slow_middle")``.
+WORLDS = {
+    "paper": {},
+    # the middle lane's traffic is now slow and the side lanes' fast
+    "slow_middle": {"closing": (0.30, 0.90, 0.30)},
+    # slow, dense traffic in every lane
+    "traffic_jam": {"closing": (0.95, 0.95, 0.95), "appear": (0.90, 0.90, 0.90)},
+    # fast traffic in every lane: cars ahead close in slowly
+    "fast_traffic": {"closing": (0.25, 0.25, 0.25)},
+}
 
 FEATURE_NAMES = ("collision", "left_lane", "right_lane", "on_verge")
 SKILL_NAMES = ("A", "B", "C")
@@ -146,12 +160,35 @@ def state_features(states) -> np.ndarray:
                     -1).astype(np.float64)
 
 
-def sample_step(rng: np.random.Generator, states, actions):
+def world_parameters(world: str = "paper", closing=None, appear=None, slowdown=None) -> dict:
+    """The dynamics' rates of a named world (:data:`WORLDS`) with explicit ones on top:
+    {"closing": (3,), "appear": (3,), "slowdown": float}, checked."""
+    if world not in WORLDS:
+        raise ValueError(f"unknown highway world {world!r}; known worlds: {', '.join(WORLDS)}")
+    params = {"closing": tuple(CLOSING), "appear": tuple(APPEAR), "slowdown": LANE_CHANGE_SLOWDOWN, **WORLDS[world]}
+    for name, value in (("closing", closing), ("appear", appear), ("slowdown", slowdown)):
+        if value is not None:
+            params[name] = value
+    for name in ("closing", "appear"):
+        arr = np.asarray(params[name], dtype=np.float64)
+        if arr.shape != (3,) or not np.all((arr >= 0) & (arr <= 1)):
+            raise ValueError(f"{name} must be three probabilities (left, middle, right lane), got {params[name]!r}")
+        params[name] = tuple(float(x) for x in arr)
+    slow = float(params["slowdown"])
+    if not 0 <= slow <= 1 or np.any(np.asarray(params["closing"]) * slow > 1):
+        raise ValueError(f"slowdown must lie in [0, 1], got {params['slowdown']!r}")
+    params["slowdown"] = slow
+    return params
+
+
+def sample_step(rng: np.random.Generator, states, actions, closing=CLOSING, appear=APPEAR,
+                slowdown=LANE_CHANGE_SLOWDOWN):
     """The environment's dynamics, vectorised: next states and their features.
 
     Args:
         rng: NumPy generator.
         states: int array (n,); actions: int array (n,).
+        closing, appear, slowdown: the world's rates (the paper's by default).
     Returns:
         next_states (n,) and features (n, 4) of the next states.
     """
@@ -159,10 +196,10 @@ def sample_step(rng: np.random.Generator, states, actions):
     actions = np.asarray(actions)
     dist = np.stack([d1, d2, d3], -1)
     u = rng.random(dist.shape)
-    closing = CLOSING * np.where(changes_lane(position, actions), LANE_CHANGE_SLOWDOWN, 1.0)[..., None]
+    closing = np.asarray(closing) * np.where(changes_lane(position, actions), slowdown, 1.0)[..., None]
     moving = (dist >= 1) & (dist <= FAR - 1)
     closer = np.where(u < closing, dist - 1, dist)
-    refill = np.where(u < APPEAR, NEW_CAR, FAR)
+    refill = np.where(u < np.asarray(appear), NEW_CAR, FAR)
     dist = np.where(moving, closer, refill)
     nxt = encode(MOVES[position, actions], dist[..., 0], dist[..., 1], dist[..., 2])
     return nxt, state_features(nxt)
@@ -249,11 +286,23 @@ def describe_state(state: int) -> dict:
     return {"position": pos, "position_name": POSITION_NAMES[pos], "distances": (d1, d2, d3)}
 
 
-def highway(discount: float = 0.95) -> Domain:
-    """The highway domain: its tabular MDP, the paper's skills A, B, C and its environment."""
-    return Domain(name="highway", mdp=_build_mdp(float(discount)), skill_names=SKILL_NAMES,
-                  skill_weights=SKILL_WEIGHTS, env_id=ENV_ID, env_kwargs={"discount": float(discount)},
-                  describe_state=describe_state)
+def highway(discount: float = 0.95, world: str = "paper", *, closing=None, appear=None, slowdown=None) -> Domain:
+    """The highway domain: its tabular MDP, the paper's skills A, B, C and its environment.
+
+    Args:
+        discount: the MDP's discount.
+        world: a named world of :data:`WORLDS` ("paper", or a changed one with the same
+            features: "slow_middle", "traffic_jam", "fast_traffic").
+        closing, appear: per lane (left, middle, right), the probability that a car ahead comes
+            one unit closer in a step, and that a new car appears in an empty lane; slowdown:
+            the factor on closing in a step that changes lanes. Given ones override the world's.
+    """
+    params = world_parameters(world, closing, appear, slowdown)
+    mdp = _build_mdp(float(discount), params["closing"], params["appear"], params["slowdown"])
+    if params != world_parameters():
+        mdp = dataclasses.replace(mdp, name=f"highway ({world})" if world != "paper" else "highway (changed)")
+    return Domain(name="highway", mdp=mdp, skill_names=SKILL_NAMES, skill_weights=SKILL_WEIGHTS, env_id=ENV_ID,
+                  env_kwargs={"discount": float(discount), **params}, describe_state=describe_state)
 
 
 # ---------------------------------------------------------------------------- environments
@@ -272,18 +321,21 @@ class SkillEnv(gym.Env):
         max_episode_steps: steps before ``truncated`` is returned.
         render_mode: None or "rgb_array".
         discount: discount of the domain's tabular MDP (does not affect the dynamics).
+        world: the domain's world options (e.g. ``world="slow_middle"``, or its rates), passed to
+            the domain's constructor; the environment's dynamics are that world's.
     """
 
     metadata = {"render_modes": ["rgb_array"], "render_fps": 4}
     domain_fn = None  # set by subclasses: discount -> Domain
 
     def __init__(self, skill=None, max_episode_steps: int = 500, render_mode: Optional[str] = None,
-                 discount: float = 0.95):
+                 discount: float = 0.95, **world):
         if render_mode is not None and render_mode not in self.metadata["render_modes"]:
             raise ValueError(f"render_mode must be None or one of {self.metadata['render_modes']}, got {render_mode!r}")
         if int(max_episode_steps) < 1:
             raise ValueError(f"max_episode_steps must be >= 1, got {max_episode_steps}")
-        self.domain = type(self).domain_fn(discount)
+        self.domain = type(self).domain_fn(discount, **world)
+        self.world = {k: v for k, v in self.domain.env_kwargs.items() if k != "discount"}
         self.mdp = self.domain.mdp
         self.reward_weights = self.skill_weights(skill)
         self.skill = skill
@@ -406,7 +458,7 @@ class HighwayEnv(SkillEnv):
     domain_fn = staticmethod(highway)
 
     def sample_step(self, rng, states, actions):
-        return sample_step(rng, states, actions)
+        return sample_step(rng, states, actions, **self.world)
 
     def render_state(self, state: int) -> np.ndarray:
         return render_highway(state)

@@ -47,7 +47,7 @@ from .highway import SkillEnv
 from .mdp import TabularMDP
 
 __all__ = ["quadcopter", "QuadcopterEnv", "encode", "decode", "sample_step", "render_quadcopter", "HOOPS",
-           "HOOP_NAMES", "FEATURE_NAMES", "SKILL_WEIGHTS", "ENV_ID"]
+           "HOOP_NAMES", "FEATURE_NAMES", "SKILL_WEIGHTS", "ENV_ID", "WORLDS", "world_parameters"]
 
 ENV_ID = "npbrs/Quadcopter-v0"
 SIDE = 3
@@ -66,6 +66,22 @@ HOOPS = np.zeros((NUM_HOOPS, NUM_CELLS), dtype=bool)
 for _h, _cells in enumerate(HOOP_CELLS):
     HOOPS[_h, list(_cells)] = True
 HOOPS.setflags(write=False)
+
+#: Named worlds: the paper's and changed ones with the same features (other hoop frequencies,
+#: wind), for re-solving inferred rewards in a world that has changed:
+#: ``quadcopter(world="windy")``, ``gymnasium.make("npbrs/Quadcopter-v0", world="windy")``.
+#: ``hoop_probs``: the distribution of a new slice's hoop (in HOOP_NAMES order; uniform in the
+#: paper's world); ``wind``: the probability that a step's move is blown away and the copter
+#: stays in its cell (it still enters the next slice there).
+WORLDS = {
+    "paper": {},
+    # hoops mostly across the top and bottom rows
+    "row_hoops": {"hoop_probs": (0.30, 0.30, 0.10, 0.10, 0.10, 0.10)},
+    # a quarter of the moves fail
+    "windy": {"wind": 0.25},
+    # row hoops and 40% of the moves fail
+    "stormy": {"hoop_probs": (0.30, 0.30, 0.10, 0.10, 0.10, 0.10), "wind": 0.4},
+}
 
 FEATURE_NAMES = ("through_hoop", "top_row", "bottom_row")
 SKILL_NAMES = ("A", "B", "C")
@@ -101,45 +117,84 @@ def decode(state):
     return (state,) + tuple(reversed(parts))
 
 
-def transition_features(states, actions) -> np.ndarray:
-    """Features of the steps (states, actions), (..., 3): through_hoop, top_row, bottom_row."""
-    pos, h1 = decode(states)[:2]
-    new = MOVES[pos, np.asarray(actions)]
+def world_parameters(world: str = "paper", hoop_probs=None, wind=None) -> dict:
+    """The dynamics of a named world (:data:`WORLDS`) with explicit ones on top:
+    {"hoop_probs": (6,) tuple, "wind": float}, checked."""
+    if world not in WORLDS:
+        raise ValueError(f"unknown quadcopter world {world!r}; known worlds: {', '.join(WORLDS)}")
+    params = {"hoop_probs": (1.0 / NUM_HOOPS,) * NUM_HOOPS, "wind": 0.0, **WORLDS[world]}
+    if hoop_probs is not None:
+        params["hoop_probs"] = hoop_probs
+    if wind is not None:
+        params["wind"] = wind
+    hp = np.asarray(params["hoop_probs"], dtype=np.float64)
+    if hp.shape != (NUM_HOOPS,) or np.any(hp < 0) or not np.isclose(hp.sum(), 1.0, atol=1e-9):
+        raise ValueError(f"hoop_probs must be {NUM_HOOPS} probabilities summing to one (hoops {HOOP_NAMES}), "
+                         f"got {params['hoop_probs']!r}")
+    w = float(params["wind"])
+    if not 0 <= w < 1:
+        raise ValueError(f"wind must lie in [0, 1), got {params['wind']!r}")
+    return {"hoop_probs": tuple(float(x) for x in hp / hp.sum()), "wind": w}
+
+
+def _cell_features(h1, new) -> np.ndarray:
     return np.stack([HOOPS[h1, new], new // SIDE == 0, new // SIDE == SIDE - 1], -1).astype(np.float64)
 
 
-def sample_step(rng: np.random.Generator, states, actions):
+def transition_features(states, actions, wind: float = 0.0) -> np.ndarray:
+    """Expected features of the steps (states, actions), (..., 3): through_hoop, top_row,
+    bottom_row of the new cell (the moved one, or with probability ``wind`` the same one)."""
+    pos, h1 = decode(states)[:2]
+    moved = _cell_features(h1, MOVES[pos, np.asarray(actions)])
+    if wind == 0:
+        return moved
+    return (1.0 - wind) * moved + wind * _cell_features(h1, np.broadcast_to(pos, np.shape(moved)[:-1]))
+
+
+def sample_step(rng: np.random.Generator, states, actions, hoop_probs=None, wind: float = 0.0):
     """The environment's dynamics, vectorised: next states and the steps' features.
 
     Args:
         rng: NumPy generator.
         states: int array (n,); actions: int array (n,).
+        hoop_probs, wind: the world's (see :data:`WORLDS`; uniform hoops, no wind by default).
     Returns:
         next_states (n,) and features (n, 3) of the steps.
     """
     pos, h1, h2, h3, h4 = decode(states)
     actions = np.asarray(actions)
-    new_slice = rng.integers(NUM_HOOPS, size=np.shape(pos))
-    nxt = encode(MOVES[pos, actions], h2, h3, h4, new_slice)
-    return nxt, transition_features(states, actions)
+    new = MOVES[pos, actions]
+    if wind > 0:
+        new = np.where(rng.random(np.shape(pos)) < wind, pos, new)
+    if hoop_probs is None or np.allclose(hoop_probs, 1.0 / NUM_HOOPS):
+        new_slice = rng.integers(NUM_HOOPS, size=np.shape(pos))
+    else:
+        new_slice = rng.choice(NUM_HOOPS, size=np.shape(pos), p=np.asarray(hoop_probs))
+    nxt = encode(new, h2, h3, h4, new_slice)
+    return nxt, _cell_features(h1, new)
 
 
-def make_next_value_fn():
+def make_next_value_fn(hoop_probs=None, wind: float = 0.0):
     """E[V(s') | s, a] for V (..., S) -> (..., S, A), factored.
 
-    The slices ahead shift by one and the new one is uniform, so the expectation is a mean over
-    the last hoop axis of V (..., 9, 6, 6, 6, 6), then a gather of the moved cell; it does not
-    depend on the slice being entered (h1), which is broadcast.
+    The slices ahead shift by one and the new one is drawn from ``hoop_probs`` (uniform by
+    default), so the expectation is a weighted sum over the last hoop axis of V (..., 9, 6, 6,
+    6, 6), then a gather of the moved cell (mixed with the unmoved one at rate ``wind``); it
+    does not depend on the slice being entered (h1), which is broadcast.
     """
     import jax.numpy as jnp
 
     moves = jnp.asarray(MOVES)
+    stay = jnp.broadcast_to(jnp.arange(NUM_CELLS)[:, None], MOVES.shape)
+    hp = None if hoop_probs is None else jnp.asarray(hoop_probs)
 
     def next_value(V):
         batch = V.shape[:-1]
         V = V.reshape(batch + (NUM_CELLS,) + (NUM_HOOPS,) * LOOKAHEAD)
-        M = jnp.mean(V, axis=-1)  # (..., pos', h2, h3, h4)
+        M = jnp.mean(V, axis=-1) if hp is None else jnp.tensordot(V, hp, axes=([-1], [0]))  # (..., pos', h2, h3, h4)
         G = jnp.moveaxis(M[..., moves, :, :, :], -4, -1)  # (..., pos, h2, h3, h4, A)
+        if wind > 0:
+            G = (1.0 - wind) * G + wind * jnp.moveaxis(M[..., stay, :, :, :], -4, -1)
         G = jnp.broadcast_to(G[..., :, None, :, :, :, :],
                              batch + (NUM_CELLS,) + (NUM_HOOPS,) * LOOKAHEAD + (NUM_ACTIONS,))
         return G.reshape(batch + (NUM_STATES, NUM_ACTIONS))
@@ -155,18 +210,29 @@ def _state_vectors() -> np.ndarray:
 
 
 @lru_cache(maxsize=8)
-def _build_mdp(discount: float) -> TabularMDP:
+def _build_mdp(discount: float, hoop_probs=(1.0 / NUM_HOOPS,) * NUM_HOOPS, wind: float = 0.0) -> TabularMDP:
     states = np.arange(NUM_STATES)
     pos, h1, h2, h3, h4 = decode(states)
     new = MOVES[pos]  # (S, A)
-    succ = encode(new[:, :, None], h2[:, None, None], h3[:, None, None], h4[:, None, None],
-                  np.arange(NUM_HOOPS)[None, None, :])  # (S, A, 6)
-    probs = np.full(succ.shape, 1.0 / NUM_HOOPS)
-    features = transition_features(states[:, None], np.arange(NUM_ACTIONS)[None, :])
+    hp = np.asarray(hoop_probs, dtype=np.float64)
+
+    def successors(cells):
+        return encode(cells[:, :, None], h2[:, None, None], h3[:, None, None], h4[:, None, None],
+                      np.arange(NUM_HOOPS)[None, None, :])  # (S, A, 6)
+
+    succ = successors(new)
+    probs = np.broadcast_to(hp, succ.shape).copy()
+    if wind > 0:  # blown: the copter stays in its cell
+        succ = np.concatenate([succ, successors(np.broadcast_to(pos[:, None], new.shape))], -1)
+        probs = np.concatenate([(1.0 - wind) * probs, wind * probs], -1)
+    features = transition_features(states[:, None], np.arange(NUM_ACTIONS)[None, :], wind)
     initial = (pos == SIDE + 1).astype(np.float64)  # the centre cell, any slices ahead
+    uniform = np.allclose(hp, 1.0 / NUM_HOOPS)
+    changed = wind > 0 or not uniform
     return TabularMDP(successors=succ, probs=probs, features=features, feature_names=FEATURE_NAMES,
                       initial=initial / initial.sum(), discount=discount, state_vectors=_state_vectors(),
-                      next_value_fn=make_next_value_fn(), name="quadcopter")
+                      next_value_fn=make_next_value_fn(None if uniform else tuple(hp), wind),
+                      name="quadcopter (changed)" if changed else "quadcopter")
 
 
 def describe_state(state: int) -> dict:
@@ -176,11 +242,20 @@ def describe_state(state: int) -> dict:
             "hoop_names": tuple(HOOP_NAMES[h] for h in hoops)}
 
 
-def quadcopter(discount: float = 0.95) -> Domain:
-    """The quadcopter gate domain: its tabular MDP, the paper's skills A, B, C and its environment."""
-    return Domain(name="quadcopter", mdp=_build_mdp(float(discount)), skill_names=SKILL_NAMES,
-                  skill_weights=SKILL_WEIGHTS, env_id=ENV_ID, env_kwargs={"discount": float(discount)},
-                  describe_state=describe_state)
+def quadcopter(discount: float = 0.95, world: str = "paper", *, hoop_probs=None, wind=None) -> Domain:
+    """The quadcopter gate domain: its tabular MDP, the paper's skills A, B, C and its environment.
+
+    Args:
+        discount: the MDP's discount.
+        world: a named world of :data:`WORLDS` ("paper", or a changed one with the same
+            features: "row_hoops", "windy", "stormy").
+        hoop_probs: the probability of each hoop (HOOP_NAMES order) in a new slice; wind: the
+            probability that a move fails. Given ones override the world's.
+    """
+    params = world_parameters(world, hoop_probs, wind)
+    mdp = _build_mdp(float(discount), params["hoop_probs"], params["wind"])
+    return Domain(name="quadcopter", mdp=mdp, skill_names=SKILL_NAMES, skill_weights=SKILL_WEIGHTS, env_id=ENV_ID,
+                  env_kwargs={"discount": float(discount), **params}, describe_state=describe_state)
 
 
 # ------------------------------------------------------------------------------- drawing
@@ -254,7 +329,7 @@ class QuadcopterEnv(SkillEnv):
     domain_fn = staticmethod(quadcopter)
 
     def sample_step(self, rng, states, actions):
-        return sample_step(rng, states, actions)
+        return sample_step(rng, states, actions, **self.world)
 
     def render_state(self, state: int) -> np.ndarray:
         return render_quadcopter(state)

@@ -1,8 +1,9 @@
-"""The ``npbrs`` command line: ``generate``, ``fit``, ``report``, ``score``, ``compare`` and ``demo``.
+"""The ``npbrs`` command line: ``generate``, ``fit``, ``report``, ``segment``, ``score``, ``compare`` and ``demo``.
 
     npbrs generate highway --trajectories 16 --length 500 -o demos.npz
     npbrs fit demos.npz --domain highway [--config model.toml] -o run.nc [--resume]
     npbrs report run.nc --plots plots/
+    npbrs segment run.nc new.npz --domain highway -o labels.npz
     npbrs score run.nc held_out.npz --domain highway
     npbrs compare reward.nc single.nc --domain highway
     npbrs demo [--quick] [--out DIR]

@@ -1,5 +1,7 @@
-"""``npbrs score`` and ``npbrs compare``: held-out log-likelihood and ArviZ model comparison.
+"""``npbrs segment``, ``npbrs score`` and ``npbrs compare``: the fitted skills of new
+demonstrations, their held-out log-likelihood, and ArviZ model comparison.
 
+    npbrs segment run.nc new.npz --domain highway -o labels.npz [--plot labels.png]
     npbrs score run.nc held_out.npz --domain highway
     npbrs compare reward.nc subgoal.nc single.nc --domain highway
 """
@@ -33,6 +35,20 @@ def add_parsers(sub):
     _world(p)
     p.add_argument("--draws", type=_at_least(1), default=100, help="posterior draws used (100)")
     p.set_defaults(func=score_command)
+    p = sub.add_parser("segment", help="the run's skills at every step of new demonstrations",
+                       description="Posterior probabilities of the run's skills at every step of demonstrations "
+                                   "(new ones: each trajectory's skill set and transition weights integrated under "
+                                   "the BP-HMM's predictive), averaged over the run's draws with chains relabelled "
+                                   "(FitResult.segment). Writes an .npz with labels (N, T; -1 on padding), probs "
+                                   "(N, T, K; 0 on padding; a row sums to below one where some draws put the step in a skill the "
+                                   "run's best draw does not have) and lengths (N), labelled as the run's segmentation.")
+    p.add_argument("run", help="the run file (.nc) written by npbrs fit")
+    p.add_argument("demos", help="demonstrations to segment (.npz)")
+    _world(p)
+    p.add_argument("--draws", type=_at_least(1), default=100, help="posterior draws used (100)")
+    p.add_argument("-o", "--output", required=True, help="the labels file to write (.npz)")
+    p.add_argument("--plot", metavar="PNG", help="also draw the first trajectories' skill probabilities")
+    p.set_defaults(func=segment_command)
     p = sub.add_parser("compare", help="rank saved runs of the same demonstrations with ArviZ (PSIS-LOO)",
                        description="ArviZ's compare table (PSIS leave-one-out, one trajectory at a time) of runs "
                                    "fitted to the same demonstrations, e.g. different emissions; each run's "
@@ -60,6 +76,50 @@ def score_command(args) -> int:
           f"({len(out.per_trajectory)} trajectories, {out.num_steps} steps, {out.num_draws} posterior draws)")
     print("per trajectory: " + ", ".join(f"{v:.2f} ± {s:.2f}" for v, s in zip(out.per_trajectory,
                                                                               out.per_trajectory_se)))
+    return 0
+
+
+def segment_command(args) -> int:
+    import numpy as np
+
+    from npbrs.domains.demos import Demonstrations
+    from npbrs.domains.files import atomic_write
+
+    from .cli import _error, load_world_mdp
+    from .runs import load
+
+    try:
+        mdp, run, demos = load_world_mdp(args), load(args.run), Demonstrations.load(args.demos)
+        options = {"num_draws": args.draws, "seed": args.seed}
+        if args.samples is not None:
+            options["num_samples"] = args.samples
+        out = run.segment(mdp, demos, **options)
+        lengths = np.asarray(demos.lengths)
+        N, T, K = len(lengths), int(lengths.max()), run.num_skills
+        labels, probs = np.full((N, T), -1, np.int64), np.zeros((N, T, K))
+        for i, (z, p) in enumerate(zip(out.labels, out.probs)):
+            labels[i, :len(z)], probs[i, :len(z)] = z, p
+        def write(tmp):
+            with open(tmp, "wb") as f:
+                np.savez(f, labels=labels, probs=probs, lengths=lengths)
+
+        atomic_write(args.output, write, suffix=".npz.tmp")
+        if args.plot:
+            from .plots import plot_skill_probabilities
+
+            plot_skill_probabilities(out.probs, args.plot, title=f"{os.path.basename(args.demos)}: skills of "
+                                                                f"{os.path.basename(args.run)}")
+    except (OSError, ValueError) as e:
+        return _error("segment", e)
+    switches = [int(np.count_nonzero(np.diff(z))) for z in out.labels]
+    used = np.bincount(np.concatenate(out.labels), minlength=K)
+    print(f"segmented {N} trajectories ({int(lengths.sum())} steps) into the run's {K} skills: steps per skill "
+          + ", ".join(f"{k}: {n}" for k, n in enumerate(used)) + f"; {np.mean(switches):.2f} switches per trajectory")
+    confident = float(np.mean(np.concatenate([p.max(-1) for p in out.probs]) > 0.9))
+    other = 1.0 - float(np.mean(np.concatenate([p.sum(-1) for p in out.probs])))
+    print(f"{confident:.0%} of the steps have a skill of probability above 0.9"
+          + (f"; {other:.1%} of the probability is on skills the run's best draw does not have" if other > 1e-3 else ""))
+    print(f"wrote {args.output}" + (f" and {args.plot}" if args.plot else ""))
     return 0
 
 

@@ -476,7 +476,8 @@ def fit(mdp, demos: Demonstrations, config: Union[ModelConfig, dict, str, os.Pat
     wall += time.perf_counter() - start
     return FitResult.from_states(chains.state(), draws, demos, config=cfg.to_dict(), emission=em.describe(),
                                  feature_names=tuple(getattr(mdp, "feature_names", ())), wall_time=wall,
-                                 sample_names=compiled.hyper_names, init_segmentation=z0)
+                                 sample_names=compiled.hyper_names, init_segmentation=z0,
+                                 mdp_fingerprint=mdp.fingerprint() if hasattr(mdp, "fingerprint") else "")
 
 
 def _read_checkpoint(path, meta):

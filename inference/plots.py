@@ -23,7 +23,8 @@ import numpy as np
 
 from .metrics import paper_labelling
 
-__all__ = ["SkillStyle", "skill_styles", "true_styles", "plot_segmentation", "plot_trace", "plot_skill_rewards"]
+__all__ = ["SkillStyle", "skill_styles", "true_styles", "plot_segmentation", "plot_trace", "plot_skill_rewards",
+           "plot_skill_probabilities"]
 
 # tab10 without its grey, which is kept for unmatched skills
 PALETTE = ("#1f77b4", "#ff7f0e", "#2ca02c", "#d62728", "#9467bd", "#8c564b", "#e377c2", "#bcbd22", "#17becf")
@@ -199,6 +200,59 @@ def plot_segmentation(true, inferred: Dict[str, Sequence], path, labels: Optiona
     fig.subplots_adjust(hspace=0.35, top=1 - 0.6 / fig.get_figheight())
     _save(fig, path)
     return styles
+
+
+def plot_skill_probabilities(probs: Sequence[np.ndarray], path, trajectories: Optional[Sequence[int]] = None,
+                             skill_names: Optional[Sequence[str]] = None, title: Optional[str] = None) -> None:
+    """Per trajectory, the posterior probability of each skill at every step as stacked bands
+    (``FitResult.segment(...).probs``), skill k in the k-th palette colour, and what a row
+    leaves to one (draws that put the step in a skill the run does not have) white; saved as a
+    PNG.
+
+    Args:
+        probs: per trajectory, (T, K) probabilities (rows sum to at most one).
+        path: the PNG file to write.
+        trajectories: which to draw (default the first 8).
+        skill_names: K names (default "skill 0", "skill 1", ...).
+    """
+    from matplotlib.figure import Figure
+    from matplotlib.patches import Patch
+
+    probs = [np.asarray(p, dtype=np.float64) for p in probs]
+    if not probs:
+        raise ValueError("no trajectories to plot")
+    K = probs[0].shape[-1]
+    for i, p in enumerate(probs):
+        if p.ndim != 2 or p.shape[1] != K or np.any(p < -1e-9) or np.any(p.sum(-1) > 1 + 1e-6):
+            raise ValueError(f"trajectory {i}: skill probabilities must be (T, {K}) non-negative with rows summing "
+                             "to at most one")
+    names = [f"skill {k}" for k in range(K)] if skill_names is None else [str(n) for n in skill_names]
+    if len(names) != K:
+        raise ValueError(f"{len(names)} skill names for {K} skills")
+    chosen = list(range(min(len(probs), 8))) if trajectories is None else [int(i) for i in trajectories]
+    for i in chosen:
+        if not 0 <= i < len(probs):
+            raise ValueError(f"trajectory {i} is outside 0..{len(probs) - 1}")
+    colours = [_rgba(PALETTE[k % len(PALETTE)]) for k in range(K)]
+    fig = Figure(figsize=(10, 0.8 * len(chosen) + 0.9), dpi=100)
+    axes = fig.subplots(len(chosen), 1, squeeze=False)[:, 0]
+    for ax, i in zip(axes, chosen):
+        p = probs[i]
+        steps = np.arange(p.shape[0] + 1)
+        bands = np.vstack([p, p[-1:]])  # a step plot: each step's band spans [t, t + 1)
+        ax.stackplot(steps, bands.T, colors=colours, step="post", linewidth=0)
+        ax.set_xlim(0, p.shape[0])
+        ax.set_ylim(0, 1)
+        ax.set_yticks([0, 1])
+        ax.tick_params(labelsize=7)
+        ax.set_ylabel(f"{i}", rotation=0, ha="right", va="center", fontsize=8)
+    axes[-1].set_xlabel("step")
+    fig.legend(handles=[Patch(color=c, label=n) for c, n in zip(colours, names)], loc="upper center",
+               ncol=min(K, 10), fontsize=8, frameon=False, bbox_to_anchor=(0.5, 1.0))
+    if title:
+        fig.suptitle(title, y=1.03)
+    fig.subplots_adjust(hspace=0.45, top=1 - 0.6 / fig.get_figheight())
+    _save(fig, path)
 
 
 def plot_trace(result, path) -> None:

@@ -174,6 +174,7 @@ def _draw_moments(result, mdp, demos, idx, num_samples, seed, emission, leave_on
     trajectories) instead of the predictive."""
     from .fit import make_emission
 
+    result.check_mdp(mdp)
     demos.validate(mdp)
     cfg = result.model_config
     if emission is None:

@@ -67,6 +67,8 @@ class FitResult:
             ``fit`` was given one (relabelled 0, 1, ... in order of value); None for the
             default start from random windows. ``fit(..., init_segmentation=...)`` with it
             repeats the run.
+        mdp_fingerprint: ``TabularMDP.fingerprint()`` of the MDP the run was fitted in ("" when
+            unknown, e.g. a run saved before it was recorded); :meth:`check_mdp` compares it.
         log_likelihood: (C, D, N) each fitted trajectory's log-likelihood under each draw, once
             :meth:`add_log_likelihood` has computed it (saved as the ArviZ ``log_likelihood``
             group, which ``az.loo`` and ``az.compare`` read); None before.
@@ -89,11 +91,12 @@ class FitResult:
     demos: Optional[object] = None
     init_segmentation: Optional[List[np.ndarray]] = None
     log_likelihood: Optional[np.ndarray] = None
+    mdp_fingerprint: str = ""
 
     @classmethod
     def from_states(cls, last_state, draws: Dict[str, np.ndarray], demos, *, config: Optional[dict] = None,
                     emission: Optional[dict] = None, feature_names=(), wall_time: float = float("nan"),
-                    sample_names=(), init_segmentation=None) -> "FitResult":
+                    sample_names=(), init_segmentation=None, mdp_fingerprint: str = "") -> "FitResult":
         """Assemble a result from the chains' last kernel states and their draws.
 
         Args:
@@ -116,7 +119,8 @@ class FitResult:
                    best_chain=chain, best_log_joint=float(best_lj[chain]), stats=stats, samples=samples,
                    config=dict(config or {}), fingerprint=demos.fingerprint(), wall_time=float(wall_time),
                    emission=dict(emission or {}), feature_names=tuple(feature_names), chain_best_z=chain_best_z,
-                   demos=demos, init_segmentation=_rows(init_segmentation, demos.lengths))
+                   demos=demos, init_segmentation=_rows(init_segmentation, demos.lengths),
+                   mdp_fingerprint=str(mdp_fingerprint or ""))
 
     @property
     def model_config(self):
@@ -159,6 +163,7 @@ class FitResult:
                 and same(self.best_log_joint, other.best_log_joint) and same_dict(self.stats, other.stats)
                 and same_dict(self.samples, other.samples) and self.config == other.config
                 and self.fingerprint == other.fingerprint and self.emission == other.emission
+                and self.mdp_fingerprint == other.mdp_fingerprint
                 and tuple(self.feature_names) == tuple(other.feature_names)
                 and ((self.chain_best_z is None) == (other.chain_best_z is None))
                 and (self.chain_best_z is None or same(self.chain_best_z, other.chain_best_z))
@@ -222,6 +227,41 @@ class FitResult:
             return ""
         return (f"not converged: {', '.join(bad)} (R-hat above 1.05 or ESS below 100); run more sweeps "
                 "(samples, warmup) or more chains before trusting the skills found")
+
+    def check_mdp(self, mdp) -> None:
+        """Raise ValueError unless ``mdp`` is the MDP the run was fitted in (when the run knows it)."""
+        if self.mdp_fingerprint and hasattr(mdp, "fingerprint") and mdp.fingerprint() != self.mdp_fingerprint:
+            raise ValueError(f"the run was fitted in another MDP than {getattr(mdp, 'name', 'this one')!r} (MDP "
+                             f"fingerprint {self.mdp_fingerprint[:12]}..., this one {mdp.fingerprint()[:12]}...); "
+                             "use policies(mdp) to carry the skills' rewards into a changed world")
+
+    def policies(self, mdp, *, greedy: bool = False, emission=None) -> np.ndarray:
+        """The found skills' policies in ``mdp``: the MDP of the fit, or a changed one with the
+        same reward features (transfer: the inferred rewards are solved again there).
+
+        Args:
+            mdp: a TabularMDP.
+            greedy: the optimal action of each skill's reward in every state, (K, S) int,
+                instead of the Boltzmann action probabilities the model assigns the skill
+                (temperature and epsilon included), (K, S, A).
+            emission: the emission instance, for a run fitted with one.
+        Raises:
+            ValueError: ``mdp`` has other reward features than the run (or, for an emission
+                without rewards, another number of states or actions).
+        """
+        from .skills import skill_policies
+
+        return skill_policies(self, mdp, greedy=greedy, emission=emission)
+
+    def options(self, mdp, demos=None, *, prior_strength: float = 2.0, emission=None):
+        """The found skills as options (initiation set, termination probability per state,
+        Boltzmann and greedy policy), estimated from the run's best segmentation of its
+        demonstrations, or from the most probable skills of ``demos`` (:meth:`segment`); see
+        :mod:`npbrs.domains.options` for how. Returns a list of
+        :class:`~npbrs.domains.options.Option`, one per skill, in the order of ``segmentation``."""
+        from .skills import skill_options
+
+        return skill_options(self, mdp, demos, prior_strength=prior_strength, emission=emission)
 
     def log_predictive(self, mdp, demos, **options):
         """The held-out log-likelihood of demonstrations that were not in the fit: per

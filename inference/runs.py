@@ -18,7 +18,8 @@ over the target, so a crash leaves either the old file or the new one, never hal
   ``npbrs_format`` ("npbrs-run"), ``npbrs_version`` (1), ``config`` (the
   :class:`~npbrs.inference.config.ModelConfig` as JSON), ``emission`` (the emission's
   ``describe()`` as JSON), ``fingerprint`` (of the demonstrations), ``feature_names`` (JSON),
-  ``best_chain``, ``best_log_joint``, ``wall_time``;
+  ``best_chain``, ``best_log_joint``, ``wall_time``, ``mdp_fingerprint`` (of the MDP fitted in;
+  ``observed_data``'s attribute ``mdp_fingerprint`` is the demonstrations' own, when recorded);
 - ``observed_data`` (when the result carries them): the demonstrations, ``states``, ``actions``
   and, when known, ``skills`` (trajectory, step; -1 on padding) with ``lengths``;
 - ``log_likelihood`` (after ``FitResult.add_log_likelihood``): ``demonstrations`` (chain, draw,
@@ -104,7 +105,7 @@ def to_inference_data(result):
              "emission": json.dumps(result.emission, sort_keys=True),
              "fingerprint": result.fingerprint, "feature_names": json.dumps(list(result.feature_names)),
              "best_chain": int(result.best_chain), "best_log_joint": float(result.best_log_joint),
-             "wall_time": float(result.wall_time)}
+             "wall_time": float(result.wall_time), "mdp_fingerprint": str(result.mdp_fingerprint or "")}
     groups = {"posterior": xr.Dataset(posterior, coords=chain_draw),
               "sample_stats": xr.Dataset(sample_stats, coords=chain_draw),
               "constant_data": xr.Dataset(constant, attrs=attrs)}
@@ -115,7 +116,7 @@ def to_inference_data(result):
                     "lengths": (["trajectory"], demos.lengths)}
         if demos.skills is not None:
             observed["skills"] = (["trajectory", "step"], _padded(demos.skills))
-        groups["observed_data"] = xr.Dataset(observed)
+        groups["observed_data"] = xr.Dataset(observed, attrs={"mdp_fingerprint": demos.mdp_fingerprint or ""})
     if result.log_likelihood is not None:
         groups["log_likelihood"] = xr.Dataset(
             {"demonstrations": (["chain", "draw", "trajectory"], np.asarray(result.log_likelihood))}, coords=chain_draw)
@@ -148,7 +149,7 @@ def from_inference_data(idata):
         n = np.asarray(obs["lengths"].values)
         cols = {k: [np.asarray(obs[k].values)[i, :m] for i, m in enumerate(n)]
                 for k in ("states", "actions", "skills") if k in obs.data_vars}
-        demos = Demonstrations(**cols)
+        demos = Demonstrations(**cols, mdp_fingerprint=str(obs.attrs.get("mdp_fingerprint", "")) or None)
     return FitResult(segmentation=segmentation, num_skills=len(const["skill_slots"]), skill_params=skill_params,
                      skill_slots=np.asarray(const["skill_slots"].values), best_chain=int(attrs["best_chain"]),
                      best_log_joint=float(attrs["best_log_joint"]), stats=stats, samples=samples,
@@ -159,7 +160,8 @@ def from_inference_data(idata):
                      demos=demos, init_segmentation=(_rows(const["init_segmentation"].values, lengths)
                                                      if "init_segmentation" in const else None),
                      log_likelihood=(np.asarray(idata.log_likelihood["demonstrations"].values)
-                                     if "log_likelihood" in idata.groups() else None))
+                                     if "log_likelihood" in idata.groups() else None),
+                     mdp_fingerprint=str(attrs.get("mdp_fingerprint", "")))
 
 
 def save_run(result, path) -> None:

@@ -75,6 +75,12 @@ class Emission:
     def update(self, key, params, cache, data: HMMData, weights, adapt):
         raise NotImplementedError
 
+    def log_policies(self, params) -> jax.Array:
+        """log pi_k(a | s) of every state and action under K skills' parameters, (K, S, A): what
+        the skills do when used for control (options, transfer to another MDP). Emissions that
+        model actions as a policy of the state implement it; ones that model no actions raise."""
+        raise NotImplementedError(f"the {self.name!r} emission gives no policies over states and actions")
+
     def propose(self, key, data: HMMData, weights):
         raise NotImplementedError
 
@@ -201,9 +207,11 @@ class PolicyEmission(Emission):
         conc = jnp.full(params["policy"].shape, self.concentration)
         return jnp.sum(dist.Dirichlet(conc).log_prob(params["policy"]), axis=-1)
 
+    def log_policies(self, params):
+        return jnp.log(jnp.maximum(params["policy"], 1e-300))  # (K, S, A)
+
     def log_likelihoods(self, params, data, cache=()):
-        logp = jnp.log(jnp.maximum(params["policy"], 1e-300))  # (K, S, A)
-        ll = logp[:, data.states, data.actions]  # (K, N, T)
+        ll = self.log_policies(params)[:, data.states, data.actions]  # (K, N, T)
         return jnp.where(data.mask[..., None], jnp.moveaxis(ll, 0, -1), 0.0), cache
 
     def _counts(self, data, weights):

@@ -147,15 +147,23 @@ class RewardEmission(Emission):
     def _counts(self, data, weights):
         return count_table(data.states, data.actions, weights, self.num_states, self.num_actions, data.mask)
 
-    def log_likelihoods(self, params, data, cache=()):
-        theta = params["theta"]
+    def _log_policies_and_values(self, theta, cache=()):
         K = theta.shape[0]
         v0 = cache["V"] if isinstance(cache, dict) and cache["V"].shape[0] == K else None
         res = self.solver(self.solver.rewards(self._scaled(theta)), v0)
-        ll = step_log_likelihoods(noisy_log_policy(res.Q - res.V[..., None], self.epsilon), data.states, data.actions,
-                                  data.mask)
-        new_cache = dict(cache) if isinstance(cache, dict) else self.init_cache(K)
-        new_cache["V"] = res.V
+        return noisy_log_policy(res.Q - res.V[..., None], self.epsilon), res.V
+
+    def log_policies(self, params):
+        """The demonstrator's policies: Boltzmann in the soft Q of tau * reward, mixed with
+        uniform actions at rate epsilon, (K, S, A) (the policies the likelihood uses)."""
+        return self._log_policies_and_values(params["theta"])[0]
+
+    def log_likelihoods(self, params, data, cache=()):
+        theta = params["theta"]
+        log_pi, V = self._log_policies_and_values(theta, cache)
+        ll = step_log_likelihoods(log_pi, data.states, data.actions, data.mask)
+        new_cache = dict(cache) if isinstance(cache, dict) else self.init_cache(theta.shape[0])
+        new_cache["V"] = V
         return ll, new_cache
 
     def _log_post_and_grad(self, theta, counts, V):

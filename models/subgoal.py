@@ -242,6 +242,14 @@ class SubgoalEmission(Emission):
     def init_cache(self, K):
         return () if self.precompute else {"V": jnp.zeros((K, self.mdp.num_states))}
 
+    def log_policies(self, params):
+        goals = params["goal"].astype(jnp.int32)
+        values = (self._values[jnp.maximum(self._index[goals], 0)] if self.precompute else self.goal_values(goals))
+        S, A = self.mdp.num_states, self.mdp.num_actions
+        grid = HMMData(states=jnp.broadcast_to(jnp.arange(S)[:, None], (S, A)),
+                       actions=jnp.broadcast_to(jnp.arange(A)[None, :], (S, A)), mask=jnp.ones((S, A), bool))
+        return self._step_log_policy(goals, values, grid)  # (K, S, A)
+
     def log_likelihoods(self, params, data, cache=()):
         goals = params["goal"].astype(jnp.int32)
         if self.precompute:

@@ -26,7 +26,7 @@ def run_main(argv):
     return code, out.getvalue(), err.getvalue()
 
 
-@pytest.mark.parametrize("command", ["generate", "fit", "report", "demo", "score", "compare"])
+@pytest.mark.parametrize("command", ["generate", "fit", "report", "demo", "segment", "score", "compare"])
 def test_every_command_has_help(command):
     code, out, _ = run_main([command, "--help"])
     assert code == 0
@@ -163,6 +163,31 @@ def test_score_and_compare_held_out_demonstrations(demo, tmp_path):
     assert code == 2 and "nothere.npz" in stderr and "Traceback" not in stderr
     code, _, stderr = run_main(["compare", out / "run.nc", "--domain", "highway"])
     assert code == 2 and "at least two" in stderr
+
+
+def test_segment_writes_the_skills_of_new_demonstrations(demo, tmp_path):
+    out, _ = demo
+    code, _, stderr = run_main(["generate", "highway", "--trajectories", "3", "--length", "25", "--seed", "8",
+                                "-o", tmp_path / "new.npz"])
+    assert code == 0, stderr
+    code, stdout, stderr = run_main(["segment", out / "run.nc", tmp_path / "new.npz", "--domain", "highway",
+                                     "--samples", "4", "--draws", "3", "-o", tmp_path / "labels.npz",
+                                     "--plot", tmp_path / "labels.png"])
+    assert code == 0, stderr
+    assert "segmented 3 trajectories (75 steps)" in stdout
+    with np.load(tmp_path / "labels.npz") as f:
+        labels, probs, lengths = f["labels"], f["probs"], f["lengths"]
+    from npbrs.inference.runs import load
+
+    K = load(out / "run.nc").num_skills
+    assert labels.shape == (3, 25) and probs.shape == (3, 25, K) and lengths.tolist() == [25, 25, 25]
+    assert np.all(probs >= 0) and np.all(probs.sum(-1) <= 1 + 1e-9)
+    np.testing.assert_array_equal(labels, probs.argmax(-1))
+    assert (tmp_path / "labels.png").stat().st_size > 1000
+    code, _, stderr = run_main(["segment", out / "run.nc", tmp_path / "new.npz", "--domain", "quadcopter",
+                                "-o", tmp_path / "x.npz"])
+    assert code == 2 and "another MDP" in stderr and "Traceback" not in stderr and len(stderr.splitlines()) == 1
+    assert not (tmp_path / "x.npz").exists()
 
 
 def test_bad_files_and_abbreviated_options_fail_with_one_line(demo, tmp_path):

@@ -203,3 +203,38 @@ def test_env_checker_and_render():
     calm = env.render_state(int(encode(2, 5, 5, 5)))
     assert (np.abs(crash.astype(int) - calm.astype(int)).sum(-1) > 0).any()
     assert HighwayEnv().render() is None
+
+
+@pytest.mark.parametrize("world", ["slow_middle", "traffic_jam", "fast_traffic"])
+def test_changed_worlds_sample_their_own_tabular_dynamics(world):
+    """A changed world (other car speeds, appearance rates, lane-change cost) keeps the
+    features, changes the MDP, and its environment's sampler follows that MDP; its factored
+    next value equals the sparse one."""
+    changed, paper = highway(world=world), highway()
+    mdp = changed.mdp
+    assert mdp.fingerprint() != paper.mdp.fingerprint()
+    assert mdp.feature_names == paper.mdp.feature_names
+    env = gym.make(ENV_ID, world=world).unwrapped
+    assert env.mdp.fingerprint() == mdp.fingerprint()
+    rng = np.random.default_rng(7)
+    states = np.repeat(np.arange(1080), 3)
+    actions = np.tile(np.arange(3), 1080)
+    n = 300
+    nxt = env.sample_step(rng, np.repeat(states, n), np.repeat(actions, n))[0].reshape(-1, n)
+    stat, dof = _chi_square(nxt, mdp, states, actions)
+    assert stats.chi2.sf(stat, dof) > 1e-4, (stat, dof)
+    # the paper's sampler would not pass against this world's MDP
+    old = sample_step(rng, np.repeat(states, n), np.repeat(actions, n))[0].reshape(-1, n)
+    stat, dof = _chi_square(old, mdp, states, actions)
+    assert stats.chi2.sf(stat, dof) < 1e-10
+    V = jnp.asarray(np.random.default_rng(4).normal(size=(2, 1080)) * 100)
+    np.testing.assert_allclose(next_value_operator(mdp, "factored")(V), next_value_operator(mdp, "sparse")(V),
+                               rtol=0, atol=1e-10)
+
+
+def test_world_options_are_checked():
+    with pytest.raises(ValueError, match="unknown highway world 'rush'"):
+        highway(world="rush")
+    with pytest.raises(ValueError, match="appear must be three probabilities"):
+        highway(appear=(0.5, 1.5, 0.2))
+    assert highway(closing=(0.5, 0.2, 0.6)).mdp.fingerprint() != highway().mdp.fingerprint()

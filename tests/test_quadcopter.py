@@ -164,3 +164,44 @@ def test_env_checker_and_render():
     assert len(shapes) == 1
     a, b = env.render_state(int(encode(0, 0, 0, 0, 0))), env.render_state(int(encode(8, 0, 0, 0, 0)))
     assert (a != b).any()
+
+
+@pytest.mark.parametrize("world", ["row_hoops", "windy", "stormy"])
+def test_changed_worlds_sample_their_own_tabular_dynamics(world):
+    """A changed world (other hoop frequencies, wind) keeps the features, changes the MDP, and
+    its environment's sampler follows that MDP (pooled chi-square over every state-action);
+    its factored next value equals the sparse one; expected features match the sampled ones."""
+    changed, paper = quadcopter(world=world), quadcopter()
+    mdp = changed.mdp
+    assert mdp.fingerprint() != paper.mdp.fingerprint() and mdp.feature_names == paper.mdp.feature_names
+    env = gym.make(ENV_ID, world=world).unwrapped
+    assert env.mdp.fingerprint() == mdp.fingerprint()
+    rng = np.random.default_rng(2)
+    states = np.repeat(np.arange(0, S, 7), 4)
+    actions = np.tile(np.arange(4), len(states) // 4)
+    n = 200
+    nxt, feats = env.sample_step(rng, np.repeat(states, n), np.repeat(actions, n))
+    nxt = nxt.reshape(-1, n)
+    stat, dof = 0.0, 0
+    for i, (s, a) in enumerate(zip(states, actions)):
+        expected = np.zeros(S)
+        np.add.at(expected, mdp.successors[s, a], mdp.probs[s, a])
+        support = np.flatnonzero(expected)
+        counts = np.bincount(nxt[i], minlength=S)
+        assert counts.sum() == counts[support].sum(), (s, a)
+        stat += ((counts[support] - n * expected[support]) ** 2 / (n * expected[support])).sum()
+        dof += len(support) - 1
+    assert stats.chi2.sf(stat, dof) > 1e-4, (stat, dof)
+    np.testing.assert_allclose(feats.reshape(len(states), n, 3).mean(1), mdp.features[states, actions], atol=0.15)
+    V = jnp.asarray(np.random.default_rng(4).normal(size=(2, S)) * 100)
+    np.testing.assert_allclose(next_value_operator(mdp, "factored")(V), next_value_operator(mdp, "sparse")(V),
+                               rtol=0, atol=1e-10)
+
+
+def test_world_options_are_checked():
+    with pytest.raises(ValueError, match="unknown quadcopter world"):
+        quadcopter(world="hurricane")
+    with pytest.raises(ValueError, match="hoop_probs must be 6 probabilities"):
+        quadcopter(hoop_probs=(0.5, 0.5, 0.5, 0, 0, 0))
+    with pytest.raises(ValueError, match="wind must lie in"):
+        quadcopter(wind=1.0)
