@@ -374,8 +374,20 @@ class SkillEnv(gym.Env):
         return info
 
     def reset(self, *, seed: Optional[int] = None, options: Optional[dict] = None):
+        """Start an episode in a state drawn from the MDP's initial distribution, or in
+        ``options["state"]`` (e.g. where an option may start)."""
         super().reset(seed=seed)
-        self.state = int(self.np_random.choice(self.mdp.num_states, p=self.mdp.initial))
+        options = dict(options or {})
+        unknown = set(options) - {"state"}
+        if unknown:
+            raise ValueError(f"unknown reset options {sorted(unknown)}; the only one is 'state'")
+        if "state" in options:
+            state = options["state"]
+            if not isinstance(state, (int, np.integer)) or not 0 <= int(state) < self.mdp.num_states:
+                raise ValueError(f"reset state {state!r} is outside 0..{self.mdp.num_states - 1}")
+            self.state = int(state)
+        else:
+            self.state = int(self.np_random.choice(self.mdp.num_states, p=self.mdp.initial))
         self._steps = 0
         return self.state, self._info()
 

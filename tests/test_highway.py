@@ -238,3 +238,12 @@ def test_world_options_are_checked():
     with pytest.raises(ValueError, match="appear must be three probabilities"):
         highway(appear=(0.5, 1.5, 0.2))
     assert highway(closing=(0.5, 0.2, 0.6)).mdp.fingerprint() != highway().mdp.fingerprint()
+
+
+def test_reset_to_a_chosen_state():
+    env = gym.make(ENV_ID).unwrapped
+    assert env.reset(seed=0, options={"state": 17})[0] == 17 and env.state == 17
+    with pytest.raises(ValueError, match="reset state 1080 is outside 0..1079"):
+        env.reset(options={"state": 1080})
+    with pytest.raises(ValueError, match="unknown reset options"):
+        env.reset(options={"start": 3})
