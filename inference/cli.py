@@ -140,7 +140,10 @@ def fit_command(args) -> int:
                      progress_bar=not args.no_progress, checkpoint_path=checkpoint,
                      checkpoint_every=args.checkpoint_every or None, resume=args.resume, init_segmentation=init)
     except (OSError, ValueError) as e:  # a missing or unreadable --config among them
-        return _error("fit", e)
+        message = str(e)
+        if args.config and message.startswith("emission.options") and os.fspath(args.config) not in message:
+            message = f"{args.config}: {message}"  # an emission option of the config file
+        return _error("fit", message)
     except KeyboardInterrupt:
         where = (f"; the checkpoint {checkpoint} is kept: run the same command with --resume to continue"
                  if checkpoint else "")
@@ -162,7 +165,8 @@ def _add_report(sub):
                                    "per-skill reward weights with credible intervals (chains relabelled by "
                                    "Hungarian matching); optionally save plots.")
     p.add_argument("run", help="the run file (.nc) written by npbrs fit")
-    p.add_argument("--plots", metavar="DIR", help="save trace.png and segmentation.png in DIR")
+    p.add_argument("--plots", metavar="DIR", help="save trace.png, segmentation.png and (for rewards) "
+                                                  "skill_rewards.png in DIR")
     p.add_argument("--prob", type=float, default=0.9, help="credible interval mass (0.9)")
     p.set_defaults(func=report_command)
     return p

@@ -122,6 +122,10 @@ def test_fit_errors_name_what_is_wrong(demo, tmp_path):
     code, _, err = run_main(["fit", out / "demos.npz", "--domain", "highway", "--config", tmp_path / "bad.toml",
                              "-o", tmp_path / "x.nc"])
     assert code == 2 and "sampler.chainz: unknown key" in err
+    (tmp_path / "typo.toml").write_text('[emission]\nname = "reward"\n[emission.options]\nprior_scal = 2.0\n')
+    code, _, err = run_main(["fit", out / "demos.npz", "--domain", "highway", "--config", tmp_path / "typo.toml",
+                             "-o", tmp_path / "x.nc"])
+    assert code == 2 and "typo.toml" in err and "prior_scal" in err and len(err.splitlines()) == 1
     tiny = TabularMDP.from_dense(np.full((2, 3, 2), 0.5))
     save_mdp(tiny, tmp_path / "tiny.npz")
     code, _, err = run_main(["fit", out / "demos.npz", "--mdp", tmp_path / "tiny.npz", "-o", tmp_path / "x.nc"])
