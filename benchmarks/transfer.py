@@ -63,11 +63,17 @@ def one_run(name, run, args, worlds):
     for method, emission in (("npbrs", "reward"), ("irl", "single")):
         s = settings["npbrs" if method == "npbrs" else "irl"]
         start = time.perf_counter()
-        fits[method] = fit(domain.mdp, demos, emission=emission, num_chains=s["chains"], num_warmup=s["warmup"],
+        options = {"prior_scale": args.prior_scale} if args.prior_scale else None
+        fits[method] = fit(domain.mdp, demos, emission=emission, emission_options=options,
+                           num_chains=s["chains"], num_warmup=s["warmup"],
                            num_samples=s["samples"], max_skills=s["max_skills"], seed=run, progress_bar=False,
                            **({"init_window": s["init_window"]} if "init_window" in s else {}))
         print(f"  {name} run {run}: {method} fit {time.perf_counter() - start:.0f} s, "
               f"{fits[method].num_skills} skills", flush=True)
+    if args.save_runs:
+        os.makedirs(args.save_runs, exist_ok=True)
+        for method, result in fits.items():
+            result.save(os.path.join(args.save_runs, f"{name}-{run}-{method}.nc"))
     npbrs, irl = fits["npbrs"], fits["irl"]
     carried = npbrs.policies(domain.mdp, greedy=True)
     cloned = cloned_policies(domain.mdp, demos, npbrs.segmentation, carried)
@@ -139,6 +145,9 @@ def main(argv=None) -> int:
     p.add_argument("--trajectories", type=int, default=16)
     p.add_argument("--length", type=int, default=500)
     p.add_argument("--quick", action="store_true", help="a few sweeps of one chain (a check that it runs)")
+    p.add_argument("--prior-scale", type=float, default=None,
+                   help="the reward prior's scale for both fits (default: the emission's, 10)")
+    p.add_argument("--save-runs", metavar="DIR", help="also save every fit as DIR/DOMAIN-RUN-METHOD.nc")
     p.add_argument("--out", default=os.path.join(os.path.dirname(__file__), "results", "transfer"))
     args = p.parse_args(argv)
     from npbrs.domains.registry import get_domain
@@ -146,7 +155,10 @@ def main(argv=None) -> int:
 
     results = {"description": f"{args.trajectories} demonstrations of {args.length} steps per run in the paper's "
                               "world; the reproduction's sampler settings (npbrs: 4 chains x (20 + 20) sweeps, "
-                              "15 + 15 on the quadcopter); control reward as in the paper's Figures 7 and 10. "
+                              "15 + 15 on the quadcopter); reward prior scale "
+                              f"{args.prior_scale or 'the default (10)'}; control reward as in the paper's Figures "
+                              "7 and 10; each skill's policy from its posterior mean weights (FitResult.policies' "
+                              "default). "
                               f"Machine: {platform.machine()}, {os.cpu_count()} cores, shared with other jobs.",
                "settings": vars(args), "domains": {}}
     os.makedirs(args.out, exist_ok=True)

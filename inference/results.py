@@ -235,7 +235,7 @@ class FitResult:
                              f"fingerprint {self.mdp_fingerprint[:12]}..., this one {mdp.fingerprint()[:12]}...); "
                              "use policies(mdp) to carry the skills' rewards into a changed world")
 
-    def policies(self, mdp, *, greedy: bool = False, emission=None) -> np.ndarray:
+    def policies(self, mdp, *, greedy: bool = False, rewards: str = "mean", emission=None) -> np.ndarray:
         """The found skills' policies in ``mdp``: the MDP of the fit, or a changed one with the
         same reward features (transfer: the inferred rewards are solved again there).
 
@@ -244,6 +244,12 @@ class FitResult:
             greedy: the optimal action of each skill's reward in every state, (K, S) int,
                 instead of the Boltzmann action probabilities the model assigns the skill
                 (temperature and epsilon included), (K, S, A).
+            rewards: "mean" (default): each skill's posterior mean parameters over the draws,
+                chains matched to the run's skills. Rewards are linear in their weights, so
+                the optimal policy of the posterior mean reward is the policy with the highest
+                posterior expected return; a single draw's weights carry that draw's noise
+                along directions the demonstrations leave open, which a changed world can
+                expose. "best": the best draw's (``skill_params``).
             emission: the emission instance, for a run fitted with one.
         Raises:
             ValueError: ``mdp`` has other reward features than the run (or, for an emission
@@ -251,17 +257,18 @@ class FitResult:
         """
         from .skills import skill_policies
 
-        return skill_policies(self, mdp, greedy=greedy, emission=emission)
+        return skill_policies(self, mdp, greedy=greedy, rewards=rewards, emission=emission)
 
-    def options(self, mdp, demos=None, *, prior_strength: float = 2.0, emission=None):
+    def options(self, mdp, demos=None, *, prior_strength: float = 2.0, rewards: str = "mean", emission=None):
         """The found skills as options (initiation set, termination probability per state,
         Boltzmann and greedy policy), estimated from the run's best segmentation of its
         demonstrations, or from the most probable skills of ``demos`` (:meth:`segment`); see
-        :mod:`npbrs.domains.options` for how. Returns a list of
+        :mod:`npbrs.domains.options` for how; the policies are those of :meth:`policies` with
+        ``rewards``. Returns a list of
         :class:`~npbrs.domains.options.Option`, one per skill, in the order of ``segmentation``."""
         from .skills import skill_options
 
-        return skill_options(self, mdp, demos, prior_strength=prior_strength, emission=emission)
+        return skill_options(self, mdp, demos, prior_strength=prior_strength, rewards=rewards, emission=emission)
 
     def log_predictive(self, mdp, demos, **options):
         """The held-out log-likelihood of demonstrations that were not in the fit: per

@@ -16,7 +16,7 @@ from typing import List
 
 import numpy as np
 
-__all__ = ["skill_policies", "skill_options"]
+__all__ = ["skill_policies", "skill_options", "skill_parameters", "REWARDS"]
 
 
 def _emission_in(result, mdp, emission):
@@ -49,7 +49,37 @@ def _check_world(result, mdp):
             raise ValueError(f"the run's subgoal states reach {int(goals.max())}; this MDP has {mdp.num_states} states")
 
 
-def skill_policies(result, mdp, *, greedy: bool = False, emission=None) -> np.ndarray:
+REWARDS = ("mean", "best")
+
+
+def skill_parameters(result, rewards: str = "mean") -> dict:
+    """The found skills' parameters {site: (K, ...)}: the best draw's (``"best"``), or their
+    posterior means over the draws, every chain's skills matched to the run's
+    (:func:`~npbrs.inference.diagnostics.relabelled_draws`; ``"mean"``; a skill that no draw
+    of a site holds keeps the best draw's value; integer sites such as subgoal states keep
+    the best draw's)."""
+    from .diagnostics import relabelled_draws
+
+    if rewards not in REWARDS:
+        raise ValueError(f"unknown rewards {rewards!r}; expected one of {REWARDS}")
+    params = {k: np.asarray(v) for k, v in result.skill_params.items()}
+    if rewards == "best":
+        return params
+    out = {}
+    for site, best in params.items():
+        if best.dtype.kind != "f" or site not in result.samples:
+            out[site] = best
+            continue
+        draws = relabelled_draws(result, site)  # (C, D, K, ...), NaN where a draw lacks the skill
+        flat = draws.reshape((-1,) + draws.shape[2:])
+        seen = ~np.isnan(flat).reshape(flat.shape[0], flat.shape[1], -1).any(-1)  # (CD, K)
+        total = np.where(seen.reshape(seen.shape + (1,) * (flat.ndim - 2)), flat, 0.0).sum(0)
+        count = seen.sum(0).reshape((-1,) + (1,) * (flat.ndim - 2))
+        out[site] = np.where(count > 0, total / np.maximum(count, 1), best)
+    return out
+
+
+def skill_policies(result, mdp, *, greedy: bool = False, rewards: str = "mean", emission=None) -> np.ndarray:
     """The found skills' policies in ``mdp``: (K, S, A) action probabilities, or with ``greedy``
     (K, S) optimal actions (see :meth:`~npbrs.inference.results.FitResult.policies`)."""
     import jax.numpy as jnp
@@ -59,11 +89,12 @@ def skill_policies(result, mdp, *, greedy: bool = False, emission=None) -> np.nd
     if result.num_skills < 1:
         raise ValueError("the run found no skills")
     _check_world(result, mdp)
-    params = {k: jnp.asarray(v) for k, v in result.skill_params.items()}
+    chosen = skill_parameters(result, rewards)
+    params = {k: jnp.asarray(v) for k, v in chosen.items()}
     em = _emission_in(result, mdp, emission)
     if greedy and "theta" in params:
         world = getattr(em, "mdp", mdp)  # the emission's own discount
-        return greedy_actions(world, world.reward(np.asarray(result.skill_params["theta"], np.float64)))
+        return greedy_actions(world, world.reward(np.asarray(chosen["theta"], np.float64)))
     try:
         log_pi = np.asarray(em.log_policies(params), dtype=np.float64)
     except NotImplementedError as e:
@@ -74,7 +105,8 @@ def skill_policies(result, mdp, *, greedy: bool = False, emission=None) -> np.nd
     return pi / pi.sum(-1, keepdims=True)
 
 
-def skill_options(result, mdp, demos=None, *, prior_strength: float = 2.0, emission=None) -> List:
+def skill_options(result, mdp, demos=None, *, prior_strength: float = 2.0, rewards: str = "mean",
+                  emission=None) -> List:
     """The found skills as options (see :meth:`~npbrs.inference.results.FitResult.options`)."""
     from npbrs.domains.options import estimate_options
 
@@ -89,5 +121,6 @@ def skill_options(result, mdp, demos=None, *, prior_strength: float = 2.0, emiss
         labels = result.segment(mdp, demos, emission=emission).labels
     demos.validate(mdp)
     em = _emission_in(result, mdp, emission)
-    return estimate_options(demos.states, labels, skill_policies(result, mdp, emission=em),
-                            skill_policies(result, mdp, greedy=True, emission=em), prior_strength=prior_strength)
+    return estimate_options(demos.states, labels, skill_policies(result, mdp, rewards=rewards, emission=em),
+                            skill_policies(result, mdp, greedy=True, rewards=rewards, emission=em),
+                            prior_strength=prior_strength)

@@ -181,3 +181,36 @@ def test_transfer_and_options_refuse_a_world_they_do_not_fit(worlds):
     options = result.options(paper)
     assert len(options) == 1 and options[0].initiation[[0, 1, 2, 5]].all()
     np.testing.assert_allclose(options[0].policy, result.policies(paper)[0])
+
+
+def test_posterior_mean_rewards_average_the_draws_that_hold_each_skill(worlds):
+    """rewards="mean": each skill's weights averaged over the draws in which its (matched) slot
+    has steps, chains matched to the run's skills by their segmentations; "best" is the best
+    draw's; the policies are those of the chosen weights."""
+    from npbrs.inference.skills import skill_parameters
+
+    paper, _ = worlds
+    rng = np.random.default_rng(3)
+    # two chains of 4 draws over 3 slots; the run's skills are chain 0's slots 0 and 2, which
+    # chain 1 holds as slots 1 and 0
+    theta = rng.normal(size=(2, 4, 3, 3))
+    steps = np.ones((2, 4, 3), np.int64)
+    steps[0, 1, 2] = 0  # skill 1 is absent from chain 0's draw 1
+    z_run = np.array([0, 0, 2, 2, 2])
+    chain_z = np.stack([z_run, np.array([1, 1, 0, 0, 0])])[:, None, :]  # (C, N, T)
+    demos = Demonstrations([np.array([0, 1, 2, 5, 8])], [np.array([3, 3, 1, 1, 4])])
+    result = _result(paper, np.array([[9.0, 9.0, 9.0], [8.0, 8.0, 8.0]]), {}, demos=demos,
+                     segmentation=[np.array([0, 0, 1, 1, 1])])
+    result.samples = {"theta": theta, "skill_steps": steps}
+    result.chain_best_z = chain_z
+    result.stats = {"log_joint": np.zeros((2, 4))}
+    mean = skill_parameters(result, "mean")["theta"]
+    expected0 = np.concatenate([theta[0, :, 0], theta[1, :, 1]]).mean(0)
+    expected1 = np.concatenate([theta[0, [0, 2, 3], 2], theta[1, :, 0]]).mean(0)
+    np.testing.assert_allclose(mean, np.stack([expected0, expected1]))
+    np.testing.assert_array_equal(skill_parameters(result, "best")["theta"], result.skill_params["theta"])
+    fixed = _result(paper, mean, {}, demos=demos)
+    np.testing.assert_allclose(result.policies(paper, rewards="mean"), fixed.policies(paper, rewards="best"))
+    np.testing.assert_array_equal(result.policies(paper, greedy=True), fixed.policies(paper, greedy=True))
+    with pytest.raises(ValueError, match="unknown rewards 'map'"):
+        result.policies(paper, rewards="map")
