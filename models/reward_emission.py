@@ -144,6 +144,11 @@ class RewardEmission(Emission):
     def _scaled(self, theta):
         return theta * self.temperature
 
+    @property
+    def _fit_scale(self):
+        """The IRL fits work in the scaled weights tau * theta, whose prior scale is tau * sigma."""
+        return self.prior_scale * self.temperature
+
     def _counts(self, data, weights):
         return count_table(data.states, data.actions, weights, self.num_states, self.num_actions, data.mask)
 
@@ -180,7 +185,7 @@ class RewardEmission(Emission):
         has_steps = jnp.sum(counts, axis=(1, 2)) > 0
         k_prior, k_move = jax.random.split(key)
         if self.update_kind == "map":
-            new, _, V, _, _ = fit_reward(self.solver, counts, self._scaled(theta), cache["V"], self.prior_scale,
+            new, _, V, _, _ = fit_reward(self.solver, counts, self._scaled(theta), cache["V"], self._fit_scale,
                                          self.map_steps, epsilon=self.epsilon)
             new = new / self.temperature
             accept = jnp.ones(K)
@@ -237,7 +242,7 @@ class RewardEmission(Emission):
         M, D = counts.shape[0], self.num_features
         theta0 = jnp.zeros((M, D)) if init is None else self._scaled(init["theta"])
         steps = 2 * self.refit_steps if init is None else self.refit_steps
-        fit, _, _, _, _ = fit_reward(self.solver, counts, theta0, jnp.zeros((M, self.num_states)), self.prior_scale,
+        fit, _, _, _, _ = fit_reward(self.solver, counts, theta0, jnp.zeros((M, self.num_states)), self._fit_scale,
                                      steps, epsilon=self.epsilon)
         return {"theta": fit / self.temperature}
 
@@ -250,7 +255,7 @@ class RewardEmission(Emission):
         theta0 = jnp.zeros((M, D)) if init is None else self._scaled(init["theta"])
         steps = self.fit_steps if init is None else self.refit_steps
         fit, log_lik, V, _, _ = fit_reward(self.solver, counts, theta0, jnp.zeros((M, self.num_states)),
-                                           self.prior_scale, steps, epsilon=self.epsilon)
+                                           self._fit_scale, steps, epsilon=self.epsilon)
         F = fisher_information(self.solver, fit, counts, V) * self.temperature ** 2  # (M, D, D)
         precision = F + jnp.eye(D) / self.prior_scale ** 2
         return fit / self.temperature, log_lik, 0.5 * (precision + jnp.swapaxes(precision, -1, -2))

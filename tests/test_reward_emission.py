@@ -137,3 +137,25 @@ def test_data_driven_proposal_is_the_defensive_mixture_it_scores():
     np.testing.assert_allclose(float(lq), multivariate_normal(mean, cov).logpdf(np.asarray(th["theta"])), rtol=1e-8)
     with pytest.raises(ValueError, match="proposal_broad_weight"):
         RewardEmission(dom.mdp, proposal_broad_weight=1.0)
+
+
+@pytest.mark.parametrize("tau", [2.0, 0.5])
+def test_irl_fits_find_the_posterior_mode_at_any_temperature(tau):
+    """One state, feature [a == 1], 30 steps of action 0 and 70 of action 1, prior N(0, 1): the
+    mode of 70 tau theta - 100 log(1 + exp(tau theta)) - theta^2 / 2 solves
+    70 tau - 100 tau sigmoid(tau theta) - theta = 0 (0.4187 at tau = 2). fit_point, the
+    greedy moves' evidence fit and the "map" update must all land there."""
+    from scipy.optimize import brentq
+
+    mode = brentq(lambda t: 70 * tau - 100 * tau * expit(tau * t) - t, -10, 10)
+    em = RewardEmission(one_state_mdp(), prior_scale=1.0, temperature=tau, refit_steps=20, fit_steps=40,
+                        map_steps=40, update="map")
+    data = HMMData(jnp.zeros((1, 100), jnp.int32), jnp.asarray([[0] * 30 + [1] * 70], jnp.int32),
+                   jnp.ones((1, 100), bool))
+    w = jnp.ones((1, 100, 1))
+    np.testing.assert_allclose(float(em.fit_point(data, w)["theta"][0, 0]), mode, atol=1e-4)
+    np.testing.assert_allclose(float(em.fit_evidence(data, w)[0]["theta"][0, 0]), mode, atol=1e-4)
+    params, _, _ = em.update(jax.random.PRNGKey(0), {"theta": jnp.zeros((1, 1))}, em.init_cache(1), data, w, False)
+    np.testing.assert_allclose(float(params["theta"][0, 0]), mode, atol=1e-4)
+    if tau == 2.0:
+        assert abs(mode - 0.4187) < 1e-4
