@@ -205,13 +205,35 @@ def save_plots(result, directory, skill_names=None) -> dict:
              for name in ("trace", "segmentation", "skill rewards")}
     plots.plot_trace(result, paths["trace"])
     true = result.demos.skills if result.demos is not None else None
-    plots.plot_segmentation(true, {"npbrs": result.segmentation}, paths["segmentation"], labels=skill_names)
+    styles = plots.plot_segmentation(true, {"npbrs": result.segmentation}, paths["segmentation"],
+                                     labels=skill_names)["npbrs"]
     if "theta" in result.skill_params:
-        names = result.feature_names or [f"phi{d}" for d in range(result.skill_params["theta"].shape[-1])]
-        plots.plot_skill_rewards(result.skill_params["theta"], names, paths["skill rewards"])
+        names, mean, interval, colours, labels = reward_plot_inputs(result, styles, with_true=true is not None)
+        plots.plot_skill_rewards(mean, names, paths["skill rewards"], skill_names=labels, interval=interval,
+                                 colours=colours, title="reward weights: posterior mean and 90% interval")
     else:
         del paths["skill rewards"]
     return paths
+
+
+def reward_plot_inputs(result, styles, with_true: bool = True, prob: float = 0.9):
+    """What the report's reward plot draws: feature names, each skill's posterior mean weights
+    (K, D) and ``prob`` interval (chains matched; the best draw's where no draw holds the
+    skill), and each skill's colour and name from the segmentation plot's ``styles``."""
+    import numpy as np
+
+    from . import plots
+    from .diagnostics import skill_summary
+
+    K, D = np.shape(result.skill_params["theta"])
+    names = list(result.feature_names) or [f"phi{d}" for d in range(D)]
+    table = skill_summary(result, "theta", prob=prob, names=names)
+    best = np.asarray(result.skill_params["theta"], dtype=np.float64)
+    mean, lower, upper = (np.where(np.isnan(v), best, v) for v in
+                          (table[col].to_numpy(dtype=np.float64).reshape(K, D) for col in ("mean", "lower", "upper")))
+    colours = [styles[k].colour if k in styles else plots.UNMATCHED for k in range(K)]
+    labels = [f"skill {k}" + (f" ({styles[k].name})" if k in styles and with_true else "") for k in range(K)]
+    return names, mean, (lower, upper), colours, labels
 
 
 # ------------------------------------------------------------------------------------ demo

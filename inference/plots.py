@@ -56,8 +56,8 @@ def _shade(colour, n: int) -> tuple:
 
 
 def _names(labels: Optional[Sequence[str]], count: int) -> List[str]:
-    if labels is None:
-        return [chr(ord("A") + j) if j < 26 else f"S{j}" for j in range(count)]
+    if labels is None:  # true skills without names: their label values, not invented names
+        return [f"true {j}" for j in range(count)]
     labels = [str(x) for x in labels]
     if len(labels) < count:
         raise ValueError(f"{len(labels)} label names for {count} true skills")
@@ -65,7 +65,7 @@ def _names(labels: Optional[Sequence[str]], count: int) -> List[str]:
 
 
 def true_styles(true, labels: Optional[Sequence[str]] = None) -> Dict[int, SkillStyle]:
-    """Styles of the true skills present: label j is named ``labels[j]`` (default A, B, C, ...)."""
+    """Styles of the true skills present: label j is named ``labels[j]`` (default "true j")."""
     present = np.unique(np.concatenate([np.asarray(z, dtype=np.int64) for z in true]))
     names = _names(labels, int(present.max()) + 1)
     return {int(j): SkillStyle(names[j], _rgba(PALETTE[j % len(PALETTE)]), int(j)) for j in present}
@@ -78,7 +78,7 @@ def skill_styles(true, inferred, labels: Optional[Sequence[str]] = None) -> Dict
         true: per-trajectory true skill sequences, or None (then every inferred skill gets its
             own colour and its label as its name).
         inferred: per-trajectory inferred skill sequences (the same lengths).
-        labels: names of the true skills (default "A", "B", ...).
+        labels: names of the true skills (default "true 0", "true 1", ...).
     Returns:
         {inferred label: SkillStyle} for every inferred label present.
     """
@@ -95,7 +95,8 @@ def skill_styles(true, inferred, labels: Optional[Sequence[str]] = None) -> Dict
         members = sorted((k for k, t in labelling.items() if t == j), key=lambda k: (-counts[k], k))
         for n, k in enumerate(members):
             colour = base[j].colour if j in base else _rgba(PALETTE[j % len(PALETTE)])
-            styles[k] = SkillStyle(names[j] if n == 0 else f"{names[j]}{n}", _shade(colour, n), j)
+            variant = f"{names[j]}.{n}" if names[j][-1:].isdigit() else f"{names[j]}{n}"
+            styles[k] = SkillStyle(names[j] if n == 0 else variant, _shade(colour, n), j)
     for k, t in labelling.items():
         if t is None:
             styles[k] = SkillStyle("unmatched", UNMATCHED, None)
@@ -148,7 +149,7 @@ def plot_segmentation(true, inferred: Dict[str, Sequence], path, labels: Optiona
         true: per-trajectory true skill sequences, or None.
         inferred: {method name: per-trajectory inferred skill sequences}.
         path: the PNG file to write.
-        labels: names of the true skills (default "A", "B", ...).
+        labels: names of the true skills (default "true 0", "true 1", ...).
         trajectories: which trajectories to draw (default all).
         title: optional figure title.
     Returns:
@@ -188,13 +189,16 @@ def plot_segmentation(true, inferred: Dict[str, Sequence], path, labels: Optiona
             ax.axhline(r, color="white", linewidth=0.8)
     axes[-1].set_xlabel("step")
     legend = {}
-    for _, _, style in rows:
-        for s in style.values():
-            legend.setdefault(s.name, s)
+    for name, _, style in rows:
+        for k, s in style.items():
+            # with one method, its entries say which inferred skill each colour is
+            label = f"{s.name}: skill {k}" if len(methods) == 1 and name != "true" else s.name
+            legend.setdefault(label, (s, name != "true"))
     # true skills in order, each followed by its variants (B, B1, B2), then "unmatched"
-    order = sorted(legend.values(), key=lambda s: (s.true_label is None, s.true_label or 0, len(s.name), s.name))
-    fig.legend(handles=[Patch(color=s.colour, label=s.name) for s in order], loc="upper center",
-               ncol=min(len(order), 10), fontsize=8, frameon=False, bbox_to_anchor=(0.5, 1.0))
+    order = sorted(legend.items(), key=lambda e: (e[1][0].true_label is None, e[1][0].true_label or 0, e[1][1],
+                                                  len(e[1][0].name), e[0]))
+    fig.legend(handles=[Patch(color=s.colour, label=label) for label, (s, _) in order], loc="upper center",
+               ncol=min(len(order), 8), fontsize=8, frameon=False, bbox_to_anchor=(0.5, 1.0))
     if title:
         fig.suptitle(title, y=1.03)
     fig.subplots_adjust(hspace=0.35, top=1 - 0.6 / fig.get_figheight())
@@ -256,7 +260,8 @@ def plot_skill_probabilities(probs: Sequence[np.ndarray], path, trajectories: Op
 
 
 def plot_trace(result, path) -> None:
-    """ArviZ trace plot of the label-invariant scalars (log joint, number of skills, switches).
+    """Trace plot of the label-invariant scalars (log joint, number of skills, switches): per
+    scalar, each chain's density (left) and its draws after warmup (right), one colour per chain.
 
     Args:
         result: a :class:`~npbrs.inference.results.FitResult` (or an ArviZ InferenceData
@@ -269,23 +274,38 @@ def plot_trace(result, path) -> None:
     from .results import LABEL_INVARIANT
 
     data = result.to_arviz() if hasattr(result, "to_arviz") else result
-    fig = Figure(figsize=(10, 2.2 * len(LABEL_INVARIANT)), dpi=100)
+    chains = int(data.posterior.sizes["chain"])
+    fig = Figure(figsize=(10, 2.3 * len(LABEL_INVARIANT) + 0.4), dpi=100)
     axes = fig.subplots(len(LABEL_INVARIANT), 2, squeeze=False)
-    az.plot_trace(data, var_names=list(LABEL_INVARIANT), axes=axes, show=False)
-    fig.tight_layout()
+    colours = [PALETTE[c % len(PALETTE)] for c in range(chains)]
+    az.plot_trace(data, var_names=list(LABEL_INVARIANT), axes=axes, show=False, compact=False,
+                  chain_prop={"color": colours}, trace_kwargs={"linewidth": 1.0, "alpha": 0.9},
+                  plot_kwargs={"linewidth": 1.2})
+    for row, name in zip(axes, LABEL_INVARIANT):
+        row[0].set_xlabel(name.replace("_", " "), fontsize=8)
+        row[0].set_ylabel("density", fontsize=8)
+        row[1].set_xlabel("draw (after warmup)", fontsize=8)
+        row[1].set_ylabel(name.replace("_", " "), fontsize=8)
+    from matplotlib.lines import Line2D
+
+    fig.legend(handles=[Line2D([], [], color=c, label=f"chain {i}") for i, c in enumerate(colours)],
+               loc="upper center", ncol=min(chains, 8), fontsize=8, frameon=False, bbox_to_anchor=(0.5, 1.0))
+    fig.tight_layout(rect=(0, 0, 1, 1 - 0.35 / fig.get_figheight()))
     _save(fig, path)
 
 
 def plot_skill_rewards(theta, feature_names: Sequence[str], path, skill_names: Optional[Sequence[str]] = None,
-                       title: Optional[str] = None) -> None:
+                       title: Optional[str] = None, interval=None, colours: Optional[Sequence] = None) -> None:
     """Bar chart of each skill's reward weights over the features.
 
     Args:
-        theta: (K, D) reward weights.
+        theta: (K, D) reward weights (e.g. posterior means).
         feature_names: D feature names.
         path: the PNG file to write.
         skill_names: K names (default "skill 0", ...).
         title: optional title.
+        interval: optional (lower, upper), each (K, D): drawn as error bars (a credible interval).
+        colours: optional K colours (default the palette in skill order).
     """
     from matplotlib.figure import Figure
 
@@ -298,16 +318,27 @@ def plot_skill_rewards(theta, feature_names: Sequence[str], path, skill_names: O
     names = [f"skill {k}" for k in range(K)] if skill_names is None else [str(s) for s in skill_names]
     if len(names) != K:
         raise ValueError(f"{len(names)} skill names for {K} skills")
+    colours = [PALETTE[k % len(PALETTE)] for k in range(K)] if colours is None else list(colours)
+    if len(colours) != K:
+        raise ValueError(f"{len(colours)} colours for {K} skills")
+    if interval is not None:
+        lower, upper = (np.asarray(x, dtype=np.float64) for x in interval)
+        if lower.shape != (K, D) or upper.shape != (K, D):
+            raise ValueError(f"interval bounds must have shape ({K}, {D})")
     fig = Figure(figsize=(max(5.0, 1.0 + 0.4 * K * D), 3.5), dpi=100)
     ax = fig.subplots()
     width = 0.8 / K
     x = np.arange(D)
     for k in range(K):
-        ax.bar(x - 0.4 + (k + 0.5) * width, theta[k], width, label=names[k], color=PALETTE[k % len(PALETTE)])
+        err = None
+        if interval is not None:
+            err = np.stack([np.maximum(theta[k] - lower[k], 0), np.maximum(upper[k] - theta[k], 0)])
+        ax.bar(x - 0.4 + (k + 0.5) * width, theta[k], width, label=names[k], color=colours[k], yerr=err,
+               error_kw={"elinewidth": 0.8, "capsize": 2, "ecolor": "black"})
     ax.axhline(0.0, color="black", linewidth=0.6)
     ax.set_xticks(x)
     ax.set_xticklabels(list(feature_names), rotation=20, ha="right")
-    ax.set_ylabel("reward weight")
+    ax.set_ylabel("reward weight" + (" (mean, interval)" if interval is not None else ""))
     ax.legend(fontsize=8, frameon=False)
     if title:
         ax.set_title(title)

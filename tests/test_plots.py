@@ -71,3 +71,38 @@ def test_plot_trace_and_skill_rewards_write_pngs(tmp_path):
     assert is_png(tmp_path / "rewards.png")
     with pytest.raises(ValueError, match="3 feature names for 4 features"):
         plot_skill_rewards(theta, ["a", "b", "c"], tmp_path / "bad.png")
+
+
+def test_the_report_draws_rewards_as_posterior_means_in_the_segmentations_colours(tmp_path):
+    """The reward plot's bars are the posterior means with their interval (not the best draw's
+    weights), each skill in the colour and name the segmentation plot gave it; true skills
+    without names are called by their values, not invented letters."""
+    from npbrs.domains.demos import Demonstrations
+    from npbrs.inference.cli import reward_plot_inputs
+    from npbrs.inference.config import ModelConfig
+    from npbrs.inference.diagnostics import skill_summary
+
+    rng = np.random.default_rng(0)
+    seg = [np.array([0, 0, 1, 1, 1, 2, 2]), np.array([2, 2, 2, 0, 0, 1, 1])]
+    true = [np.array([1, 1, 0, 0, 0, 2, 2]), np.array([2, 2, 2, 1, 1, 0, 0])]
+    demos = Demonstrations([np.arange(7), np.arange(7)], [np.zeros(7, int), np.ones(7, int)], true)
+    theta = rng.normal(size=(1, 5, 3, 2))
+    result = FitResult(segmentation=seg, num_skills=3, skill_params={"theta": theta[0, -1] + 100.0},
+                       skill_slots=np.arange(3), best_chain=0, best_log_joint=0.0,
+                       stats={"log_joint": np.zeros((1, 5))},
+                       samples={"theta": theta, "skill_steps": np.ones((1, 5, 3), np.int64)},
+                       config=ModelConfig().to_dict(), feature_names=("f", "g"), demos=demos,
+                       chain_best_z=np.stack(seg)[None])
+    styles = plot_segmentation(true, {"npbrs": seg}, tmp_path / "seg.png")["npbrs"]
+    assert {k: s.name for k, s in styles.items()} == {0: "true 1", 1: "true 0", 2: "true 2"}
+    names, mean, (lower, upper), colours, labels = reward_plot_inputs(result, styles)
+    table = skill_summary(result, "theta")
+    np.testing.assert_allclose(mean, table["mean"].to_numpy().reshape(3, 2))
+    np.testing.assert_allclose(mean, theta[0].mean(0))  # not the best draw's (+100)
+    assert np.all(lower <= mean) and np.all(mean <= upper)
+    assert colours == [styles[k].colour for k in range(3)]
+    assert labels == ["skill 0 (true 1)", "skill 1 (true 0)", "skill 2 (true 2)"] and names == ["f", "g"]
+    plot_skill_rewards(mean, names, tmp_path / "r.png", skill_names=labels, interval=(lower, upper), colours=colours)
+    assert is_png(tmp_path / "r.png")
+    with pytest.raises(ValueError, match="interval bounds must have shape"):
+        plot_skill_rewards(mean, names, tmp_path / "r.png", interval=(lower[:2], upper))
