@@ -16,6 +16,7 @@ import dataclasses
 import json
 import os
 import signal
+import sys
 import threading
 import time
 from collections import OrderedDict
@@ -321,10 +322,85 @@ def _chain_method(method: str, num_chains: int) -> str:
     return method
 
 
-def _progress(total, initial, enabled):
-    from tqdm.auto import tqdm
+class _Progress:
+    """Sweeps done, shown while a fit runs.
 
-    return tqdm(total=total, initial=initial, disable=not enabled, unit="sweep", dynamic_ncols=True, leave=True)
+    The first sweep of a run compiles the sampler, so it is shown as "compiling" and left out
+    of the rate: the ETA comes from the sweeps after it. In a terminal or a notebook this is a
+    tqdm bar; when the output is not a terminal (a log file, CI), a plain line every
+    ``total / 10`` sweeps instead of carriage returns.
+    """
+
+    def __init__(self, total: int, initial: int, enabled: bool, stream=None):
+        self.total, self.n, self.enabled = int(total), int(initial), bool(enabled)
+        self.stream = sys.stderr if stream is None else stream
+        self.phase, self.postfix = "compiling", ""
+        self.timed_from = None  # (time, sweeps) after the first sweep
+        self.bar = None
+        self.plain = self.enabled and not _interactive(self.stream)
+        self.every = max(1, self.total // 10)
+        if self.enabled and not self.plain:
+            from tqdm.auto import tqdm
+
+            self.bar = tqdm(total=total, initial=initial, unit="sweep", dynamic_ncols=True, leave=True,
+                            smoothing=0, file=self.stream)
+            self.bar.set_description("compiling", refresh=True)
+        elif self.plain:
+            self._line(f"compiling the sampler (the first sweep); {self.total - self.n} sweeps to run")
+
+    def _line(self, text):
+        print(f"npbrs fit: {text}", file=self.stream, flush=True)
+
+    def set_phase(self, phase: str):
+        self.phase = phase
+        if self.bar is not None and self.timed_from is not None:
+            self.bar.set_description(phase, refresh=False)
+
+    def set_postfix(self, text: str):
+        self.postfix = text
+        if self.bar is not None:
+            self.bar.set_postfix_str(text, refresh=False)
+
+    def update(self, k: int):
+        self.n += k
+        now = time.perf_counter()
+        if self.timed_from is None:  # the first sweep: compiled; time the rest from here
+            self.timed_from = (now, self.n)
+            if self.bar is not None:
+                self.bar.set_description(self.phase, refresh=False)
+                self.bar.update(k)
+                self.bar.initial, self.bar.start_t = self.bar.n, self.bar._time()
+            elif self.plain:
+                self._line(f"compiled; sweep {self.n}/{self.total} ({self.phase})")
+            return
+        if self.bar is not None:
+            self.bar.update(k)
+        elif self.plain and (self.n % self.every == 0 or self.n >= self.total):
+            t0, n0 = self.timed_from
+            rate = (now - t0) / max(self.n - n0, 1)
+            eta = rate * (self.total - self.n)
+            self._line(f"sweep {self.n}/{self.total} ({self.phase}), {rate:.2f} s per sweep, "
+                       f"about {eta:.0f} s left" + (f", {self.postfix}" if self.postfix else ""))
+
+    def close(self, message: str = ""):
+        if self.bar is not None:
+            self.bar.close()
+        elif self.plain and message:
+            self._line(message)
+        self.enabled = self.plain = False
+        self.bar = None
+
+
+def _interactive(stream) -> bool:
+    """A terminal, or a notebook (where tqdm draws a widget)."""
+    try:
+        if stream.isatty():
+            return True
+    except (AttributeError, ValueError):
+        pass
+    ipython = sys.modules.get("IPython")  # a notebook kernel: IPython is loaded and runs a kernel app
+    shell = getattr(ipython, "get_ipython", lambda: None)() if ipython is not None else None
+    return shell is not None and "IPKernelApp" in getattr(shell, "config", {})
 
 
 def fit(mdp, demos: Demonstrations, config: Union[ModelConfig, dict, str, os.PathLike, None] = None, *,
@@ -362,7 +438,9 @@ def fit(mdp, demos: Demonstrations, config: Union[ModelConfig, dict, str, os.Pat
             per trajectory an integer label per step (any integers, e.g. a previous result's
             ``segmentation`` or hand labels), or a FitResult. The skills' initial parameters are
             fitted to their steps as in the default start.
-        progress_bar: show a progress bar (sweeps).
+        progress_bar: show progress: a bar in a terminal or notebook, a plain line every tenth
+            of the sweeps otherwise (logs); the first sweep, which compiles the sampler, is shown
+            as "compiling" and the ETA comes from the sweeps after it.
         checkpoint_path: write a checkpoint (``.npz``) there every ``checkpoint_every`` sweeps,
             at the end, and on Ctrl-C (then KeyboardInterrupt is re-raised).
         checkpoint_every: sweeps between checkpoints (default 100).
@@ -429,9 +507,15 @@ def fit(mdp, demos: Demonstrations, config: Union[ModelConfig, dict, str, os.Pat
         done, wall = int(saved["sweeps_done"]), float(saved["wall_time"])
 
     start = time.perf_counter()
-    if state is None:
-        state = compiled.init(keys, W, z0)
-    chains = _Chains(compiled, method, state)
+    bar = _Progress(total * (C if method == "sequential" else 1), done * (C if method == "sequential" else 1),
+                    progress_bar)
+    try:
+        if state is None:
+            state = compiled.init(keys, W, z0)
+        chains = _Chains(compiled, method, state)
+    except BaseException:
+        bar.close()
+        raise
     pending = []
 
     def flush():
@@ -448,12 +532,10 @@ def fit(mdp, demos: Demonstrations, config: Union[ModelConfig, dict, str, os.Pat
 
         write_checkpoint(checkpoint_path, state=chains.state(), draws=draws, meta=write)
 
-    bar = _progress(total * (C if method == "sequential" else 1), done * (C if method == "sequential" else 1),
-                    progress_bar)
     try:
         with _Interrupt() as interrupt:
             while done < total:
-                bar.set_description("warmup" if done < W else "sample", refresh=False)
+                bar.set_phase("warmup" if done < W else "sample")
                 records = chains.advance()
                 if done >= W:
                     pending.append(records)
@@ -461,8 +543,8 @@ def fit(mdp, demos: Demonstrations, config: Union[ModelConfig, dict, str, os.Pat
                 bar.update(C if method == "sequential" else 1)
                 if checkpoint_path is not None and (done % every == 0 or done == total):
                     checkpoint(done)
-                    bar.set_postfix_str(f"log joint {float(np.max(draws['log_joint'][:, -1])):.1f}"
-                                        if "log_joint" in draws else "", refresh=False)
+                    bar.set_postfix(f"log joint {float(np.max(draws['log_joint'][:, -1])):.1f}"
+                                    if "log_joint" in draws else "")
                 elif len(pending) >= 100:
                     flush()
                 if interrupt.flag:
@@ -472,7 +554,7 @@ def fit(mdp, demos: Demonstrations, config: Union[ModelConfig, dict, str, os.Pat
                                             + (f"; resume from {checkpoint_path}" if checkpoint_path else ""))
             flush()
     finally:
-        bar.close()
+        bar.close(f"done: {done} sweeps in {time.perf_counter() - start:.1f} s")
     wall += time.perf_counter() - start
     return FitResult.from_states(chains.state(), draws, demos, config=cfg.to_dict(), emission=em.describe(),
                                  feature_names=tuple(getattr(mdp, "feature_names", ())), wall_time=wall,

@@ -236,3 +236,19 @@ def test_fit_starts_from_a_given_segmentation(tmp_path):
     default = fit(mdp, demos, TOY, num_warmup=0, num_samples=1, progress_bar=False)
     assert default.init_segmentation is None and "started from" not in default.summary()
     assert not default.equals(result)
+
+
+def test_progress_in_a_log_shows_compiling_then_sweeps_with_an_eta(capsys):
+    """Output that is not a terminal gets plain lines: the compiling first sweep named as such,
+    then every tenth of the sweeps with the rate and time left, then a closing line; no
+    carriage returns."""
+    mdp, demos = small_problem()
+    fit(mdp, demos, TOY, num_samples=18, progress_bar=True)
+    err = capsys.readouterr().err
+    lines = [line for line in err.splitlines() if line.startswith("npbrs fit: ")]
+    assert lines[0] == "npbrs fit: compiling the sampler (the first sweep); 20 sweeps to run"
+    assert lines[1] == "npbrs fit: compiled; sweep 1/20 (warmup)"
+    assert any(line.startswith("npbrs fit: sweep 2/20 (warmup), ") and "s per sweep, about" in line for line in lines)
+    assert any(line.startswith("npbrs fit: sweep 20/20 (sample), ") for line in lines)
+    assert lines[-1].startswith("npbrs fit: done: 20 sweeps in ")
+    assert len(lines) == 13 and "\r" not in err
