@@ -58,17 +58,24 @@ def add_parsers(sub):
     p.set_defaults(func=compare_command)
 
 
-def score_command(args) -> int:
+def _run_and_demos(args):
+    """(mdp, run, demonstrations, predictive options) of ``segment`` and ``score``."""
     from npbrs.domains.demos import Demonstrations
 
-    from .cli import _error, load_world_mdp
+    from .cli import load_world_mdp
     from .runs import load
 
+    options = {"num_draws": args.draws, "seed": args.seed}
+    if args.samples is not None:
+        options["num_samples"] = args.samples
+    return load_world_mdp(args), load(args.run), Demonstrations.load(args.demos), options
+
+
+def score_command(args) -> int:
+    from .cli import _error
+
     try:
-        mdp, run, demos = load_world_mdp(args), load(args.run), Demonstrations.load(args.demos)
-        options = {"num_draws": args.draws, "seed": args.seed}
-        if args.samples is not None:
-            options["num_samples"] = args.samples
+        mdp, run, demos, options = _run_and_demos(args)
         out = run.log_predictive(mdp, demos, **options)
     except (OSError, ValueError) as e:
         return _error("score", e)
@@ -82,17 +89,12 @@ def score_command(args) -> int:
 def segment_command(args) -> int:
     import numpy as np
 
-    from npbrs.domains.demos import Demonstrations
     from npbrs.domains.files import atomic_write
 
-    from .cli import _error, load_world_mdp
-    from .runs import load
+    from .cli import _error
 
     try:
-        mdp, run, demos = load_world_mdp(args), load(args.run), Demonstrations.load(args.demos)
-        options = {"num_draws": args.draws, "seed": args.seed}
-        if args.samples is not None:
-            options["num_samples"] = args.samples
+        mdp, run, demos, options = _run_and_demos(args)
         out = run.segment(mdp, demos, **options)
         lengths = np.asarray(demos.lengths)
         N, T, K = len(lengths), int(lengths.max()), run.num_skills
