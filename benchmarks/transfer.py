@@ -12,6 +12,9 @@ random numbers per run). The methods, per world:
 - ``expert``: the true segmentation, the true rewards re-planned in the world (the ceiling);
 - ``expert_carried``: the true skills' policies of the paper's world, unchanged (how much the
   change of world matters at all);
+- ``true_seg_irl``: each true skill's reward fitted by MAP IRL (the reward emission's own fit,
+  50 L-BFGS steps) on its true steps, re-solved in the world: what segmentation-then-IRL reaches
+  with a perfect segmentation under the same prior;
 - ``npbrs``: npbrs's inferred rewards re-solved in the world (``FitResult.policies(world)``);
 - ``carried``: the same skills' policies carried over unchanged (each inferred reward's optimal
   policy in the paper's world, as a method that learns policies would keep them);
@@ -35,8 +38,9 @@ import time
 
 import numpy as np
 
-METHODS = ("expert", "expert_carried", "npbrs", "carried", "cloned", "irl")
-LABELS = {"expert": "Expert re-planned", "expert_carried": "Expert's policies carried over", "npbrs": "NPBRS rewards re-solved", "carried": "Policies carried over",
+METHODS = ("expert", "expert_carried", "true_seg_irl", "npbrs", "carried", "cloned", "irl")
+LABELS = {"expert": "Expert re-planned", "expert_carried": "Expert's policies carried over",
+          "true_seg_irl": "IRL on the true segmentation re-solved", "npbrs": "NPBRS rewards re-solved", "carried": "Policies carried over",
           "cloned": "Behaviour cloning", "irl": "Unsegmented IRL re-solved"}
 
 
@@ -47,6 +51,23 @@ def cloned_policies(mdp, demos, segmentation, fallback):
     for s, a, z in zip(demos.states, demos.actions, segmentation):
         np.add.at(counts, (np.asarray(z), np.asarray(s), np.asarray(a)), 1.0)
     return np.where(counts.sum(-1) > 0, counts.argmax(-1), fallback).astype(np.int64)
+
+
+def true_segmentation_rewards(domain, demos, prior_scale=None):
+    """(K, D) MAP IRL weights of each true skill from its own steps (the reward emission's fit)."""
+    import jax.numpy as jnp
+
+    from npbrs.inference.fit import make_emission
+    from npbrs.models.emissions import HMMData
+
+    options = {"refit_steps": 50, **({"prior_scale": prior_scale} if prior_scale else {})}
+    em = make_emission("reward", domain.mdp, **options)
+    data = HMMData.from_demonstrations(demos)
+    z = np.full(data.mask.shape, -1)
+    for i, k in enumerate(demos.skills):
+        z[i, :len(k)] = k
+    weights = jnp.asarray(z[..., None] == np.arange(domain.num_skills), jnp.float64)
+    return np.asarray(em.fit_point(data, weights)["theta"])
 
 
 def one_run(name, run, args, worlds):
@@ -80,6 +101,7 @@ def one_run(name, run, args, worlds):
     # replay from the recorded start states and label timeline: the demonstrations themselves
     # belong to the paper's world, so they are used without their MDP fingerprint
     timeline = Demonstrations(demos.states, demos.actions, demos.skills)
+    true_theta = true_segmentation_rewards(domain, demos, args.prior_scale)
     record = {}
     for world in worlds:
         changed = get_domain(name, world=world)
@@ -87,6 +109,7 @@ def one_run(name, run, args, worlds):
         scores = {"expert": expert_control(changed, timeline, seed=run)["reward"],
                   "expert_carried": evaluate_control(changed, timeline, demos.skills, domain.expert_policies(),
                                                      seed=run)["reward"],
+                  "true_seg_irl": evaluate_control(changed, timeline, demos.skills, true_theta, seed=run)["reward"],
                   "npbrs": evaluate_control(changed, timeline, npbrs.segmentation,
                                             npbrs.policies(mdp, greedy=True), seed=run)["reward"],
                   "carried": evaluate_control(changed, timeline, npbrs.segmentation, carried, seed=run)["reward"],
