@@ -537,6 +537,8 @@ def fit(mdp, demos: Demonstrations, config: Union[ModelConfig, dict, str, os.Pat
             while done < total:
                 bar.set_phase("warmup" if done < W else "sample")
                 records = chains.advance()
+                if progress_bar:  # dispatch is asynchronous: time the sweep, not its dispatch
+                    jax.block_until_ready(records)
                 if done >= W:
                     pending.append(records)
                 done += 1
