@@ -32,7 +32,7 @@ from npbrs.models.emissions import Emission, HMMData, get_emission_class
 
 from .config import EmissionConfig, ModelConfig, PriorConfig
 from .kernel import BPHMMKernel
-from .results import FitResult
+from .results import LABEL_INVARIANT, FitResult
 
 jax.config.update("jax_enable_x64", True)
 
@@ -518,12 +518,17 @@ def fit(mdp, demos: Demonstrations, config: Union[ModelConfig, dict, str, os.Pat
         raise
     pending = []
 
+    warm = []  # warmup sweeps' label-invariant scalars, kept for trace plots as "warmup_<name>"
+
     def flush():
-        if pending:
-            new = chains.stack(pending)
-            for k, v in new.items():
-                draws[k] = np.concatenate([draws[k], v], axis=1) if k in draws else v
-            pending.clear()
+        for records, prefix, names in ((pending, "", None), (warm, "warmup_", LABEL_INVARIANT)):
+            if records:
+                new = chains.stack(records)
+                for k, v in new.items():
+                    if names is None or k in names:
+                        key = prefix + k
+                        draws[key] = np.concatenate([draws[key], v], axis=1) if key in draws else v
+                records.clear()
 
     def checkpoint(done_now):
         flush()
@@ -539,15 +544,14 @@ def fit(mdp, demos: Demonstrations, config: Union[ModelConfig, dict, str, os.Pat
                 records = chains.advance()
                 if progress_bar:  # dispatch is asynchronous: time the sweep, not its dispatch
                     jax.block_until_ready(records)
-                if done >= W:
-                    pending.append(records)
+                (pending if done >= W else warm).append(records)
                 done += 1
                 bar.update(C if method == "sequential" else 1)
                 if checkpoint_path is not None and (done % every == 0 or done == total):
                     checkpoint(done)
                     bar.set_postfix(f"log joint {float(np.max(draws['log_joint'][:, -1])):.1f}"
                                     if "log_joint" in draws else "")
-                elif len(pending) >= 100:
+                elif len(pending) + len(warm) >= 100:
                     flush()
                 if interrupt.flag:
                     if checkpoint_path is not None:
@@ -558,10 +562,12 @@ def fit(mdp, demos: Demonstrations, config: Union[ModelConfig, dict, str, os.Pat
     finally:
         bar.close(f"done: {done} sweeps in {time.perf_counter() - start:.1f} s")
     wall += time.perf_counter() - start
+    warmup = {k[len("warmup_"):]: draws.pop(k) for k in list(draws) if k.startswith("warmup_")}
     return FitResult.from_states(chains.state(), draws, demos, config=cfg.to_dict(), emission=em.describe(),
                                  feature_names=tuple(getattr(mdp, "feature_names", ())), wall_time=wall,
                                  sample_names=compiled.hyper_names, init_segmentation=z0,
-                                 mdp_fingerprint=mdp.fingerprint() if hasattr(mdp, "fingerprint") else "")
+                                 mdp_fingerprint=mdp.fingerprint() if hasattr(mdp, "fingerprint") else "",
+                                 warmup_stats=warmup or None)
 
 
 def _read_checkpoint(path, meta):

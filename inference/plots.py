@@ -261,7 +261,9 @@ def plot_skill_probabilities(probs: Sequence[np.ndarray], path, trajectories: Op
 
 def plot_trace(result, path) -> None:
     """Trace plot of the label-invariant scalars (log joint, number of skills, switches): per
-    scalar, each chain's density (left) and its draws after warmup (right), one colour per chain.
+    scalar, each chain's density after warmup (left) and its sweeps (right: the warmup ones,
+    when the result keeps them, at negative positions on a grey band, then the draws), one
+    colour per chain.
 
     Args:
         result: a :class:`~npbrs.inference.results.FitResult` (or an ArviZ InferenceData
@@ -281,11 +283,20 @@ def plot_trace(result, path) -> None:
     az.plot_trace(data, var_names=list(LABEL_INVARIANT), axes=axes, show=False, compact=False,
                   chain_prop={"color": colours}, trace_kwargs={"linewidth": 1.0, "alpha": 0.9},
                   plot_kwargs={"linewidth": 1.2})
+    warmup = getattr(result, "warmup_stats", None) or {}
     for row, name in zip(axes, LABEL_INVARIANT):
         row[0].set_xlabel(name.replace("_", " "), fontsize=8)
-        row[0].set_ylabel("density", fontsize=8)
-        row[1].set_xlabel("draw (after warmup)", fontsize=8)
+        row[0].set_ylabel("density (after warmup)", fontsize=8)
+        row[1].set_xlabel("sweep (warmup shaded, negative)" if name in warmup else "draw (after warmup)", fontsize=8)
         row[1].set_ylabel(name.replace("_", " "), fontsize=8)
+        if name in warmup:  # the warmup sweeps before draw 0, on a grey band
+            values = np.asarray(warmup[name], dtype=np.float64)
+            W = values.shape[1]
+            x = np.arange(-W, 0)
+            for c in range(min(values.shape[0], chains)):
+                row[1].plot(x, values[c], color=colours[c], linewidth=0.8, alpha=0.6)
+            row[1].axvspan(-W - 0.5, -0.5, color="0.85", zorder=0, linewidth=0)
+            row[1].set_xlim(-W - 0.5, max(row[1].get_xlim()[1], 0.5))
     from matplotlib.lines import Line2D
 
     fig.legend(handles=[Line2D([], [], color=c, label=f"chain {i}") for i, c in enumerate(colours)],

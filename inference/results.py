@@ -67,6 +67,8 @@ class FitResult:
             ``fit`` was given one (relabelled 0, 1, ... in order of value); None for the
             default start from random windows. ``fit(..., init_segmentation=...)`` with it
             repeats the run.
+        warmup_stats: the label-invariant scalars of the warmup sweeps, {name: (C, W)} (trace
+            plots shade them); None when unknown.
         mdp_fingerprint: ``TabularMDP.fingerprint()`` of the MDP the run was fitted in ("" when
             unknown, e.g. a run saved before it was recorded); :meth:`check_mdp` compares it.
         log_likelihood: (C, D, N) each fitted trajectory's log-likelihood under each draw, once
@@ -92,11 +94,13 @@ class FitResult:
     init_segmentation: Optional[List[np.ndarray]] = None
     log_likelihood: Optional[np.ndarray] = None
     mdp_fingerprint: str = ""
+    warmup_stats: Optional[Dict[str, np.ndarray]] = None
 
     @classmethod
     def from_states(cls, last_state, draws: Dict[str, np.ndarray], demos, *, config: Optional[dict] = None,
                     emission: Optional[dict] = None, feature_names=(), wall_time: float = float("nan"),
-                    sample_names=(), init_segmentation=None, mdp_fingerprint: str = "") -> "FitResult":
+                    sample_names=(), init_segmentation=None, mdp_fingerprint: str = "",
+                    warmup_stats: Optional[Dict[str, np.ndarray]] = None) -> "FitResult":
         """Assemble a result from the chains' last kernel states and their draws.
 
         Args:
@@ -120,7 +124,8 @@ class FitResult:
                    config=dict(config or {}), fingerprint=demos.fingerprint(), wall_time=float(wall_time),
                    emission=dict(emission or {}), feature_names=tuple(feature_names), chain_best_z=chain_best_z,
                    demos=demos, init_segmentation=_rows(init_segmentation, demos.lengths),
-                   mdp_fingerprint=str(mdp_fingerprint or ""))
+                   mdp_fingerprint=str(mdp_fingerprint or ""),
+                   warmup_stats=None if not warmup_stats else {k: np.asarray(v) for k, v in warmup_stats.items()})
 
     @property
     def model_config(self):
@@ -164,6 +169,8 @@ class FitResult:
                 and same_dict(self.samples, other.samples) and self.config == other.config
                 and self.fingerprint == other.fingerprint and self.emission == other.emission
                 and self.mdp_fingerprint == other.mdp_fingerprint
+                and ((self.warmup_stats is None) == (other.warmup_stats is None))
+                and (self.warmup_stats is None or same_dict(self.warmup_stats, other.warmup_stats))
                 and tuple(self.feature_names) == tuple(other.feature_names)
                 and ((self.chain_best_z is None) == (other.chain_best_z is None))
                 and (self.chain_best_z is None or same(self.chain_best_z, other.chain_best_z))

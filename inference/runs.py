@@ -22,6 +22,8 @@ over the target, so a crash leaves either the old file or the new one, never hal
   ``observed_data``'s attribute ``mdp_fingerprint`` is the demonstrations' own, when recorded);
 - ``observed_data`` (when the result carries them): the demonstrations, ``states``, ``actions``
   and, when known, ``skills`` (trajectory, step; -1 on padding) with ``lengths``;
+- ``warmup_sample_stats`` (when known): the label-invariant scalars of the warmup sweeps
+  (chain, draw);
 - ``log_likelihood`` (after ``FitResult.add_log_likelihood``): ``demonstrations`` (chain, draw,
   trajectory), each trajectory's log-likelihood under each draw, its skill set and transition
   weights integrated (what ``az.loo`` and ``az.compare`` read).
@@ -117,6 +119,11 @@ def to_inference_data(result):
         if demos.skills is not None:
             observed["skills"] = (["trajectory", "step"], _padded(demos.skills))
         groups["observed_data"] = xr.Dataset(observed, attrs={"mdp_fingerprint": demos.mdp_fingerprint or ""})
+    if result.warmup_stats:
+        W = next(iter(result.warmup_stats.values())).shape[1]
+        groups["warmup_sample_stats"] = xr.Dataset(
+            {k: (["chain", "draw"], np.asarray(v)) for k, v in result.warmup_stats.items()},
+            coords={"chain": chain_draw["chain"], "draw": np.arange(W)})
     if result.log_likelihood is not None:
         groups["log_likelihood"] = xr.Dataset(
             {"demonstrations": (["chain", "draw", "trajectory"], np.asarray(result.log_likelihood))}, coords=chain_draw)
@@ -161,7 +168,9 @@ def from_inference_data(idata):
                                                      if "init_segmentation" in const else None),
                      log_likelihood=(np.asarray(idata.log_likelihood["demonstrations"].values)
                                      if "log_likelihood" in idata.groups() else None),
-                     mdp_fingerprint=str(attrs.get("mdp_fingerprint", "")))
+                     mdp_fingerprint=str(attrs.get("mdp_fingerprint", "")),
+                     warmup_stats=({k: np.asarray(v.values) for k, v in idata.warmup_sample_stats.data_vars.items()}
+                                   if "warmup_sample_stats" in idata.groups() else None))
 
 
 def save_run(result, path) -> None:

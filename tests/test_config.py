@@ -252,3 +252,21 @@ def test_progress_in_a_log_shows_compiling_then_sweeps_with_an_eta(capsys):
     assert any(line.startswith("npbrs fit: sweep 20/20 (sample), ") for line in lines)
     assert lines[-1].startswith("npbrs fit: done: 20 sweeps in ")
     assert len(lines) == 13 and "\r" not in err
+
+
+def test_the_warmup_sweeps_scalars_are_kept_saved_and_drawn(tmp_path):
+    from npbrs.inference import load
+    from npbrs.inference.plots import plot_trace
+    from npbrs.inference.results import LABEL_INVARIANT
+
+    mdp, demos = small_problem()
+    result = fit(mdp, demos, TOY, num_warmup=3, progress_bar=False)
+    assert set(result.warmup_stats) == set(LABEL_INVARIANT)
+    assert all(v.shape == (1, 3) and np.all(np.isfinite(v)) for v in result.warmup_stats.values())
+    assert set(np.unique(result.warmup_stats["num_skills"])) <= {1, 2, 3}
+    assert set(result.stats) >= set(LABEL_INVARIANT) and result.stats["log_joint"].shape == (1, 4)
+    result.save(tmp_path / "run.nc")
+    again = load(tmp_path / "run.nc")
+    assert again.equals(result)
+    plot_trace(again, tmp_path / "trace.png")
+    assert (tmp_path / "trace.png").stat().st_size > 1000
