@@ -205,7 +205,8 @@ def test_env_checker_and_render():
     assert HighwayEnv().render() is None
 
 
-@pytest.mark.parametrize("world", ["slow_middle", "traffic_jam", "fast_traffic"])
+@pytest.mark.parametrize("world", ["traffic_jam", pytest.param("slow_middle", marks=pytest.mark.slow),
+                                   pytest.param("fast_traffic", marks=pytest.mark.slow)])
 def test_changed_worlds_sample_their_own_tabular_dynamics(world):
     """A changed world (other car speeds, appearance rates, lane-change cost) keeps the
     features, changes the MDP, and its environment's sampler follows that MDP; its factored

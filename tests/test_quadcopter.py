@@ -166,7 +166,8 @@ def test_env_checker_and_render():
     assert (a != b).any()
 
 
-@pytest.mark.parametrize("world", ["row_hoops", "windy", "stormy"])
+@pytest.mark.parametrize("world", ["stormy", pytest.param("row_hoops", marks=pytest.mark.slow),
+                                   pytest.param("windy", marks=pytest.mark.slow)])
 def test_changed_worlds_sample_their_own_tabular_dynamics(world):
     """A changed world (other hoop frequencies, wind) keeps the features, changes the MDP, and
     its environment's sampler follows that MDP (pooled chi-square over every state-action);

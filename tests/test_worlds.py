@@ -1,0 +1,233 @@
+"""The benchmark worlds (npbrs.domains.worlds): their data, their generating model and its oracle."""
+
+import itertools
+
+import numpy as np
+import pytest
+
+from npbrs.domains import Demonstrations
+from npbrs.domains.worlds import (WORLDS, SkillProcess, grid_mdp, labyrinth, labyrinth_mdp, rooms, rooms_mdp,
+                                  tabular_grid)
+
+# tiny versions of the three worlds (one solver compilation each)
+TINY = {
+    "tabular_grid": dict(size=4, num_modes=2, num_trajectories=6, length=30, num_heldout=3, goal_size=1),
+    "labyrinth": dict(depth=2, num_trajectories=8, min_length=5, max_length=9, num_heldout=4),
+    "rooms": dict(size=5, num_skills=3, num_trajectories=6, min_length=5, max_length=12, num_heldout=3),
+}
+
+
+@pytest.fixture(scope="module")
+def tiny():
+    return {name: WORLDS[name](seed=3, **kwargs) for name, kwargs in TINY.items()}
+
+
+def brute_force(model, states, actions):
+    """log p(actions | states) and the most probable skill sequence, by enumerating every skill
+    set and every skill sequence of the generating model."""
+    K, T = model.num_skills, len(states)
+    pi = np.exp(model.log_policies)
+    total, best, best_z = 0.0, -1.0, None
+    for m, p_set in enumerate(model.skill_set_probs):
+        for z in itertools.product(range(K), repeat=T):
+            p = p_set * model.initial_skill[m, z[0]] * pi[z[0], states[0], actions[0]]
+            for t in range(1, T):
+                at = states[t] if model.transitions.shape[1] > 1 else 0
+                p *= model.transitions[m, at, z[t - 1], z[t]] * pi[z[t], states[t], actions[t]]
+            total += p
+            if p > best:
+                best, best_z = p, z
+    return np.log(total), np.array(best_z)
+
+
+def short_pieces(world, lengths=(5, 3, 4)):
+    """The first steps of a few training trajectories (ragged, to exercise the padding)."""
+    d = world.demos
+    return Demonstrations([d.states[i][:n] for i, n in enumerate(lengths)],
+                          [d.actions[i][:n] for i, n in enumerate(lengths)],
+                          [d.skills[i][:n] for i, n in enumerate(lengths)])
+
+
+# ------------------------------------------------------------------------------ the data
+@pytest.mark.parametrize("name", sorted(TINY))
+def test_the_same_seed_gives_the_same_world_and_another_seed_another(name, tiny):
+    again = WORLDS[name](seed=3, **TINY[name])
+    world = tiny[name]
+    assert again.demos == world.demos and again.heldout == world.heldout
+    np.testing.assert_array_equal(again.model.log_policies, world.model.log_policies)
+    np.testing.assert_array_equal(again.domain.skill_weights, world.domain.skill_weights)
+    other = WORLDS[name](seed=4, **TINY[name])
+    assert other.demos != world.demos and other.heldout != world.heldout
+    assert world.demos != world.heldout
+
+
+@pytest.mark.parametrize("name", sorted(TINY))
+def test_the_demonstrations_are_valid_and_have_the_requested_sizes(name, tiny):
+    world, sizes = tiny[name], TINY[name]
+    mdp, K = world.mdp, world.model.num_skills
+    for demos, n in [(world.demos, sizes["num_trajectories"]), (world.heldout, sizes["num_heldout"])]:
+        demos.validate(mdp, check_transitions=True)
+        assert demos.num_trajectories == n
+        low, high = (sizes["length"],) * 2 if "length" in sizes else (sizes["min_length"], sizes["max_length"])
+        assert np.all((demos.lengths >= low) & (demos.lengths <= high))
+        assert all(np.all((z >= 0) & (z < K)) for z in demos.skills)
+    np.testing.assert_array_equal(mdp.features, np.repeat(np.eye(mdp.num_states)[:, None], mdp.num_actions, 1))
+    assert world.domain.skill_weights.shape == (K, mdp.num_states) == world.model.log_policies.shape[:2]
+    np.testing.assert_allclose(np.exp(world.model.log_policies).sum(-1), 1.0)
+
+
+def test_the_full_sized_worlds_have_the_published_shapes():
+    maze = labyrinth_mdp()  # depth 6: 63 junctions and 64 end nodes
+    assert (maze.num_states, maze.num_actions) == (127, 4) and maze.initial[0] == 1.0
+    children = maze.successors[:, :2, 0]
+    assert np.sum(children[:, 0] != np.arange(127)) == 63  # junctions have a left child ...
+    np.testing.assert_array_equal(maze.successors[1:, 2, 0], (np.arange(1, 127) - 1) // 2)  # ... all a parent
+    assert (grid_mdp().num_states, grid_mdp().num_actions) == (25, 5)
+    assert (rooms_mdp().num_states, rooms_mdp().num_actions) == (104, 5)
+
+
+def test_labyrinth_trajectories_start_at_the_entrance(tiny):
+    assert all(s[0] == 0 for s in tiny["labyrinth"].demos.states)
+
+
+def test_each_rooms_trajectory_uses_its_own_two_or_three_skills():
+    world = rooms(seed=0, size=5, num_skills=5, num_trajectories=40, min_length=60, max_length=80, num_heldout=1)
+    used = [np.unique(z).size for z in world.demos.skills]
+    assert max(used) <= 3 and min(used) >= 1 and np.mean(np.array(used) >= 2) > 0.8
+    assert np.unique(np.concatenate(world.demos.skills)).size == 5
+    assert world.model.skill_sets.sum(-1).tolist() == [2] * 10 + [3] * 10
+
+
+@pytest.mark.parametrize("rate", [0.05, 0.12])
+def test_the_gridworld_switches_at_the_requested_rate_mostly_at_the_goals(rate):
+    world = tabular_grid(seed=1, num_trajectories=60, length=200, num_heldout=1, switch_rate=rate)
+    switches = [np.diff(z) != 0 for z in world.demos.skills]
+    observed = np.mean(np.concatenate(switches))
+    assert abs(observed - rate) < 0.15 * rate, observed
+    # where the switches happen: on entering the current mode's goal block, goal_factor times likelier
+    goal = world.domain.skill_weights > 0  # (K, S)
+    at_goal = np.concatenate([goal[z[:-1], s[1:]] for z, s in zip(world.demos.skills, world.demos.states)])
+    switched = np.concatenate(switches)
+    ratio = switched[at_goal].mean() / switched[~at_goal].mean()
+    assert 4 < ratio < 25, ratio
+    assert world.params["switch_at_goal"] == pytest.approx(10 * world.params["switch_elsewhere"])
+
+
+# ---------------------------------------------------------------------------- the oracle
+def random_process(seed=0, S=4, A=3, K=3):
+    """A generating model with every feature at work: the skill sets of two or more skills with
+    unequal probabilities, state-dependent transitions that are not sticky, random policies."""
+    rng = np.random.default_rng(seed)
+    sets = np.array([[(m >> k) & 1 for k in range(K)] for m in range(1, 2 ** K)], dtype=bool)
+    sets = sets[sets.sum(-1) >= 2]
+    M = len(sets)
+    trans = rng.dirichlet(np.ones(K), size=(M, S, K)) * sets[:, None, None, :]
+    trans /= trans.sum(-1, keepdims=True)
+    init = rng.dirichlet(np.ones(K), size=M) * sets
+    logits = rng.normal(size=(K, S, A))
+    return SkillProcess(log_policies=logits - np.log(np.exp(logits).sum(-1, keepdims=True)), skill_sets=sets,
+                        skill_set_probs=rng.dirichlet(np.full(M, 0.3)),  # far from uniform: the sets' prior counts
+                        initial_skill=init / init.sum(-1, keepdims=True), transitions=trans)
+
+
+def cases(tiny, name):
+    """A generating model and short, ragged demonstrations (padding exercised) to score."""
+    if name == "random":
+        rng = np.random.default_rng(1)
+        lengths = (6, 2, 3, 2, 4, 2, 5, 3, 2, 2)
+        return random_process(), Demonstrations([rng.integers(4, size=n) for n in lengths],
+                                                [rng.integers(3, size=n) for n in lengths])
+    return tiny[name].model, short_pieces(tiny[name])
+
+
+@pytest.mark.parametrize("name", sorted(TINY) + ["random"])
+def test_the_forward_algorithm_equals_enumeration_of_skill_sequences(name, tiny):
+    model, pieces = cases(tiny, name)
+    forward = model.log_likelihoods(pieces)
+    exact = [brute_force(model, s, a)[0] for s, a in zip(pieces.states, pieces.actions)]
+    np.testing.assert_allclose(forward, exact, rtol=1e-10)
+    assert model.log_likelihood_per_step(pieces) == pytest.approx(sum(exact) / pieces.num_steps)
+
+
+@pytest.mark.parametrize("name", sorted(TINY) + ["random"])
+def test_viterbi_equals_the_most_probable_sequence_by_enumeration(name, tiny):
+    model, pieces = cases(tiny, name)
+    for path, s, a in zip(model.viterbi(pieces), pieces.states, pieces.actions):
+        np.testing.assert_array_equal(path, brute_force(model, s, a)[1])
+
+
+@pytest.mark.parametrize("name", sorted(TINY))
+def test_the_oracle_scores_the_held_out_set_and_segments_the_training_set(name, tiny):
+    world = tiny[name]
+    oracle = world.oracle()
+    assert oracle.heldout_ll == pytest.approx(world.model.log_likelihood_per_step(world.heldout))
+    assert -np.log(world.mdp.num_actions) < oracle.heldout_ll < 0
+    assert [len(p) for p in oracle.viterbi] == world.demos.lengths.tolist()
+    truth = np.concatenate(world.demos.skills)
+    assert oracle.viterbi_accuracy == pytest.approx(np.mean(np.concatenate(oracle.viterbi) == truth))
+    assert oracle.viterbi_accuracy > 0.8
+
+
+@pytest.mark.parametrize("name", sorted(TINY))
+def test_the_experts_are_boltzmann_in_the_soft_q_of_the_domains_reward_weights(name, tiny):
+    # pi(a | s) = exp(Q(s, a) - V(s)) with Q = r + gamma P V: then V(s) - gamma sum_s' P(s' | s, a) V(s')
+    # = r(s, a) - log pi(a | s) for every action, S x A equations in S unknowns, solvable only at the truth
+    world = tiny[name]
+    mdp, log_pi = world.mdp, world.model.log_policies
+    P, S, A = mdp.dense_transitions(), mdp.num_states, mdp.num_actions
+    lhs = (np.eye(S)[:, None, :] - mdp.discount * P).reshape(S * A, S)
+    for k, reward in enumerate(mdp.reward(world.domain.skill_weights)):
+        rhs = (reward - log_pi[k]).reshape(S * A)
+        V = np.linalg.lstsq(lhs, rhs, rcond=None)[0]
+        np.testing.assert_allclose(lhs @ V, rhs, atol=1e-7)
+
+
+def test_the_generator_draws_from_the_distribution_the_oracle_scores():
+    # depth 1: the entrance and two end nodes; moves are deterministic and every trajectory
+    # starts at the entrance, so the actions determine the trajectory and the oracle's
+    # p(actions | states) is the probability of the whole trajectory
+    n = 20000
+    world = labyrinth(seed=0, depth=1, num_trajectories=n, min_length=3, max_length=3, num_heldout=1,
+                      port_end=0.9, travel_end=0.2)
+    actions = np.stack(world.demos.actions)
+    codes, counts = np.unique(actions @ np.array([16, 4, 1]), return_counts=True)
+    outcomes = np.array(list(itertools.product(range(4), repeat=3)))
+    states = []
+    for a in outcomes:  # the states the actions lead to
+        states.append([0])
+        for action in a[:-1]:
+            states[-1].append(int(world.mdp.successors[states[-1][-1], action, 0]))
+    probs = np.exp(world.model.log_likelihoods(Demonstrations(states, list(outcomes))))
+    assert probs.sum() == pytest.approx(1.0)
+    observed = np.zeros(64)
+    observed[codes] = counts / n
+    z = np.abs(observed - probs) / np.sqrt(probs * (1 - probs) / n)
+    assert z.max() < 4.5, (z.max(), outcomes[z.argmax()])
+
+
+# ------------------------------------------------------------------------------ arguments
+@pytest.mark.parametrize("make, kwargs, name", [
+    (tabular_grid, dict(seed=-1), "seed"),
+    (tabular_grid, dict(size=1), "size"),
+    (tabular_grid, dict(num_modes=5), "num_modes"),
+    (tabular_grid, dict(num_trajectories=0), "num_trajectories"),
+    (tabular_grid, dict(length=1), "length"),
+    (tabular_grid, dict(switch_rate=1.5), "switch_rate"),
+    (tabular_grid, dict(goal_factor=0.5), "goal_factor"),
+    (tabular_grid, dict(goal_size=3), "goal_size"),
+    (tabular_grid, dict(inverse_temperature=0.0), "inverse_temperature"),
+    (tabular_grid, dict(slip=-0.1), "slip"),
+    (tabular_grid, dict(discount=1.0), "discount"),
+    (labyrinth, dict(depth=0), "depth"),
+    (labyrinth, dict(min_length=10, max_length=5), "max_length"),
+    (labyrinth, dict(num_heldout=2.5), "num_heldout"),
+    (labyrinth, dict(port_end=2.0), "port_end"),
+    (labyrinth, dict(explore_scale=float("nan")), "explore_scale"),
+    (rooms, dict(num_skills=9), "num_skills"),
+    (rooms, dict(skills_per_trajectory=(2, 6)), "skills_per_trajectory"),
+    (rooms, dict(switch_prob=-0.5), "switch_prob"),
+    (rooms, dict(size=4), "size"),
+])
+def test_bad_arguments_raise_a_value_error_naming_them(make, kwargs, name):
+    with pytest.raises(ValueError, match=name):
+        make(**kwargs)
