@@ -59,22 +59,6 @@ def check_fresh_cache(environ, cache_dir) -> str:
     return ""
 
 
-# The test files that take longest (compiling, mostly), longest first. pytest-xdist hands whole
-# files to the two workers in collection order (with --no-loadscope-reorder, see pyproject), so
-# running these first lets the short files fill in at the end and both workers finish together;
-# xdist's own default orders files by their number of tests, which left these few-test, slow
-# files for one worker at the end (about 5 of an 11-minute run measured with one worker idle).
-SLOW_FILES_FIRST = ("test_notebooks.py", "test_reward_emission.py", "test_posterior.py", "test_split_merge.py",
-                    "test_greedy.py", "test_runs.py", "test_kernel.py", "test_cli.py", "test_autoregressive.py",
-                    "test_config.py", "test_predictive.py", "test_reward.py", "test_subgoal.py", "test_emissions.py",
-                    "test_reproduce.py")
-
-
-def pytest_collection_modifyitems(session, config, items):
-    rank = {name: i for i, name in enumerate(SLOW_FILES_FIRST)}
-    items.sort(key=lambda item: rank.get(os.path.basename(str(item.fspath)), len(rank)))  # stable
-
-
 def pytest_configure(config):
     if hasattr(config, "workerinput"):  # a pytest-xdist worker: the controller has checked
         return
