@@ -65,7 +65,9 @@ def exact_joint_states():
 
 
 @pytest.mark.parametrize("moves", [{}, {"birth_death": 2, "window": (1, 3)}, {"split_merge": 2, "blocks": 2},
-                                   {"split_merge": 1, "blocks": 1, "birth_death": 1, "window": (1, 3)}],
+                                   # each move alone is exact above; together they are run with -m slow
+                                   pytest.param({"split_merge": 1, "blocks": 1, "birth_death": 1, "window": (1, 3)},
+                                                marks=pytest.mark.slow)],
                          ids=["gibbs", "birth_death", "split_merge", "all_moves"])
 def test_sampler_visits_segmentations_in_proportion_to_their_posterior(moves):
     keys, exact = exact_partition_posterior()

@@ -148,15 +148,22 @@ def _tree_equal(a, b):
     return all(np.array_equal(np.asarray(x), np.asarray(y)) for x, y in zip(jax.tree.leaves(a), jax.tree.leaves(b)))
 
 
+def test_moves_start_must_be_a_sweep_index():
+    data, _ = planted_policy_data(seed=2, N=4, T=30)
+    em = PolicyEmission(4, 3)
+    for bad in (-1, 1.5, True):
+        with pytest.raises(ValueError, match="moves.start"):
+            BPHMMKernel(em, data, max_skills=5, init_skills=3, moves={"split_merge": 1, "start": bad})
+
+
+@pytest.mark.slow
 def test_moves_start_runs_gibbs_before_the_start_sweep_and_the_moves_from_it():
+    """(Slow: about a minute, four kernels compiled.)"""
     data, _ = planted_policy_data(seed=2, N=4, T=30)
     em = PolicyEmission(4, 3)
     make = lambda moves: BPHMMKernel(em, data, max_skills=5, init_skills=3, moves=moves)  # noqa: E731
     gibbs, always = make(None), make({"split_merge": 2})
     early, late = make({"split_merge": 2, "start": 2}), make({"split_merge": 2, "start": 9})
-    for bad in (-1, 1.5, True):
-        with pytest.raises(ValueError, match="moves.start"):
-            make({"split_merge": 1, "start": bad})
     # two chains, vectorised as numpyro runs them (one flag shared by the chains)
     state = jax.jit(jax.vmap(gibbs._init))(jax.random.split(jax.random.PRNGKey(3), 2))
     sweep = {k: jax.jit(lambda s, k=k: k.sample(s, (), {})) for k in (gibbs, always, early, late)}
