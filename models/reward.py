@@ -285,7 +285,9 @@ def fisher_information(solver: SoftSolver, theta, counts, v0=None) -> jax.Array:
         return res.Q - res.V[..., None]
 
     pi = jnp.exp(log_pi(theta))
-    J = jnp.stack([jax.jvp(log_pi, (theta,), (jnp.zeros((K, D)).at[:, d].set(1.0),))[1] for d in range(D)], -1)
+    # the D tangent solves batched (vmap), not unrolled: a program of one solve's size for any D
+    basis = jnp.broadcast_to(jnp.eye(D, dtype=theta.dtype)[:, None, :], (D, K, D))
+    J = jax.vmap(lambda e: jax.jvp(log_pi, (theta,), (e,))[1], out_axes=-1)(basis)  # (K, S, A, D)
     n = jnp.sum(counts, axis=-1)
     mean = jnp.einsum("ksa,ksad->ksd", pi, J)
     return jnp.einsum("ks,ksa,ksad,ksae->kde", n, pi, J, J) - jnp.einsum("ks,ksd,kse->kde", n, mean, mean)

@@ -117,6 +117,21 @@ def test_fisher_information_of_a_logistic_policy():
     np.testing.assert_allclose(F[:, 0, 0], counts.sum((1, 2)) * p * (1 - p), rtol=1e-9)
 
 
+def test_fisher_information_matches_finite_differences_of_the_policy(small):
+    """Several features (the tangent solves are batched over them): F = sum_s n_s
+    Cov_pi[d log pi / d theta], with the Jacobian by central differences of the solved policy."""
+    mdp, solver, theta, counts = small
+    F = np.asarray(fisher_information(solver, theta, counts))
+    h, D = 1e-5, mdp.num_features
+    for k in range(len(theta)):
+        pi = np.exp(np.asarray(log_policy(solver, theta[k])[0]))
+        J = np.stack([(np.asarray(log_policy(solver, theta[k] + h * e)[0]) -
+                       np.asarray(log_policy(solver, theta[k] - h * e)[0])) / (2 * h) for e in np.eye(D)], -1)
+        centred = J - np.einsum("sa,sad->sd", pi, J)[:, None, :]
+        expected = np.einsum("s,sa,sad,sae->de", counts[k].sum(-1), pi, centred, centred)
+        np.testing.assert_allclose(F[k], expected, rtol=1e-6, atol=1e-8)
+
+
 def test_irl_fit_reaches_a_stationary_point_inside_jit_and_warm_starts(small):
     mdp, solver, _, counts = small
     K, D = len(counts), mdp.num_features
