@@ -75,3 +75,24 @@ def test_the_notebook_runs_without_error(executed, name):
     errors = [out for cell in code for out in cell.outputs if out.output_type == "error"]
     assert not errors, f"{name}: {errors[0].ename}: {errors[0].evalue}"
     assert all(cell.execution_count is not None for cell in code)  # every cell ran
+
+
+@pytest.mark.parametrize("name", NOTEBOOKS)
+def test_the_executed_copies_are_current_and_show_their_results(name):
+    """``notebooks/executed/`` (``python notebooks/build.py``) holds each notebook run with its
+    full settings: the same cells as the source (rebuild after editing a notebook), every code
+    cell ran in order without an error, and the pictures are there."""
+    path = FOLDER / "executed" / name
+    assert path.exists(), f"{path} is missing: run python notebooks/build.py"
+    source = nbformat.read(FOLDER / name, as_version=4)
+    built = nbformat.read(path, as_version=4)
+    nbformat.validate(built)
+    assert [(c.cell_type, c.source) for c in built.cells] == [(c.cell_type, c.source) for c in source.cells], \
+        f"{path} is stale: its cells differ from notebooks/{name}; run python notebooks/build.py {name}"
+    code = [cell for cell in built.cells if cell.cell_type == "code"]
+    assert [cell.execution_count for cell in code] == list(range(1, len(code) + 1)), f"{path}: not run in order"
+    errors = [out for cell in code for out in cell.outputs if out.output_type == "error"]
+    assert not errors, f"{path}: {errors[0].ename}: {errors[0].evalue}"
+    pictures = [out for cell in code for out in cell.outputs if "image/png" in out.get("data", {})]
+    assert pictures, f"{path}: no picture in the outputs"
+    assert "npbrs_build" in built.metadata, f"{path}: not written by notebooks/build.py"
