@@ -135,3 +135,46 @@ def test_init_from_a_segmentation_starts_every_chain_there():
     assert not np.array_equal(np.asarray(states.eta[0]), np.asarray(states.eta[1]))
     default = kernel.init(jax.random.split(jax.random.PRNGKey(0), 2), 0, None, (), {})
     assert np.all(np.asarray(states.log_joint) > np.asarray(default.log_joint))
+
+
+@pytest.mark.parametrize("name", ["alpha", "kappa", "gamma"])
+def test_hyperparameter_moves_sample_their_full_conditionals(name):
+    """Each hyperparameter's Metropolis move, run alone with the rest of the state fixed, has
+    its full conditional as stationary law: Gamma hyperprior x the Beta density of omega
+    (alpha) or the Gamma densities of eta (kappa, gamma), by quadrature on a grid."""
+    from scipy import stats
+
+    data, _ = planted_policy_data(N=3, T=10)
+    prior = {"alpha": (2.0, 1.0), "kappa": (2.0, 0.2), "gamma": (3.0, 2.0)}[name]
+    kernel = BPHMMKernel(PolicyEmission(4, 3), data, max_skills=3, alpha=1.5, kappa=4.0, gamma=0.7,
+                         hyperpriors={name: prior})
+    state = kernel.init(jax.random.PRNGKey(1), 0, None, (), {})
+    draws = 20000
+
+    def body(s, key):
+        h = kernel._sample_hyper(key, s)
+        return s._replace(hyper=h), getattr(h, name)
+
+    _, xs = jax.jit(lambda s, k: jax.lax.scan(body, s, jax.random.split(k, draws)))(state, jax.random.PRNGKey(2))
+    xs = np.asarray(xs)[1000:]
+    omega, eta = np.asarray(state.omega), np.asarray(state.eta)
+    K = omega.shape[0]
+    grid = np.linspace(1e-3, 60.0 if name == "kappa" else 12.0, 20000)
+    h0 = {"alpha": 1.5, "kappa": 4.0, "gamma": 0.7}
+    logp = stats.gamma.logpdf(grid, prior[0], scale=1.0 / prior[1])
+    if name == "alpha":
+        logp += np.sum(stats.beta.logpdf(omega[None, :], grid[:, None] / K, 1.0), -1)
+    else:
+        kap = grid if name == "kappa" else h0["kappa"]
+        gam = grid if name == "gamma" else h0["gamma"]
+        eye = np.eye(K)[None, None]
+        conc = np.asarray(gam)[..., None, None, None] + np.asarray(kap)[..., None, None, None] * eye
+        logp += np.sum(stats.gamma.logpdf(eta[None], conc), axis=(1, 2, 3))
+    w = np.exp(logp - logp.max())
+    w /= w.sum()
+    mean = np.sum(w * grid)
+    sd = np.sqrt(np.sum(w * (grid - mean) ** 2))
+    # a random walk on log scale: autocorrelated draws, allow an effective sample size of a tenth
+    se = sd / np.sqrt(len(xs) / 10)
+    assert abs(xs.mean() - mean) < 5 * se, (xs.mean(), mean, se)
+    assert abs(xs.std() - sd) < 0.1 * sd, (xs.std(), sd)
