@@ -304,34 +304,51 @@ class BPHMMKernel(MCMCKernel):
         omega = jnp.clip(a / (a + b), 1e-300, 1.0 - 1e-16)
         return eta, omega
 
-    def feature_logits(self, state: BPHMMState, features, k) -> jax.Array:
+    def feature_logits(self, state: BPHMMState, features, k, current=None) -> jax.Array:
         """log p(f_ik = 1 | rest) - log p(f_ik = 0 | rest) for every trajectory i, (N,),
-        with the skill sequences summed out. ``features`` replaces ``state.features``."""
+        with the skill sequences summed out. ``features`` replaces ``state.features``;
+        ``current``: the trajectories' log marginals under ``features`` when known (then one
+        filter per trajectory runs, for the flipped feature, instead of two)."""
+        return self._feature_logits_and_marginals(state, features, k, current)[0]
+
+    def _feature_logits_and_marginals(self, state: BPHMMState, features, k, current=None):
+        """(logits (N,), log marginals with f_ik = 1 (N,), with f_ik = 0 (N,))."""
         N = features.shape[0]
-        on = features.at[:, k].set(1.0)
         off = features.at[:, k].set(0.0)
-        # both settings in one batch of 2N filters
-        log_marg = log_marginal_likelihoods(
-            jnp.concatenate([on, off], 0), jnp.concatenate([state.eta, state.eta], 0),
-            jnp.concatenate([state.log_lik, state.log_lik], 0), jnp.concatenate([self.data.mask] * 2, 0))
-        lm_on, lm_off = log_marg[:N], log_marg[N:]
+        if current is None:
+            # both settings in one batch of 2N filters
+            on = features.at[:, k].set(1.0)
+            log_marg = log_marginal_likelihoods(
+                jnp.concatenate([on, off], 0), jnp.concatenate([state.eta, state.eta], 0),
+                jnp.concatenate([state.log_lik, state.log_lik], 0), jnp.concatenate([self.data.mask] * 2, 0))
+            lm_on, lm_off = log_marg[:N], log_marg[N:]
+        else:
+            is_on = features[:, k] > 0
+            flipped = features.at[:, k].set(jnp.where(is_on, 0.0, 1.0))
+            lm_flip = log_marginal_likelihoods(flipped, state.eta, state.log_lik, self.data.mask)
+            lm_on, lm_off = jnp.where(is_on, current, lm_flip), jnp.where(is_on, lm_flip, current)
         # a trajectory must keep at least one skill
         lm_off = jnp.where(jnp.sum(off, -1) > 0, lm_off, -jnp.inf)
         prior = dist.Bernoulli(probs=state.omega[k])
-        return (lm_on + prior.log_prob(1.0)) - (lm_off + prior.log_prob(0.0))
+        return (lm_on + prior.log_prob(1.0)) - (lm_off + prior.log_prob(0.0)), lm_on, lm_off
 
     def _sample_features(self, key, state: BPHMMState) -> jax.Array:
         """Gibbs on every f_ik with z summed out; skills in turn, trajectories at once
-        (given omega, the trajectories' features are conditionally independent)."""
+        (given omega, the trajectories' features are conditionally independent). The log
+        marginals of the current features are carried from skill to skill (they start as the
+        state's, which ``_finish`` computed for its features, eta and likelihoods), so each
+        skill filters every trajectory once, with its feature flipped."""
         K = state.features.shape[1]
 
-        def one_skill(features, k_key):
+        def one_skill(carry, k_key):
+            features, current = carry
             k, key = k_key
-            logit = self.feature_logits(state, features, k)
-            new = jax.random.bernoulli(key, jax.nn.sigmoid(logit)).astype(features.dtype)
-            return features.at[:, k].set(new), None
+            logit, lm_on, lm_off = self._feature_logits_and_marginals(state, features, k, current)
+            new = jax.random.bernoulli(key, jax.nn.sigmoid(logit))
+            return (features.at[:, k].set(new.astype(features.dtype)), jnp.where(new, lm_on, lm_off)), None
 
-        features, _ = jax.lax.scan(one_skill, state.features, (jnp.arange(K), jax.random.split(key, K)))
+        (features, _), _ = jax.lax.scan(one_skill, (state.features, state.log_marginals),
+                                        (jnp.arange(K), jax.random.split(key, K)))
         return features
 
     def sweep(self, state: BPHMMState, clock=None) -> BPHMMState:

@@ -66,6 +66,9 @@ def test_feature_conditional_equals_the_model_density_ratio(kernel_and_state):
     state = kernel._finish(state._replace(features=features))
     for k in range(kernel.max_skills):
         logits = np.asarray(kernel.feature_logits(state, state.features, k))
+        # the sweep's path: the current features' marginals known, only the flipped one filtered
+        carried = np.asarray(kernel.feature_logits(state, state.features, k, state.log_marginals))
+        np.testing.assert_allclose(carried, logits, rtol=1e-12, atol=1e-12)
         for i in range(state.features.shape[0]):
             on = model_log_density(kernel, state, features=state.features.at[i, k].set(1.0))
             off_features = state.features.at[i, k].set(0.0)
