@@ -81,6 +81,12 @@ def forward_filter(log_init, log_trans, log_lik, mask=None, active=None) -> Tupl
     mask = jnp.ones(T, dtype=bool) if mask is None else jnp.asarray(mask, dtype=bool)
     active, log_trans, log_init = _prepare(jnp.asarray(log_init), jnp.asarray(log_trans), active)
     log_lik = _prepare_lik(log_lik, active)
+    # the prediction p(z_t+1 | x_1:t) = p(z_t | x_1:t) @ A as a matrix product in probability
+    # space (K^2 multiplications a step instead of K^2 exponentials: half the filter's time),
+    # each column of A scaled by its largest entry so that rare transitions stay representable
+    shift = jnp.max(log_trans, axis=0)
+    trans = jnp.exp(log_trans - shift)
+    tiny = jnp.finfo(log_lik.dtype).tiny
 
     def step(carry, inputs):
         log_pred, last_filt, total = carry
@@ -88,7 +94,7 @@ def forward_filter(log_init, log_trans, log_lik, mask=None, active=None) -> Tupl
         joint = log_pred + ll
         log_c = jax.nn.logsumexp(joint)
         filt = joint - log_c
-        pred_next = jax.nn.logsumexp(filt[:, None] + log_trans, axis=0)
+        pred_next = jnp.where(active, jnp.log(jnp.maximum(jnp.exp(filt) @ trans, tiny)) + shift, NEG_LOG)
         log_pred = jnp.where(real, pred_next, log_pred)
         filt = jnp.where(real, filt, last_filt)
         total = total + jnp.where(real, log_c, 0.0)

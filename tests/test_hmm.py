@@ -225,3 +225,31 @@ def test_transition_and_initial_counts():
     np.testing.assert_array_equal(n[0], [[1, 1, 0], [0, 0, 1], [0, 0, 1]])
     np.testing.assert_array_equal(n[1], [[0, 0, 0], [1, 1, 0], [0, 1, 0]])
     np.testing.assert_array_equal(initial_counts(z, mask, 3), [[1, 0, 0], [0, 0, 1]])
+
+
+def test_the_filter_stays_exact_with_rare_transitions_and_peaked_likelihoods():
+    """The prediction is a matrix product in probability space: transitions of weight e^-600
+    and steps only one skill explains (log-likelihoods down to -500) must still give the
+    log-space recursion's marginal and filtered probabilities (a NumPy reference)."""
+    from scipy.special import logsumexp
+
+    rng = np.random.default_rng(5)
+    T, K = 60, 4
+    log_trans = rng.normal(size=(K, K))
+    log_trans[0, 1:] = -600.0  # leaving skill 0 is nearly impossible, but the data force it
+    log_trans[2, 3] = -400.0
+    log_lik = -rng.gamma(2.0, size=(T, K))
+    log_lik[:20, 1:] -= 500.0  # skill 0 alone explains the first 20 steps
+    log_lik[20:, 0] -= 500.0   # then skill 0 cannot explain a step
+    log_init = np.log(rng.dirichlet(np.ones(K)))
+    lt = log_trans - logsumexp(log_trans, axis=1, keepdims=True)
+    pred, total, alphas = log_init - logsumexp(log_init), 0.0, []
+    for t in range(T):
+        joint = pred + log_lik[t]
+        c = logsumexp(joint)
+        total += c
+        alphas.append(joint - c)
+        pred = logsumexp(alphas[-1][:, None] + lt, axis=0)
+    log_marginal, log_alpha = forward_filter(log_init, log_trans, log_lik)
+    np.testing.assert_allclose(float(log_marginal), total, rtol=1e-12)
+    np.testing.assert_allclose(np.exp(log_alpha), np.exp(np.array(alphas)), atol=1e-12)
