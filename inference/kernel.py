@@ -436,8 +436,10 @@ class BPHMMKernel(MCMCKernel):
         # eta | z, F and omega | F are conditionally independent: one block
         eta, omega = self._sample_eta_omega(k_eta, z, features, state.hyper)
         weights = _skill_weights(z, mask, K)
+        # the clock, not the state's step: under vectorised chains a batched flag would make
+        # the emission's warmup-only work (e.g. the reward's Fisher preconditioner) run always
         params, cache, info = self.emission.update(k_em, params, state.cache, self.data, weights,
-                                                   state.step < state.num_warmup)
+                                                   step < num_warmup)
         accept = jnp.asarray(info.get("accept", 1.0) if isinstance(info, dict) else 1.0, jnp.float64)
         new = state._replace(rng_key=key, omega=omega, features=features, eta=eta, params=params, cache=cache,
                              z=z, accept=jnp.mean(accept), birth_accept=births, split_accept=splits,
