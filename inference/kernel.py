@@ -438,8 +438,13 @@ class BPHMMKernel(MCMCKernel):
         weights = _skill_weights(z, mask, K)
         # the clock, not the state's step: under vectorised chains a batched flag would make
         # the emission's warmup-only work (e.g. the reward's Fisher preconditioner) run always
-        params, cache, info = self.emission.update(k_em, params, state.cache, self.data, weights,
-                                                   step < num_warmup)
+        cache = state.cache
+        tune = getattr(self.emission, "tune", None)
+        if tune is not None:
+            every = int(getattr(self.emission, "tune_every", 1))
+            cache = jax.lax.cond((step < num_warmup) & (step % every == 0),
+                                 lambda c: tune(params, c, self.data, weights), lambda c: c, cache)
+        params, cache, info = self.emission.update(k_em, params, cache, self.data, weights, step < num_warmup)
         accept = jnp.asarray(info.get("accept", 1.0) if isinstance(info, dict) else 1.0, jnp.float64)
         new = state._replace(rng_key=key, omega=omega, features=features, eta=eta, params=params, cache=cache,
                              z=z, accept=jnp.mean(accept), birth_accept=births, split_accept=splits,

@@ -20,6 +20,10 @@ An emission model supplies everything that depends on what a skill *is*:
   used by the trans-dimensional moves;
 - ``init_cache(K)`` and ``init_params(key, data, weights)``: the cache's initial value and a
   data-driven starting point for a chain.
+- optionally ``tune(params, cache, data, weights) -> cache`` with an integer attribute
+  ``tune_every``: expensive warmup-only tuning of the move (e.g. a preconditioner), which the
+  sampler runs before ``update`` in the first warmup sweep and every ``tune_every`` warmup
+  sweeps after it, never in the sampling sweeps.
 
 A new emission model implements this protocol and registers itself with
 :func:`register_emission`; the sampler needs no change.

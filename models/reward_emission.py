@@ -197,16 +197,23 @@ class RewardEmission(Emission):
         return {"theta": new}, cache, {"accept": jnp.sum(jnp.where(has_steps, accept, 0.0)) /
                                        jnp.maximum(jnp.sum(has_steps), 1)}
 
+    # warmup sweeps between refreshes of the preconditioner (see :meth:`tune`)
+    tune_every = 10
+
+    def tune(self, params, cache, data, weights):
+        """The MALA preconditioner from the Fisher information at the skills' current weights:
+        per coordinate 1 / sqrt(F_dd + 1 / sigma^2) in the cache's "scale". The sampler calls
+        this in warmup only, every ``tune_every`` sweeps (D tangent solves a skill: the most
+        expensive part of a warmup sweep with many features); the sampling sweeps keep it fixed."""
+        theta = params["theta"]
+        counts = self._counts(data, weights)
+        fisher = jax.vmap(lambda t, c, v: jnp.diag(fisher_information(self.solver, self._scaled(t), c, v)))(
+            theta, counts, cache["V"]) * self.temperature ** 2
+        return {**cache, "scale": 1.0 / jnp.sqrt(jnp.maximum(fisher, 0.0) + 1.0 / self.prior_scale ** 2)}
+
     def _mala(self, key, theta, counts, cache, adapt):
         K, D = theta.shape
-
-        def fisher_scale(_):
-            fisher = jax.vmap(lambda t, c, v: jnp.diag(fisher_information(self.solver, self._scaled(t), c, v)))(
-                theta, counts, cache["V"]) * self.temperature ** 2
-            return 1.0 / jnp.sqrt(jnp.maximum(fisher, 0.0) + 1.0 / self.prior_scale ** 2)
-
-        # the preconditioner follows the Fisher information during warmup only
-        scale = jax.lax.cond(adapt, fisher_scale, lambda _: cache["scale"], None)
+        scale = cache["scale"]  # the preconditioner, refreshed by :meth:`tune` during warmup
         lp, grad, V = self._log_post_and_grad(theta, counts, cache["V"])
 
         def step(carry, key):

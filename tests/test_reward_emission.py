@@ -76,6 +76,8 @@ def test_mala_move_leaves_the_logistic_posterior_invariant():
         def body(carry, xs):
             params, cache = carry
             key, adapt = xs
+            # as the sampler does: the preconditioner refreshed in warmup, then fixed
+            cache = jax.lax.cond(adapt, lambda c: em.tune(params, c, data, weights), lambda c: c, cache)
             params, cache, info = em.update(key, params, cache, data, weights, adapt)
             return (params, cache), params["theta"][0, 0]
 
