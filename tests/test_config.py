@@ -270,3 +270,32 @@ def test_the_warmup_sweeps_scalars_are_kept_saved_and_drawn(tmp_path):
     assert again.equals(result)
     plot_trace(again, tmp_path / "trace.png")
     assert (tmp_path / "trace.png").stat().st_size > 1000
+
+
+def test_toml_is_read_on_python_3_10_too(monkeypatch):
+    """requires-python is >= 3.10, whose standard library has no tomllib: the reader falls back
+    to tomli, which pyproject.toml requires there."""
+    import builtins
+    import sys
+    import tomllib
+    import types
+
+    from npbrs.inference import config
+
+    real_import = builtins.__import__
+
+    def no_tomllib(name, *args, **kwargs):
+        if name == "tomllib":
+            raise ModuleNotFoundError("No module named 'tomllib'")
+        return real_import(name, *args, **kwargs)
+
+    monkeypatch.setattr(builtins, "__import__", no_tomllib)
+    monkeypatch.setitem(sys.modules, "tomli", types.SimpleNamespace(loads=tomllib.loads, load=tomllib.load,
+                                                                    TOMLDecodeError=tomllib.TOMLDecodeError))
+    assert config._toml() is sys.modules["tomli"]
+    cfg = config.ModelConfig.from_toml_string("max_skills = 6")
+    assert cfg.max_skills == 6
+    from pathlib import Path
+
+    text = open(Path(__file__).resolve().parent.parent / "pyproject.toml").read()
+    assert "tomli" in text and "python_version < '3.11'" in text
