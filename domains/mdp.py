@@ -23,6 +23,14 @@ def _first_bad(mask: np.ndarray):
     return tuple(int(i) for i in np.argwhere(mask)[0])
 
 
+def set_frozen(obj, **fields) -> None:
+    """Set the fields of a frozen dataclass instance, making its arrays read-only."""
+    for name, value in fields.items():
+        if isinstance(value, np.ndarray):
+            value.setflags(write=False)
+        object.__setattr__(obj, name, value)
+
+
 @dataclass(frozen=True, eq=False)
 class TabularMDP:
     """A finite MDP with known dynamics and linear reward features.
@@ -116,12 +124,8 @@ class TabularMDP:
             if not np.all(np.isfinite(sv)):
                 s, m = _first_bad(~np.isfinite(sv))
                 raise ValueError(f"state_vectors[{s}, {m}] is not finite")
-        for name, value in [("successors", succ.astype(np.int32)), ("probs", probs), ("features", feats),
-                            ("feature_names", names), ("initial", init), ("discount", gamma),
-                            ("state_vectors", sv)]:
-            if isinstance(value, np.ndarray):
-                value.setflags(write=False)
-            object.__setattr__(self, name, value)
+        set_frozen(self, successors=succ.astype(np.int32), probs=probs, features=feats, feature_names=names,
+                   initial=init, discount=gamma, state_vectors=sv)
 
     # ------------------------------------------------------------------ sizes
     @property

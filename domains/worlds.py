@@ -49,7 +49,7 @@ import numpy as np
 
 from .demos import Demonstrations
 from .domain import Domain
-from .mdp import TabularMDP
+from .mdp import TabularMDP, set_frozen
 
 __all__ = ["World", "SkillProcess", "Oracle", "tabular_grid", "labyrinth", "rooms", "grid_mdp", "labyrinth_mdp",
            "rooms_mdp", "WORLDS"]
@@ -166,11 +166,8 @@ class SkillProcess:
         names = tuple(self.skill_names) if len(self.skill_names) else tuple(str(k) for k in range(K))
         if len(names) != K:
             raise ValueError(f"skill_names has {len(names)} names for {K} skills")
-        for name, value in [("log_policies", lp), ("skill_sets", sets), ("skill_set_probs", set_p),
-                            ("initial_skill", init), ("transitions", trans), ("skill_names", names)]:
-            if isinstance(value, np.ndarray):
-                value.setflags(write=False)
-            object.__setattr__(self, name, value)
+        set_frozen(self, log_policies=lp, skill_sets=sets, skill_set_probs=set_p, initial_skill=init,
+                   transitions=trans, skill_names=names)
 
     @property
     def num_skills(self) -> int:

@@ -307,26 +307,19 @@ class BPHMMKernel(MCMCKernel):
     def feature_logits(self, state: BPHMMState, features, k, current=None) -> jax.Array:
         """log p(f_ik = 1 | rest) - log p(f_ik = 0 | rest) for every trajectory i, (N,),
         with the skill sequences summed out. ``features`` replaces ``state.features``;
-        ``current``: the trajectories' log marginals under ``features`` when known (then one
-        filter per trajectory runs, for the flipped feature, instead of two)."""
+        ``current``: the trajectories' log marginals under ``features`` when known (the
+        sweep carries them); otherwise they are filtered too."""
         return self._feature_logits_and_marginals(state, features, k, current)[0]
 
     def _feature_logits_and_marginals(self, state: BPHMMState, features, k, current=None):
         """(logits (N,), log marginals with f_ik = 1 (N,), with f_ik = 0 (N,))."""
-        N = features.shape[0]
         off = features.at[:, k].set(0.0)
         if current is None:
-            # both settings in one batch of 2N filters
-            on = features.at[:, k].set(1.0)
-            log_marg = log_marginal_likelihoods(
-                jnp.concatenate([on, off], 0), jnp.concatenate([state.eta, state.eta], 0),
-                jnp.concatenate([state.log_lik, state.log_lik], 0), jnp.concatenate([self.data.mask] * 2, 0))
-            lm_on, lm_off = log_marg[:N], log_marg[N:]
-        else:
-            is_on = features[:, k] > 0
-            flipped = features.at[:, k].set(jnp.where(is_on, 0.0, 1.0))
-            lm_flip = log_marginal_likelihoods(flipped, state.eta, state.log_lik, self.data.mask)
-            lm_on, lm_off = jnp.where(is_on, current, lm_flip), jnp.where(is_on, lm_flip, current)
+            current = log_marginal_likelihoods(features, state.eta, state.log_lik, self.data.mask)
+        is_on = features[:, k] > 0
+        flipped = features.at[:, k].set(jnp.where(is_on, 0.0, 1.0))
+        lm_flip = log_marginal_likelihoods(flipped, state.eta, state.log_lik, self.data.mask)
+        lm_on, lm_off = jnp.where(is_on, current, lm_flip), jnp.where(is_on, lm_flip, current)
         # a trajectory must keep at least one skill
         lm_off = jnp.where(jnp.sum(off, -1) > 0, lm_off, -jnp.inf)
         prior = dist.Bernoulli(probs=state.omega[k])
