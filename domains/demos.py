@@ -14,6 +14,7 @@ from typing import Optional, Sequence
 import numpy as np
 
 from .files import atomic_write
+from .precision import float64_all
 
 __all__ = ["Demonstrations", "generate_demonstrations"]
 
@@ -307,3 +308,6 @@ def generate_demonstrations(domain, num_trajectories: int = 16, length: int = 50
                 switch = rng.random(N) < switch_prob
                 k = np.where(switch, (k + rng.integers(1, K, size=N)) % K, k)
     return Demonstrations(list(states), list(actions), list(skills), mdp_fingerprint=mdp.fingerprint())
+
+
+float64_all(globals())  # npbrs.domains.precision: float64 inside, the user's setting outside

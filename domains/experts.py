@@ -11,6 +11,7 @@ import scipy.sparse as sp
 from scipy.sparse.linalg import spsolve
 
 from .domain import Domain
+from .precision import float64_all
 
 __all__ = ["q_learning", "policy_values", "policy_return"]
 
@@ -150,3 +151,6 @@ def policy_values(mdp, reward, policy) -> np.ndarray:
 def policy_return(mdp, reward, policy) -> float:
     """Expected discounted return of a policy from the MDP's initial distribution (exact)."""
     return float(mdp.initial @ policy_values(mdp, reward, policy))
+
+
+float64_all(globals())  # npbrs.domains.precision: float64 inside, the user's setting outside

@@ -65,6 +65,7 @@ from gymnasium import spaces
 
 from .domain import Domain
 from .mdp import TabularMDP
+from .precision import float64_all
 
 __all__ = ["highway", "HighwayEnv", "SkillEnv", "encode", "decode", "sample_step", "render_highway", "CLOSING",
            "APPEAR", "LANE_CHANGE_SLOWDOWN", "FEATURE_NAMES", "SKILL_WEIGHTS", "ENV_ID", "WORLDS", "world_parameters"]
@@ -237,10 +238,11 @@ def make_next_value_fn(T: np.ndarray):
     """
     import jax.numpy as jnp
 
-    T = jnp.asarray(T)
+    # NumPy constants (float64 whatever JAX's setting when the domain is built)
+    T = np.asarray(T, np.float64)
     positions = np.arange(NUM_POSITIONS)[:, None]
-    kind = jnp.asarray(changes_lane(positions, np.arange(NUM_ACTIONS)[None, :]).astype(np.int32))
-    moves = jnp.asarray(MOVES)
+    kind = changes_lane(positions, np.arange(NUM_ACTIONS)[None, :]).astype(np.int32)
+    moves = np.asarray(MOVES)
 
     def next_value(V):
         batch = V.shape[:-1]
@@ -478,3 +480,6 @@ class HighwayEnv(SkillEnv):
 
 if ENV_ID not in gym.registry:
     gym.register(id=ENV_ID, entry_point=HighwayEnv, max_episode_steps=500)
+
+
+float64_all(globals())  # npbrs.domains.precision: float64 inside, the user's setting outside

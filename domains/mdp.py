@@ -13,6 +13,8 @@ from typing import Callable, Optional, Sequence
 
 import numpy as np
 
+from .pytree import Pytree
+
 __all__ = ["TabularMDP"]
 
 _PROB_ATOL = 1e-6
@@ -32,7 +34,7 @@ def set_frozen(obj, **fields) -> None:
 
 
 @dataclass(frozen=True, eq=False)
-class TabularMDP:
+class TabularMDP(Pytree):
     """A finite MDP with known dynamics and linear reward features.
 
     Args:

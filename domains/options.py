@@ -29,6 +29,7 @@ from dataclasses import dataclass
 from typing import List, NamedTuple, Optional, Sequence
 
 import numpy as np
+from .precision import float64_all
 
 __all__ = ["Option", "OptionRun", "estimate_options", "termination_counts", "run_option"]
 
@@ -202,3 +203,6 @@ def run_option(env, option: Option, *, state=None, seed: Optional[int] = None, g
             break
     return OptionRun(np.asarray(states, np.int64), np.asarray(actions, np.int64), np.asarray(rewards),
                      state, reason)
+
+
+float64_all(globals())  # npbrs.domains.precision: float64 inside, the user's setting outside

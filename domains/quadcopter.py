@@ -45,6 +45,7 @@ import numpy as np
 from .domain import Domain
 from .highway import SkillEnv
 from .mdp import TabularMDP
+from .precision import float64_all
 
 __all__ = ["quadcopter", "QuadcopterEnv", "encode", "decode", "sample_step", "render_quadcopter", "HOOPS",
            "HOOP_NAMES", "FEATURE_NAMES", "SKILL_WEIGHTS", "ENV_ID", "WORLDS", "world_parameters"]
@@ -184,9 +185,10 @@ def make_next_value_fn(hoop_probs=None, wind: float = 0.0):
     """
     import jax.numpy as jnp
 
-    moves = jnp.asarray(MOVES)
-    stay = jnp.broadcast_to(jnp.arange(NUM_CELLS)[:, None], MOVES.shape)
-    hp = None if hoop_probs is None else jnp.asarray(hoop_probs)
+    # NumPy constants (float64 whatever JAX's setting when the domain is built)
+    moves = np.asarray(MOVES)
+    stay = np.broadcast_to(np.arange(NUM_CELLS)[:, None], MOVES.shape)
+    hp = None if hoop_probs is None else np.asarray(hoop_probs, np.float64)
 
     def next_value(V):
         batch = V.shape[:-1]
@@ -337,3 +339,6 @@ class QuadcopterEnv(SkillEnv):
 
 if ENV_ID not in gym.registry:
     gym.register(id=ENV_ID, entry_point=QuadcopterEnv, max_episode_steps=500)
+
+
+float64_all(globals())  # npbrs.domains.precision: float64 inside, the user's setting outside

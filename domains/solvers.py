@@ -34,13 +34,15 @@ reduction over a gathered axis compiles to code an order of magnitude slower.
 from __future__ import annotations
 
 import weakref
+from functools import partial
 from typing import Callable, NamedTuple, Optional, Tuple
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
-jax.config.update("jax_enable_x64", True)
+from .pytree import Pytree
+from .precision import float64_all
 
 __all__ = ["next_value_operator", "soft_value_iteration", "value_iteration", "SolveResult",
            "boltzmann_log_policy", "greedy_policy", "make_soft_solver", "make_hard_solver",
@@ -70,7 +72,7 @@ class SolveResult(NamedTuple):
 
 
 # ------------------------------------------------------------------ next-value operators
-class _Columns:
+class _Columns(Pytree):
     """E[V(s') | s, a] as A columns, and its transpose, for a batch of value vectors.
 
     ``apply(V)`` maps V (K, S) to a tuple of A arrays (K, S); ``transpose(cols)`` maps A
@@ -414,12 +416,19 @@ def _check_options(tol, max_iter, krylov_dim, max_restarts, degree):
 
 
 # ------------------------------------------------------------------------ soft solver
-def _call_flat(solve, r, v0, S, A):
+@jax.jit
+def _solve_batch(solver, r, v0):
+    """A solver's ``_solve_batch``, compiled per solver kind, options and shapes (the solver's
+    arrays are arguments: another MDP of the same shapes reuses the program)."""
+    return solver._solve_batch(r, v0)
+
+
+def _call_flat(solve, solver, r, v0, S, A):
     """Call a jitted solve on K = prod(batch) systems and restore the batch shape, so that every
     batch shape with the same number of systems shares one compiled program."""
     batch = r.shape[:-2]
     K = int(np.prod(batch, dtype=int))
-    res = solve(r.reshape(K, S, A), None if v0 is None else v0.reshape(K, S))
+    res = solve(solver, r.reshape(K, S, A), None if v0 is None else v0.reshape(K, S))
     return SolveResult(res.V.reshape(batch + (S,)), res.Q.reshape(batch + (S, A)), res.num_iter.reshape(batch),
                        res.residual.reshape(batch), res.num_matvec.reshape(batch))
 
@@ -434,7 +443,7 @@ def _flattened(core, r, v0, S, A):
                        nmv.reshape(batch))
 
 
-class SoftSolver:
+class SoftSolver(Pytree):
     """Soft value iteration for one MDP as a pure, jit-able, differentiable function.
 
     ``solver(rewards, v0)`` maps reward tables (..., S, A) and a warm start (..., S) (or None:
@@ -477,35 +486,45 @@ class SoftSolver:
         self.operator = self._op.kind
         self.features = jnp.asarray(mdp.features)
         self._fixed_point = self._make_fixed_point()
-        self._solve = jax.jit(self._solve_batch)
+
+    # (a closure over the operator's arrays: rebuilt when the solver is unflattened under jit)
+    _pytree_derived = ("_fixed_point",)
+
+    def _pytree_rebuild(self):
+        self._fixed_point = self._make_fixed_point()
 
     def __repr__(self):
         return (f"SoftSolver(mdp={self.mdp.name!r}, method={self.method!r}, operator={self.operator!r}, "
                 f"tol={self.tol:g}, max_iter={self.max_iter})")
 
     # -- the fixed points of K reward tables (K, S, A), with their implicit derivative
-    def _core(self, r, v0):
+    def _core(self, op, r, v0):
         r_cols = tuple(r[..., a] for a in range(self.num_actions))
         if self.method == "newton":
-            return _soft_newton(self._op, self.discount, r_cols, v0, self.tol, self.max_iter,
+            return _soft_newton(op, self.discount, r_cols, v0, self.tol, self.max_iter,
                                 self.precondition_degree, self.krylov_dim, self.max_restarts, self.forcing)
-        return _soft_vi(self._op, self.discount, r_cols, v0, self.tol, self.max_iter)
+        return _soft_vi(op, self.discount, r_cols, v0, self.tol, self.max_iter)
 
     def _make_fixed_point(self):
-        op, gamma, A = self._op, self.discount, self.num_actions
+        # the operator's arrays are an argument (not closed over): under jit they are traced,
+        # and a custom derivative may not close over traced values; only the static options are
+        # taken from self. Derivatives are with respect to the rewards (the operator's tangent
+        # is ignored: the dynamics are data, not parameters).
+        gamma, A = self.discount, self.num_actions
         dim, cycles, gtol, degree = self.krylov_dim, self.max_restarts, self.grad_tol, self.precondition_degree
+        core = self._core
 
         @jax.custom_jvp
-        def fixed_point(r, v0):
-            Q, V, it, res, nmv = self._core(r, v0)
+        def fixed_point(op, r, v0):
+            Q, V, it, res, nmv = core(op, r, v0)
             # V = logsumexp(Q) exactly (same Q columns), so Q - V is a normalised log-policy
             return V, jnp.stack(Q, -1), it, res, nmv
 
         @fixed_point.defjvp
         def fixed_point_jvp(primals, tangents):
-            r, v0 = primals
-            dr, _ = tangents
-            V, Q, it, res, nmv = fixed_point(r, v0)
+            op, r, v0 = primals
+            _, dr, _ = tangents
+            V, Q, it, res, nmv = fixed_point(op, r, v0)
             pi = tuple(jnp.exp(Q[..., a] - V) for a in range(A))
             rhs = sum(p * dr[..., a] for a, p in enumerate(pi))
             dV = jax.lax.custom_linear_solve(
@@ -520,7 +539,7 @@ class SoftSolver:
         return fixed_point
 
     def _solve_batch(self, r, v0):
-        return _flattened(self._fixed_point, r, v0, self.num_states, self.num_actions)
+        return _flattened(partial(self._fixed_point, self._op), r, v0, self.num_states, self.num_actions)
 
     def __call__(self, rewards, v0=None) -> SolveResult:
         """Solve for reward tables (..., S, A), warm-started from v0 (..., S) or zeros."""
@@ -537,7 +556,7 @@ class SoftSolver:
             _check_v0(v0, shape[:-2], S)
         rewards = jnp.asarray(rewards, jnp.float64)
         v0 = None if v0 is None else jnp.asarray(v0, jnp.float64)
-        return _call_flat(self._solve, rewards, v0, S, A)
+        return _call_flat(_solve_batch, self, rewards, v0, S, A)
 
     def rewards(self, theta) -> jax.Array:
         """Reward tables r = phi . theta, (..., S, A) for theta (..., D)."""
@@ -654,7 +673,7 @@ def _hard_vi(op, gamma, r_cols, v0, tol, max_iter):
     return Q, TV, it, res, jnp.zeros(K, jnp.int32)
 
 
-class HardSolver:
+class HardSolver(Pytree):
     """Hard (max) Bellman solver for one MDP: ``solver(rewards (..., S, A), v0) -> SolveResult``.
 
     ``method="policy"`` (default): Howard's policy iteration with GMRES policy evaluation; it
@@ -678,7 +697,6 @@ class HardSolver:
         self.num_states, self.num_actions = mdp.num_states, mdp.num_actions
         self._op = _Columns(mdp, operator)
         self.operator = self._op.kind
-        self._solve = jax.jit(self._solve_batch)
 
     def _core(self, r, v0):
         r_cols = tuple(r[..., a] for a in range(self.num_actions))
@@ -707,7 +725,7 @@ class HardSolver:
             if _is_concrete(v0):
                 _check_v0(v0, shape[:-2], S)
             v0 = jnp.asarray(v0, jnp.float64)
-        return _call_flat(self._solve, jnp.asarray(rewards, jnp.float64), v0, S, A)
+        return _call_flat(_solve_batch, self, jnp.asarray(rewards, jnp.float64), v0, S, A)
 
 
 def make_hard_solver(mdp, *, tol: float = 1e-12, max_iter: Optional[int] = None, method: str = "policy",
@@ -770,3 +788,6 @@ def greedy_policy(Q, atol: float = 1e-9) -> np.ndarray:
     Q = np.asarray(Q)
     best = Q.max(-1, keepdims=True)
     return np.argmax(Q >= best - atol * np.maximum(1.0, np.abs(best)), axis=-1)
+
+
+float64_all(globals())  # npbrs.domains.precision: float64 inside, the user's setting outside

@@ -17,6 +17,7 @@ import sys
 from typing import Optional
 
 from .cli_generate import _at_least
+from npbrs.domains.precision import float64_all
 
 __all__ = ["build_parser", "main", "compilation_cache_dir", "DEMO_CONFIG", "QUICK_DEMO_CONFIG"]
 
@@ -32,34 +33,22 @@ QUICK_DEMO_CONFIG = {"emission": {"name": "reward"}, "max_skills": 3,
 QUICK_DEMO_DATA = {"num_trajectories": 3, "length": 30}
 
 
+def compilation_cache_dir(environ=None) -> Optional[str]:
+    """npbrs's compilation cache folder (:func:`npbrs.inference.fit.compilation_cache_dir`)."""
+    from .fit import compilation_cache_dir as folder
+
+    return folder(environ)
+
+
+def use_compilation_cache() -> Optional[str]:
+    from .fit import use_compilation_cache as use
+
+    return use()
+
+
 def _error(command: str, message) -> int:
     print(f"npbrs {command}: error: {message}", file=sys.stderr)
     return 2
-
-
-def compilation_cache_dir(environ=None) -> Optional[str]:
-    """The folder where ``npbrs fit`` and ``npbrs demo`` keep JAX's compiled sweeps, so that the
-    same model on the same demonstrations again (another seed or sweep count, a resumed run, the
-    demo once more) skips most of the compilation: ``$NPBRS_CACHE_DIR``, else
-    ``$XDG_CACHE_HOME/npbrs/jax`` (``~/.cache/npbrs/jax``). None, no cache, when
-    ``NPBRS_CACHE_DIR`` is empty or "off", or when ``JAX_COMPILATION_CACHE_DIR`` is set (JAX
-    then uses that folder itself)."""
-    environ = os.environ if environ is None else environ
-    if environ.get("JAX_COMPILATION_CACHE_DIR"):
-        return None
-    own = environ.get("NPBRS_CACHE_DIR")
-    if own is not None:
-        return None if own.strip().lower() in ("", "off") else os.path.expanduser(own)
-    base = environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
-    return os.path.join(base, "npbrs", "jax")
-
-
-def _use_compilation_cache() -> None:
-    path = compilation_cache_dir()
-    if path:
-        import jax
-
-        jax.config.update("jax_compilation_cache_dir", path)
 
 
 # ------------------------------------------------------------------------------------ fit
@@ -121,7 +110,7 @@ def _load_world(args):
 def fit_command(args) -> int:
     from .fit import fit
 
-    _use_compilation_cache()
+    use_compilation_cache()
     try:
         mdp, demos = _load_world(args)
         init = None
@@ -260,7 +249,7 @@ def demo_command(args) -> int:
     from .fit import fit
     from .metrics import hungarian_accuracy, num_switches, paper_accuracy
 
-    _use_compilation_cache()
+    use_compilation_cache()
     data = QUICK_DEMO_DATA if args.quick else DEMO_DATA
     config = ModelConfig.from_dict(QUICK_DEMO_CONFIG if args.quick else DEMO_CONFIG)
     sampler = dict(config.sampler.to_dict(), seed=args.seed)
@@ -347,3 +336,6 @@ def main(argv=None) -> int:
 
 if __name__ == "__main__":
     sys.exit(main())
+
+
+float64_all(globals())  # npbrs.domains.precision: float64 inside, the user's setting outside

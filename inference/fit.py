@@ -20,6 +20,7 @@ import sys
 import threading
 import time
 from collections import OrderedDict
+from functools import partial
 from operator import attrgetter
 from typing import Optional, Union
 
@@ -33,10 +34,44 @@ from npbrs.models.emissions import Emission, HMMData, get_emission_class
 from .config import EmissionConfig, ModelConfig, PriorConfig
 from .kernel import BPHMMKernel
 from .results import LABEL_INVARIANT, FitResult
+from npbrs.domains.precision import float64_all
 
-jax.config.update("jax_enable_x64", True)
+__all__ = ["fit", "make_emission", "resolve_config", "compilation_cache_dir", "use_compilation_cache"]
 
-__all__ = ["fit", "make_emission", "resolve_config"]
+
+def compilation_cache_dir(environ=None) -> Optional[str]:
+    """The folder where ``fit`` (and ``npbrs fit``/``demo``) keep JAX's compiled programs, so that
+    a model of the same shapes and options again (other demonstrations, another seed or sweep
+    count, a resumed run, the demo once more, a new process) skips most of the compilation:
+    ``$NPBRS_CACHE_DIR``, else ``$XDG_CACHE_HOME/npbrs/jax`` (``~/.cache/npbrs/jax``). None, no
+    cache, when ``NPBRS_CACHE_DIR`` is empty or "off", or when ``JAX_COMPILATION_CACHE_DIR`` is
+    set (JAX then uses that folder itself)."""
+    environ = os.environ if environ is None else environ
+    if environ.get("JAX_COMPILATION_CACHE_DIR"):
+        return None
+    own = environ.get("NPBRS_CACHE_DIR")
+    if own is not None:
+        return None if own.strip().lower() in ("", "off") else os.path.expanduser(own)
+    base = environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
+    return os.path.join(base, "npbrs", "jax")
+
+
+def use_compilation_cache() -> Optional[str]:
+    """Turn on JAX's persistent compilation cache in :func:`compilation_cache_dir` unless the
+    process has chosen a cache folder already (``jax_compilation_cache_dir``, which is then left
+    alone) or the cache is off; returns the folder in use, or None.
+
+    This is the one process-wide setting npbrs makes, on the first ``fit`` (never at import):
+    the folder holds compiled programs only, and a cache entry that cannot be read or written
+    (corrupt, half-written by another process, a full disk) is a warning from JAX and a
+    recompilation, never an error (tested with corrupted entries)."""
+    current = jax.config.jax_compilation_cache_dir
+    if current:
+        return current
+    path = compilation_cache_dir()
+    if path:
+        jax.config.update("jax_compilation_cache_dir", path)
+    return path
 
 
 def make_emission(emission, mdp, **options) -> Emission:
@@ -126,59 +161,68 @@ def _mdp_key(mdp) -> str:
 
 
 class _Compiled:
-    """A kernel and its jitted sweep-and-record functions (kept between fits of one model)."""
+    """A kernel and its sweep-and-record functions (kept between fits of one model).
+
+    The functions are compiled once per kernel *structure* and shapes, not per kernel: the
+    kernel (its demonstrations, MDP arrays and emission) is an argument of the jitted module
+    functions below, so a new dataset of the same shapes reuses the compiled sweep."""
 
     def __init__(self, kernel: BPHMMKernel, hyper_names):
-        self.kernel = kernel  # holds the emission, so an instance's id stays a valid cache key
+        self.kernel = kernel
         self.hyper_names = tuple(hyper_names)
-        self._fns = {}
 
     def record(self, state) -> dict:
         """The fields kept after a sweep, of one chain."""
-        kernel = self.kernel
-        out = {}
-        for name in dict.fromkeys((kernel.sample_field,) + tuple(kernel.default_fields)):
-            value = attrgetter(name)(state)
-            if isinstance(value, dict):
-                out.update(value)
-            elif hasattr(value, "_fields"):
-                out.update(value._asdict())
-            else:
-                out[name] = value
-        K = kernel.max_skills
-        mask = kernel.data.mask
-        out["skill_steps"] = jnp.sum(jax.nn.one_hot(state.z, K, dtype=jnp.int32) * mask[..., None], axis=(0, 1))
-        for name in self.hyper_names:
-            out[name] = getattr(state.hyper, name)
-        return out
+        return _record(self.kernel, self.hyper_names, state)
 
     def init(self, keys, num_warmup: int, z0=None):
         """Every chain's initial state (keys (C, 2)), on the host; z0: an initial segmentation
         (N, T) shared by the chains, or None (random windows)."""
-        name = "init" if z0 is None else "init_z"
-        if name not in self._fns:
-            kernel = self.kernel
-            self._fns[name] = jax.jit(lambda k, z: _strong(kernel.init(k, num_warmup, None if z is None else {"z": z},
-                                                                       (), {})))
-        return _to_host(self._fns[name](keys, z0))
+        return _to_host(_init_chains(self.kernel, keys, z0, jnp.int32(num_warmup)))
 
     def step(self, method: str):
         """state -> (next state, record): batched over chains ("vectorized"), one chain
         ("sequential") or one chain per device ("parallel")."""
-        if method not in self._fns:
-            kernel = self.kernel
+        fn = {"vectorized": _sweep_batched, "sequential": _sweep_one, "parallel": _sweep_parallel}[method]
+        return partial(fn, self.kernel, self.hyper_names)
 
-            def one(state):
-                new = _strong(kernel.sample(state, (), {}))
-                return new, self.record(new)
 
-            def batched(state):
-                new = _strong(kernel.sample(state, (), {}))
-                return new, jax.vmap(self.record)(new)
+def _record(kernel: BPHMMKernel, hyper_names, state) -> dict:
+    out = {}
+    for name in dict.fromkeys((kernel.sample_field,) + tuple(kernel.default_fields)):
+        value = attrgetter(name)(state)
+        if isinstance(value, dict):
+            out.update(value)
+        elif hasattr(value, "_fields"):
+            out.update(value._asdict())
+        else:
+            out[name] = value
+    K = kernel.max_skills
+    mask = kernel.data.mask
+    out["skill_steps"] = jnp.sum(jax.nn.one_hot(state.z, K, dtype=jnp.int32) * mask[..., None], axis=(0, 1))
+    for name in hyper_names:
+        out[name] = getattr(state.hyper, name)
+    return out
 
-            self._fns[method] = {"vectorized": jax.jit(batched), "sequential": jax.jit(one),
-                                 "parallel": jax.pmap(one)}[method]
-        return self._fns[method]
+
+@jax.jit
+def _init_chains(kernel, keys, z0, num_warmup):
+    return _strong(kernel.init(keys, num_warmup, None if z0 is None else {"z": z0}, (), {}))
+
+
+def _sweep_one_impl(kernel, hyper_names, state):
+    new = _strong(kernel.sample(state, (), {}))
+    return new, _record(kernel, hyper_names, new)
+
+
+@partial(jax.jit, static_argnums=1)
+def _sweep_batched(kernel, hyper_names, state):
+    new = _strong(kernel.sample(state, (), {}))
+    return new, jax.vmap(partial(_record, kernel, hyper_names))(new)
+
+
+_sweep_one = jax.jit(_sweep_one_impl, static_argnums=1)
+_sweep_parallel = jax.pmap(_sweep_one_impl, in_axes=(None, None, 0), static_broadcasted_argnums=1)
 
 
 _COMPILED: "OrderedDict[str, _Compiled]" = OrderedDict()
@@ -451,7 +495,12 @@ def fit(mdp, demos: Demonstrations, config: Union[ModelConfig, dict, str, os.Pat
         a :class:`~npbrs.inference.results.FitResult`.
     Raises:
         ValueError: bad demonstrations, configuration or checkpoint, before anything is compiled.
+
+    The compiled sampler is kept in JAX's persistent compilation cache, in npbrs's folder
+    (:func:`compilation_cache_dir`: ``~/.cache/npbrs/jax``), unless the process has a cache
+    folder of its own already or ``NPBRS_CACHE_DIR=off`` (see :func:`use_compilation_cache`).
     """
+    use_compilation_cache()
     cfg = resolve_config(config, emission=emission, emission_options=emission_options, num_chains=num_chains,
                          num_samples=num_samples, num_warmup=num_warmup, max_skills=max_skills, seed=seed,
                          chain_method=chain_method, alpha=alpha, kappa=kappa, gamma=gamma, hyperpriors=hyperpriors,
@@ -502,7 +551,7 @@ def fit(mdp, demos: Demonstrations, config: Union[ModelConfig, dict, str, os.Pat
         leaves, draws, saved = _read_checkpoint(checkpoint_path, meta)
         from .runs import restore_state
 
-        like = jax.eval_shape(lambda k: kernel.init(k, W, None, (), {}), keys)  # also sets the kernel's warmup
+        like = jax.eval_shape(lambda k: kernel.init(k, W, None, (), {}), keys)
         state = restore_state(leaves, like, checkpoint_path)
         done, wall = int(saved["sweeps_done"]), float(saved["wall_time"])
 
@@ -602,3 +651,6 @@ def _differences(a, b, prefix=""):
             yield from _differences(a.get(k), b.get(k), f"{prefix}{k}.")
     elif a != b:
         yield prefix.rstrip(".")
+
+
+float64_all(globals())  # npbrs.domains.precision: float64 inside, the user's setting outside

@@ -56,6 +56,7 @@ import jax.numpy as jnp
 from npbrs.models.bphmm import collapsed_feature_log_prob, collapsed_sequence_log_prob
 
 from .split_merge import _allocate, _skill_counts
+from npbrs.domains.precision import float64_all
 
 __all__ = ["GreedyInfo", "greedy_merge", "greedy_merge_at", "greedy_split", "greedy_split_at", "merge_score"]
 
@@ -193,3 +194,6 @@ def greedy_split_at(key, anchors, emission, data, hyper, features, z, params, lo
     accept = possible & jnp.any(used_a) & jnp.any(used_b) & jnp.isfinite(gain) & (gain > 0)
     info = GreedyInfo(k1, k2, possible, accept, jnp.where(possible, gain, -jnp.inf))
     return _keep(accept, info, (f_new, z_new, new_params, new_log_lik), (features, z, params, log_lik))
+
+
+float64_all(globals())  # npbrs.domains.precision: float64 inside, the user's setting outside

@@ -25,6 +25,7 @@ import numpy as np
 import numpyro.distributions as dist
 from numpyro.infer.mcmc import MCMCKernel
 
+from npbrs.domains.pytree import Pytree
 from npbrs.models.bphmm import (Hyper, bphmm_model, eta_from_gammas, eta_gamma_shapes, hmm_parameters, log_joint_terms,
                                 log_marginal_likelihoods)
 from npbrs.models.emissions import Emission, HMMData
@@ -33,8 +34,7 @@ from npbrs.models.hmm import batch_backward_sample, batch_forward_filter, transi
 from .greedy import greedy_merge, greedy_split
 from .moves import birth_death
 from .split_merge import split_merge
-
-jax.config.update("jax_enable_x64", True)
+from npbrs.domains.precision import float64_all
 
 __all__ = ["BPHMMState", "BPHMMKernel"]
 
@@ -89,7 +89,7 @@ def _label_invariant(z, mask, K):
     return jnp.sum(used).astype(jnp.int32), jnp.mean(switches.astype(jnp.float64))
 
 
-class BPHMMKernel(MCMCKernel):
+class BPHMMKernel(MCMCKernel, Pytree):
     """Gibbs sampler of the BP-HMM for any emission model.
 
     Args:
@@ -139,8 +139,6 @@ class BPHMMKernel(MCMCKernel):
         if self.moves["greedy_split"] and not emission.supports_split_merge():
             raise ValueError(f"moves.greedy_split: the {emission.name!r} emission has no fit_point, which greedy "
                              "splits need; implement Emission.fit_point")
-        self._num_warmup = 0
-        self._init_fns = {}
 
     _MOVE_DEFAULTS = {"birth_death": 0, "window": (10, 50), "split_merge": 0, "blocks": 2, "start": 0,
                       "greedy_merge": 0, "greedy_split": 0, "greedy_from": 0.5}
@@ -187,15 +185,10 @@ class BPHMMKernel(MCMCKernel):
         """Initial state(s). ``init_params`` may hold {"z": (N, T) skill labels in [0, K)}: start
         every chain from that segmentation (see :meth:`check_segmentation`) instead of the
         random windows."""
-        self._num_warmup = int(num_warmup)
         batched = jnp.ndim(rng_key) > 1 or (jax.dtypes.issubdtype(rng_key.dtype, jax.dtypes.prng_key)
                                             and jnp.ndim(rng_key) > 0)
         z0 = None if not init_params or init_params.get("z") is None else jnp.asarray(init_params["z"], jnp.int32)
-        fn_key = (batched, self._num_warmup, z0 is not None)
-        if fn_key not in self._init_fns:
-            # compiled once per kernel (the warmup length is baked into the initial state)
-            self._init_fns[fn_key] = jax.jit(jax.vmap(self._init, in_axes=(0, None)) if batched else self._init)
-        return self._init_fns[fn_key](rng_key, z0)
+        return _init_state(self, rng_key, z0, jnp.asarray(num_warmup, jnp.int32), batched)
 
     def check_segmentation(self, z) -> np.ndarray:
         """An initial segmentation as an (N, T) int32 array in [0, K) (-1 on padding), from per
@@ -249,7 +242,7 @@ class BPHMMKernel(MCMCKernel):
         return state._replace(cache=cache, log_lik=log_lik, log_marginals=log_marg, log_joint=log_joint,
                               num_skills=num_skills, num_switches=num_switches)
 
-    def _init(self, rng_key, z0=None):
+    def _init(self, rng_key, z0=None, num_warmup=0):
         N, T = self.data.states.shape
         K, K0 = self.max_skills, self.init_skills
         keys = jax.random.split(rng_key, 6)
@@ -270,7 +263,7 @@ class BPHMMKernel(MCMCKernel):
         eta, omega = self._sample_eta_omega(keys[3], z, features, hyper)
         zero = jnp.float64(0.0)
         state = BPHMMState(
-            step=jnp.int32(0), num_warmup=jnp.int32(self._num_warmup), rng_key=keys[4], omega=omega,
+            step=jnp.int32(0), num_warmup=jnp.asarray(num_warmup, jnp.int32), rng_key=keys[4], omega=omega,
             features=features, eta=eta, params=params,
             cache=self.emission.init_cache(K), hyper=hyper, z=z,
             log_lik=jnp.zeros((N, T, K)), log_marginals=jnp.zeros(N), log_joint=zero,
@@ -472,3 +465,15 @@ class BPHMMKernel(MCMCKernel):
             accept = jnp.log(jax.random.uniform(k2)) < log_ratio
             hyper = hyper._replace(**{name: jnp.where(accept, prop, old)})
         return hyper
+
+
+@partial(jax.jit, static_argnums=4)
+def _init_state(kernel: BPHMMKernel, rng_key, z0, num_warmup, batched: bool):
+    """The initial state(s), compiled per kernel structure and shapes (the kernel's data and
+    emission are arguments, so a new dataset of the same shapes reuses the program)."""
+    if batched:
+        return jax.vmap(kernel._init, in_axes=(0, None, None))(rng_key, z0, num_warmup)
+    return kernel._init(rng_key, z0, num_warmup)
+
+
+float64_all(globals())  # npbrs.domains.precision: float64 inside, the user's setting outside

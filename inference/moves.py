@@ -33,6 +33,7 @@ import jax.numpy as jnp
 
 from npbrs.models.bphmm import collapsed_feature_log_prob, hmm_parameters
 from npbrs.models.hmm import forward_filter
+from npbrs.domains.precision import float64_all
 
 __all__ = ["BirthDeathInfo", "birth_death", "birth_death_log_ratio", "window_weights"]
 
@@ -147,3 +148,6 @@ def birth_death(key, emission, data, hyper, features, eta, params, log_lik, min_
     pick = lambda a, b: jax.tree.map(lambda x, y: jnp.where(accept, x, y), a, b)  # noqa: E731
     info = BirthDeathInfo(is_birth, possible, accept, jnp.where(possible, log_ratio, -jnp.inf))
     return pick(f2, features), pick(p2, params), pick(ll2, log_lik), info
+
+
+float64_all(globals())  # npbrs.domains.precision: float64 inside, the user's setting outside

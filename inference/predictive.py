@@ -17,6 +17,7 @@ reduce the posterior's own sampling error, which this does not report.)
 
 from __future__ import annotations
 
+from functools import partial
 from typing import NamedTuple, Optional
 
 import jax
@@ -25,6 +26,7 @@ import numpy as np
 
 from npbrs.models.bphmm import Hyper, feature_predictive, predictive_log_likelihoods
 from npbrs.models.emissions import Emission, HMMData
+from npbrs.domains.precision import float64_all
 
 __all__ = ["HeldOut", "SkillProbabilities", "log_predictive", "pointwise_log_likelihood", "segment"]
 
@@ -195,20 +197,8 @@ def _draw_moments(result, mdp, demos, idx, num_samples, seed, emission, leave_on
     hyper_fixed = {n: float(getattr(cfg.prior, n).value) for n in ("alpha", "kappa", "gamma")}
     others = N - 1 if leave_one_out else N
 
-    lse = jax.scipy.special.logsumexp
-
-    @jax.jit
-    def one_draw(key, params, counts, hyper, data):
-        log_lik, _ = emission.log_likelihoods(params, data, emission.init_cache(K))
-        p_on = feature_predictive(counts, others, hyper.alpha)
-        lm = predictive_log_likelihoods(key, log_lik, data.mask, p_on, hyper, num_samples)  # (M, n)
-        return jnp.stack([lse(lm, axis=0), lse(2 * lm, axis=0)]) - jnp.log(num_samples)
-
-    @jax.jit
-    def one_draw_marginals(key, params, p_on, hyper, data):
-        log_lik, _ = emission.log_likelihoods(params, data, emission.init_cache(K))
-        lm, post = predictive_log_likelihoods(key, log_lik, data.mask, p_on, hyper, num_samples, marginals=True)
-        return lse(lm, axis=0), lse(lm[..., None, None] + post, axis=0)
+    one_draw = partial(_one_draw, emission, num_samples=num_samples, others=others)
+    one_draw_marginals = partial(_one_draw_marginals, emission, num_samples=num_samples)
 
     draws = _each_draw(samples, params_all, hyper_fixed, idx, seed, C)
     if marginals:
@@ -224,6 +214,28 @@ def _draw_moments(result, mdp, demos, idx, num_samples, seed, emission, leave_on
         counts = jnp.asarray(f.sum(0) - f if leave_one_out else f.sum(0), jnp.float64)
         out[c, j] = np.asarray(one_draw(key, params, counts, hyper, data))
     return out
+
+
+_lse = jax.scipy.special.logsumexp
+
+
+# compiled per emission structure and shapes: the emission (its MDP's arrays), the draw and the
+# demonstrations are arguments, so every draw, run and data set of the same shapes shares one
+@partial(jax.jit, static_argnames="num_samples")
+def _one_draw(emission, key, params, counts, hyper, data, *, num_samples, others):
+    K = counts.shape[-1]
+    log_lik, _ = emission.log_likelihoods(params, data, emission.init_cache(K))
+    p_on = feature_predictive(counts, others, hyper.alpha)
+    lm = predictive_log_likelihoods(key, log_lik, data.mask, p_on, hyper, num_samples)  # (M, n)
+    return jnp.stack([_lse(lm, axis=0), _lse(2 * lm, axis=0)]) - jnp.log(num_samples)
+
+
+@partial(jax.jit, static_argnames="num_samples")
+def _one_draw_marginals(emission, key, params, p_on, hyper, data, *, num_samples):
+    K = p_on.shape[-1]
+    log_lik, _ = emission.log_likelihoods(params, data, emission.init_cache(K))
+    lm, post = predictive_log_likelihoods(key, log_lik, data.mask, p_on, hyper, num_samples, marginals=True)
+    return _lse(lm, axis=0), _lse(lm[..., None, None] + post, axis=0)
 
 
 def _each_draw(samples, params_all, hyper_fixed, idx, seed, C):
@@ -256,3 +268,6 @@ def _summarise(moments: np.ndarray, num_samples: int, demos) -> HeldOut:
     steps = int(np.sum(demos.lengths))
     return HeldOut(per_trajectory=log_p, per_trajectory_se=se, per_step=float(log_p.sum() / steps),
                    per_step_se=float(np.sqrt(np.sum(se ** 2)) / steps), num_steps=steps, num_draws=S)
+
+
+float64_all(globals())  # npbrs.domains.precision: float64 inside, the user's setting outside

@@ -6,6 +6,7 @@ from dataclasses import dataclass, field
 from typing import Dict, List, Optional
 
 import numpy as np
+from npbrs.domains.precision import float64_all
 
 __all__ = ["FitResult", "LABEL_INVARIANT"]
 
@@ -338,3 +339,6 @@ class FitResult:
         if warning:
             lines.append(warning)
         return "\n".join(lines)
+
+
+float64_all(globals())  # npbrs.domains.precision: float64 inside, the user's setting outside

@@ -29,8 +29,7 @@ import jax
 import jax.numpy as jnp
 
 from ..models.reward import PRIOR_SCALE, _check_prior_scale, _ll_grad_residual, as_solver, log_prior
-
-jax.config.update("jax_enable_x64", True)
+from npbrs.domains.precision import float64_all
 
 __all__ = ["RewardMALAState", "RewardMALAInfo", "init", "build_kernel"]
 
@@ -73,7 +72,7 @@ def _log_density_and_grad(solver, theta, counts, v0, prior_scale):
     return lp, g, V, ok & jnp.all(jnp.isfinite(g), axis=-1)
 
 
-_LOG_DENSITY_AND_GRAD = jax.jit(_log_density_and_grad, static_argnums=0)
+_LOG_DENSITY_AND_GRAD = jax.jit(_log_density_and_grad)
 
 
 def init(solver, theta, counts, prior_scale=PRIOR_SCALE, v0=None) -> RewardMALAState:
@@ -142,3 +141,6 @@ def build_kernel(solver, prior_scale=PRIOR_SCALE) -> Callable:
         return new_state, RewardMALAInfo(rate, accept, lp_new, ~ok)
 
     return kernel
+
+
+float64_all(globals())  # npbrs.domains.precision: float64 inside, the user's setting outside

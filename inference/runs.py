@@ -49,6 +49,7 @@ import os
 import numpy as np
 
 from npbrs.domains.files import atomic_write
+from npbrs.domains.precision import float64_all
 
 __all__ = ["save_run", "load_run", "load", "to_inference_data", "from_inference_data", "save_mdp", "load_mdp",
            "write_checkpoint", "read_checkpoint", "restore_state", "atomic_write"]
@@ -329,3 +330,6 @@ def restore_state(leaves, like, path="checkpoint"):
             raise ValueError(f"{path}: sampler state array {i} has shape {a.shape} and dtype {a.dtype}, but this "
                              f"kernel expects {tuple(e.shape)} and {e.dtype}; it was written by a different sampler")
     return jax.tree_util.tree_unflatten(treedef, leaves)
+
+
+float64_all(globals())  # npbrs.domains.precision: float64 inside, the user's setting outside

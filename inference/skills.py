@@ -15,6 +15,7 @@ from __future__ import annotations
 from typing import List
 
 import numpy as np
+from npbrs.domains.precision import float64_all
 
 __all__ = ["skill_policies", "skill_options", "skill_parameters", "REWARDS"]
 
@@ -124,3 +125,6 @@ def skill_options(result, mdp, demos=None, *, prior_strength: float = 2.0, rewar
     return estimate_options(demos.states, labels, skill_policies(result, mdp, rewards=rewards, emission=em),
                             skill_policies(result, mdp, greedy=True, rewards=rewards, emission=em),
                             prior_strength=prior_strength)
+
+
+float64_all(globals())  # npbrs.domains.precision: float64 inside, the user's setting outside

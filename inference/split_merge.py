@@ -100,6 +100,7 @@ import jax.numpy as jnp
 
 from npbrs.models.bphmm import collapsed_feature_log_prob, eta_from_gammas, eta_gamma_shapes, hmm_parameters
 from npbrs.models.hmm import NEG_LOG, batch_backward_sample, batch_forward_filter, transition_counts, viterbi
+from npbrs.domains.precision import float64_all
 
 __all__ = ["SplitMergeInfo", "split_merge", "split_merge_at"]
 
@@ -440,3 +441,6 @@ def split_merge(key, emission, data, hyper, features, eta, z, params, log_lik, n
     pick = lambda a, b: jax.tree.map(lambda x, y: jnp.where(accept, x, y), a, b)  # noqa: E731
     info = SplitMergeInfo(is_split, possible, accept, jnp.where(possible, log_ratio, -jnp.inf))
     return pick(f2, features), pick(eta2, eta), pick(z2, z), pick(p2, params), pick(ll2, log_lik), info
+
+
+float64_all(globals())  # npbrs.domains.precision: float64 inside, the user's setting outside

@@ -36,8 +36,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .emissions import Emission, register_emission
-
-jax.config.update("jax_enable_x64", True)
+from npbrs.domains.precision import float64_all
 
 __all__ = ["AutoregressiveEmission", "MNIWPosterior"]
 
@@ -193,3 +192,6 @@ class AutoregressiveEmission(Emission):
     def describe(self):
         """The options that rebuild this emission with ``from_mdp``."""
         return {"name": self.name, "v0": self.v0, "nu0": self.nu0, "s0": self.s0}
+
+
+float64_all(globals())  # npbrs.domains.precision: float64 inside, the user's setting outside

@@ -27,8 +27,7 @@ import numpyro.distributions as dist
 from jax.scipy.special import betaln
 
 from .hmm import batch_forward_filter
-
-jax.config.update("jax_enable_x64", True)
+from npbrs.domains.precision import float64_all
 
 __all__ = ["Hyper", "prior_distributions", "hmm_parameters", "eta_gamma_shapes", "eta_from_gammas",
            "log_marginal_likelihoods", "feature_predictive", "predictive_log_likelihoods",
@@ -243,3 +242,6 @@ def log_joint_terms(omega, features, eta, params, log_marginals, hyper: Hyper, e
         for name, (shape, rate) in hyperpriors.items():
             terms[name] = dist.Gamma(shape, rate).log_prob(getattr(hyper, name))
     return terms
+
+
+float64_all(globals())  # npbrs.domains.precision: float64 inside, the user's setting outside

@@ -27,6 +27,13 @@ An emission model supplies everything that depends on what a skill *is*:
 
 A new emission model implements this protocol and registers itself with
 :func:`register_emission`; the sampler needs no change.
+
+An emission is a pytree (:class:`npbrs.domains.pytree.Pytree`): the compiled sweep takes it as an
+argument, its array attributes (and npbrs objects such as a solver) as traced inputs and its
+other attributes as static options, so that another MDP or dataset of the same shapes reuses the
+program. An attribute holding a closure or jitted function over its arrays must be named in
+``_pytree_derived`` and rebuilt by ``_pytree_rebuild``. Its methods run in float64
+(:mod:`npbrs.domains.precision`).
 """
 
 from __future__ import annotations
@@ -36,7 +43,8 @@ from typing import Any, Callable, Dict, NamedTuple
 import jax
 import jax.numpy as jnp
 
-jax.config.update("jax_enable_x64", True)
+from npbrs.domains.pytree import Pytree
+from npbrs.domains.precision import float64_all
 
 __all__ = ["HMMData", "Emission", "register_emission", "get_emission_class", "EMISSIONS"]
 
@@ -59,7 +67,7 @@ class HMMData(NamedTuple):
         return cls(jnp.asarray(states, jnp.int32), jnp.asarray(actions, jnp.int32), jnp.asarray(mask, bool))
 
 
-class Emission:
+class Emission(Pytree):
     """Base class of emission models (see the module docstring for the protocol)."""
 
     name: str = "emission"
@@ -259,3 +267,6 @@ class PolicyEmission(Emission):
 
     def describe(self):
         return {"name": self.name, "concentration": self.concentration}
+
+
+float64_all(globals())  # npbrs.domains.precision: float64 inside, the user's setting outside

@@ -26,8 +26,7 @@ from typing import Optional, Tuple
 
 import jax
 import jax.numpy as jnp
-
-jax.config.update("jax_enable_x64", True)
+from npbrs.domains.precision import float64_all
 
 __all__ = ["NEG_LOG", "forward_filter", "backward_sample", "smooth", "path_log_prob", "viterbi", "batch_forward_filter",
            "batch_backward_sample", "batch_smooth", "batch_viterbi", "transition_counts", "initial_counts"]
@@ -314,3 +313,6 @@ def transition_counts(z, mask, num_states: int) -> jax.Array:
 def initial_counts(z, mask, num_states: int) -> jax.Array:
     """One-hot first skill of each trajectory: (N, K) int32 (or (K,)); zeros if it is empty."""
     return _one_hot(z, mask, num_states)[..., 0, :]
+
+
+float64_all(globals())  # npbrs.domains.precision: float64 inside, the user's setting outside

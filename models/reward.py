@@ -39,8 +39,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..domains.solvers import SoftSolver, make_soft_solver
-
-jax.config.update("jax_enable_x64", True)
+from npbrs.domains.precision import float64_all
 
 __all__ = ["PRIOR_SCALE", "count_table", "log_policy", "step_log_likelihoods", "count_log_likelihood",
            "count_log_likelihood_and_grad", "fisher_information", "log_prior", "irl_fit", "fit_reward", "IRLFit",
@@ -258,7 +257,7 @@ def _ll_and_grad(solver, theta, counts, v0, epsilon=0.0):
     return _ll_grad_residual(solver, theta, counts, v0, epsilon)[:3]
 
 
-_LL_AND_GRAD = jax.jit(_ll_and_grad, static_argnums=(0, 4))
+_LL_AND_GRAD = jax.jit(_ll_and_grad, static_argnums=4)
 
 
 def fisher_information(solver: SoftSolver, theta, counts, v0=None) -> jax.Array:
@@ -476,4 +475,7 @@ def _fit_jit(solver, counts, theta0, v0, prior_scale, num_steps, history):
     return _FIT_JIT(solver, counts, theta0, v0, jnp.asarray(prior_scale, jnp.float64), num_steps, history)
 
 
-_FIT_JIT = jax.jit(fit_reward, static_argnums=(0, 5, 6))
+_FIT_JIT = jax.jit(fit_reward, static_argnums=(5, 6))
+
+
+float64_all(globals())  # npbrs.domains.precision: float64 inside, the user's setting outside

@@ -38,8 +38,7 @@ from ..domains.solvers import make_soft_solver
 from .emissions import Emission, register_emission
 from .reward import (count_log_likelihood_and_grad, count_table, fisher_information, fit_reward, noisy_log_policy,
                      step_log_likelihoods)
-
-jax.config.update("jax_enable_x64", True)
+from npbrs.domains.precision import float64_all
 
 __all__ = ["RewardEmission", "SingleRewardEmission"]
 
@@ -329,3 +328,6 @@ class SingleRewardEmission(RewardEmission):
     """Unsegmented IRL: one reward for every step (``fit`` runs it with one skill slot)."""
 
     fixed_max_skills = 1
+
+
+float64_all(globals())  # npbrs.domains.precision: float64 inside, the user's setting outside

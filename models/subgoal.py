@@ -49,11 +49,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from npbrs.domains.solvers import next_value_operator, soft_value_iteration
+from npbrs.domains.solvers import make_soft_solver
 
 from .emissions import Emission, HMMData, register_emission
-
-jax.config.update("jax_enable_x64", True)
+from npbrs.domains.precision import float64_all
 
 __all__ = ["SubgoalEmission", "visited_states"]
 
@@ -154,16 +153,15 @@ class SubgoalEmission(Emission):
         self._prior_probs = jnp.asarray(probs)
         self._succ = jnp.asarray(mdp.successors, jnp.int32)
         self._trans = jnp.asarray(mdp.probs)
-        self._next_value = next_value_operator(mdp)
+        # the solver (built outside any trace) is data of this emission: its arrays enter the
+        # compiled programs as arguments
+        self._solver = make_soft_solver(mdp, tol=self.tol)
         table_mb = cand.size * S * 8 / 2 ** 20
         self._precompute_option, self.max_table_mb = precompute, float(max_table_mb)
         self.precompute = bool(table_mb <= max_table_mb) if precompute == "auto" else bool(precompute)
-        # build (and cache) the solver outside any trace: a solver first built inside a jit
-        # trace would keep that trace's arrays
-        soft_value_iteration(mdp, np.zeros((S, mdp.num_actions)), tol=self.tol)
         self._values = None
         if self.precompute:
-            self._values = jax.jit(self._solve_candidates)()
+            self._values = jax.jit(SubgoalEmission._solve_candidates)(self)
 
     @classmethod
     def from_mdp(cls, mdp, **options):
@@ -172,11 +170,11 @@ class SubgoalEmission(Emission):
     # ------------------------------------------------------------------ the goals' policies
     def goal_rewards(self, goals) -> jax.Array:
         """Reward tables r_g(s, a) = scale * P(s' = g | s, a), (n, S, A) for goals (n,)."""
-        return self.scale * self._next_value(jax.nn.one_hot(goals, self.mdp.num_states, dtype=jnp.float64))
+        return self.scale * self._solver.expected_next_value(jax.nn.one_hot(goals, self.mdp.num_states, dtype=jnp.float64))
 
     def goal_values(self, goals, v0=None) -> jax.Array:
         """Soft state values V_g of goals (n,), (n, S)."""
-        return soft_value_iteration(self.mdp, self.goal_rewards(goals), v0=v0, tol=self.tol).V
+        return self._solver(self.goal_rewards(goals), v0).V
 
     def _solve_candidates(self):
         return jax.lax.map(lambda g: self.goal_values(g[None])[0], self.candidates, batch_size=self.chunk_size)
@@ -289,3 +287,6 @@ class SubgoalEmission(Emission):
                 "candidates": None if all_states else np.asarray(self.candidates).tolist(),
                 "precompute": self._precompute_option, "max_table_mb": self.max_table_mb,
                 "chunk_size": self.chunk_size, "tol": self.tol}
+
+
+float64_all(globals())  # npbrs.domains.precision: float64 inside, the user's setting outside

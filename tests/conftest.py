@@ -113,6 +113,43 @@ def _release_compiled_programs(request):
                            "released (see tests/conftest.py)")
 
 
+COMPILE_LOG_ENV = "NPBRS_TEST_COMPILE_LOG"
+
+
+@pytest.fixture(autouse=True)
+def _compile_log(request):
+    """With ``NPBRS_TEST_COMPILE_LOG=FILE``: append, per test, the seconds JAX spent tracing and
+    compiling and the number of programs compiled (cache hits are not compiles) as a JSON line,
+    to find what makes the suite slow."""
+    path = os.environ.get(COMPILE_LOG_ENV)
+    if not path:
+        yield
+        return
+    import json
+    import time
+
+    from jax._src.dispatch import BACKEND_COMPILE_EVENT, JAXPR_TRACE_EVENT
+
+    seen = {"compile": 0.0, "trace": 0.0, "programs": 0}
+
+    def listen(event, duration, **_):
+        if event == BACKEND_COMPILE_EVENT:
+            seen["compile"] += duration
+            seen["programs"] += 1
+        elif event == JAXPR_TRACE_EVENT:
+            seen["trace"] += duration
+
+    jax.monitoring.register_event_duration_secs_listener(listen)
+    start = time.perf_counter()
+    try:
+        yield
+    finally:
+        jax.monitoring.unregister_event_duration_listener(listen)
+        with open(path, "a") as f:
+            f.write(json.dumps({"test": request.node.nodeid, "wall": round(time.perf_counter() - start, 2),
+                                **{k: round(v, 2) for k, v in seen.items()}}) + "\n")
+
+
 def pytest_terminal_summary(terminalreporter, exitstatus, config):
     try:
         import resource

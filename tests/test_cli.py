@@ -65,6 +65,52 @@ def test_the_command_line_keeps_compiled_sweeps_in_a_cache_folder(tmp_path):
     assert any(cache.iterdir())
 
 
+_CACHE_SCRIPT = """
+import jax, jax.numpy as jnp
+{before}
+from npbrs.inference import fit
+try:
+    fit(None, None)  # refused (no demonstrations), after the cache is on
+except ValueError:
+    pass
+print(jax.config.jax_compilation_cache_dir)
+print(float(jax.jit(lambda x: jnp.sin(x).sum() * 2)(jnp.ones(3))))
+"""
+
+
+def test_fit_keeps_compiled_programs_in_a_cache_that_survives_corrupt_entries(tmp_path):
+    """``fit`` in Python turns JAX's persistent cache on in npbrs's folder (unless the process
+    chose one: it is left alone); an entry that cannot be read (corrupt, half-written by another
+    process) is recompiled with a warning, never an error."""
+    cache = tmp_path / "cache"
+    env = {k: v for k, v in os.environ.items() if k != "JAX_COMPILATION_CACHE_DIR"}
+    env.update(NPBRS_CACHE_DIR=str(cache), JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS="0", JAX_PLATFORMS="cpu")
+
+    def run(before=""):
+        out = subprocess.run([sys.executable, "-c", _CACHE_SCRIPT.format(before=before)], capture_output=True,
+                             text=True, env=env, cwd=tmp_path, timeout=120)
+        assert out.returncode == 0, out.stderr
+        return out
+
+    first = run()
+    folder, value = first.stdout.split()
+    assert folder == str(cache) and abs(float(value) - 6 * np.sin(1.0)) < 1e-5, first.stdout
+    entries = [f for f in cache.rglob("*") if f.is_file()]
+    assert entries, "nothing was written to the cache"
+    for f in entries:  # corrupt every entry: truncated garbage
+        f.write_bytes(b"not an executable")
+    second = run()
+    assert second.stdout == first.stdout
+    assert "Error reading persistent compilation cache entry" in second.stderr
+    # a process that chose its own folder keeps it
+    own = tmp_path / "own"
+    third = run(before=f"jax.config.update('jax_compilation_cache_dir', {str(own)!r})")
+    assert third.stdout.split()[0] == str(own)
+    # and NPBRS_CACHE_DIR=off leaves the process without one
+    env["NPBRS_CACHE_DIR"] = "off"
+    assert run().stdout.split()[0] == "None"
+
+
 @pytest.fixture(scope="module")
 def demo(tmp_path_factory):
     out = tmp_path_factory.mktemp("demo")
