@@ -146,7 +146,8 @@ def _compile_log(request):
     finally:
         jax.monitoring.unregister_event_duration_listener(listen)
         with open(path, "a") as f:
-            f.write(json.dumps({"test": request.node.nodeid, "wall": round(time.perf_counter() - start, 2),
+            f.write(json.dumps({"test": request.node.nodeid, "worker": os.environ.get("PYTEST_XDIST_WORKER", ""),
+                                "end": round(time.time(), 1), "wall": round(time.perf_counter() - start, 2),
                                 **{k: round(v, 2) for k, v in seen.items()}}) + "\n")
 
 

@@ -84,8 +84,10 @@ def test_split_then_merge_returns_the_state_with_reciprocal_ratios(blocks):
     anchors = (ia, ta, ib, tb)
     key = jax.random.PRNGKey(11)
     eta = state.eta
-    lr_split, possible, is_split, f2, eta2, z2, p2, ll2 = split_merge_at(key, em, data, state.hyper, f, eta, z, params,
-                                                                         ll, anchors, blocks)
+    # one compiled program per call rather than hundreds of one-operation ones run eagerly
+    at = jax.jit(split_merge_at, static_argnums=(9, 10))
+    lr_split, possible, is_split, f2, eta2, z2, p2, ll2 = at(key, em, data, state.hyper, f, eta, z, params, ll, anchors,
+                                                             blocks)
     assert bool(is_split) and bool(possible) and np.isfinite(float(lr_split))
     k2 = int(np.asarray(z2)[ib, tb])
     assert k2 != k and int(np.asarray(z2)[ia, ta]) == k and np.asarray(f)[:, k2].sum() == 0
@@ -95,7 +97,7 @@ def test_split_then_merge_returns_the_state_with_reciprocal_ratios(blocks):
     assert np.all(np.asarray(eta2)[touched] != np.asarray(eta)[touched])
     # the matching merge, proposing the original parameters of both slots and skill sequences
     forced = jax.tree.map(lambda p: jnp.stack([p[k], p[k2]]), params)
-    lr_merge, possible_m, is_split_m, f3, eta3, z3, p3, ll3 = split_merge_at(
+    lr_merge, possible_m, is_split_m, f3, eta3, z3, p3, ll3 = at(
         key, em, data, state.hyper, f2, eta2, z2, p2, ll2, anchors, blocks, forced_params=forced, forced_z=z,
         forced_eta=eta)
     assert not bool(is_split_m) and bool(possible_m)
