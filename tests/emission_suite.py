@@ -44,12 +44,16 @@ def check_emission(emission: Emission, data: HMMData, max_skills: int = 3, seed:
     assert lp.shape == (K,), f"log_prior must return shape ({K},), got {lp.shape}"
     np.testing.assert_allclose(float(jnp.sum(lp)), float(site_lp), rtol=1e-8, atol=1e-8)
 
-    # likelihoods: (N, T, K), finite on real steps, independent of the cache
+    # likelihoods: (N, T, K), finite on real steps, independent of the cache (each piece is
+    # compiled once and called twice, not run op by op: that compiled hundreds of one-operation
+    # programs, a minute of the suite for the reward emission)
     cache = emission.init_cache(K)
-    ll, cache = emission.log_likelihoods(params, data, cache)
+    log_likelihoods = jax.jit(emission.log_likelihoods)
+    log_proposal = jax.jit(emission.log_proposal)
+    ll, cache = log_likelihoods(params, data, cache)
     assert ll.shape == (N, T, K), f"log_likelihoods must return (N, T, K) = {(N, T, K)}, got {ll.shape}"
     assert bool(jnp.all(jnp.isfinite(jnp.where(data.mask[..., None], ll, 0.0))))
-    ll_again, _ = emission.log_likelihoods(params, data, cache)
+    ll_again, _ = log_likelihoods(params, data, cache)
     np.testing.assert_allclose(np.asarray(ll_again), np.asarray(ll), rtol=1e-7, atol=1e-6)
 
     # update: jit-able, keeps shapes
@@ -64,14 +68,14 @@ def check_emission(emission: Emission, data: HMMData, max_skills: int = 3, seed:
     # proposal: the returned log density is the one log_proposal gives
     w_one = weights[..., 0]
     one, log_q = jax.jit(emission.propose)(key, data, w_one)
-    np.testing.assert_allclose(float(log_q), float(emission.log_proposal(one, data, w_one)), rtol=1e-8, atol=1e-8)
+    np.testing.assert_allclose(float(log_q), float(log_proposal(one, data, w_one)), rtol=1e-8, atol=1e-8)
     for name, value in one.items():
         assert value.shape == params[name].shape[1:]
     other = jax.tree.map(lambda x: x[1], params)
     new2, lq_new, lq_other = jax.jit(emission.propose_and_score)(key, data, w_one, other)
     _tree_close(new2, one, rtol=1e-8, atol=1e-10)
     np.testing.assert_allclose(float(lq_new), float(log_q), rtol=1e-8, atol=1e-8)
-    np.testing.assert_allclose(float(lq_other), float(emission.log_proposal(other, data, w_one)), rtol=1e-8, atol=1e-8)
+    np.testing.assert_allclose(float(lq_other), float(log_proposal(other, data, w_one)), rtol=1e-8, atol=1e-8)
 
     # point fits (split-merge moves): deterministic, parameter-shaped, finite
     if emission.supports_split_merge():

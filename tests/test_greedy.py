@@ -138,15 +138,16 @@ def test_reward_laplace_evidence_is_close_to_importance_sampling():
     for i, s in enumerate(demos.skills):
         z[i, :len(s)] = s
     weights = jax.nn.one_hot(jnp.asarray(z), 3) * data.mask[..., None]
-    fits, log_ev = em.fit_evidence(data, weights)
+    fits, log_ev = jax.jit(em.fit_evidence)(data, weights)  # compiled, not run op by op
     # importance sampling: q = N(fit, (2 * Laplace sd)^2) per skill
     from npbrs.models.reward import fisher_information
 
     counts = em._counts(data, weights)  # (3, S, A)
     step_ll = jax.jit(lambda theta: em.log_likelihoods({"theta": theta}, data)[0])
     estimates = []
+    fisher = jax.jit(fisher_information)
     for m in range(3):
-        F = fisher_information(em.solver, fits["theta"][m], counts[m]) + jnp.eye(3) / 3.0 ** 2
+        F = fisher(em.solver, fits["theta"][m], counts[m]) + jnp.eye(3) / 3.0 ** 2
         cov = 4.0 * jnp.linalg.inv(F)
         q = __import__("numpyro").distributions.MultivariateNormal(fits["theta"][m], cov)
         theta = q.sample(jax.random.PRNGKey(m), (4000,))

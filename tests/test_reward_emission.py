@@ -30,8 +30,8 @@ def test_reward_emission_follows_the_protocol():
     data = HMMData.from_demonstrations(demos)
     noisy = RewardEmission(dom.mdp, epsilon=0.05)
     params = {"theta": jnp.asarray(np.random.default_rng(0).normal(size=(2, dom.mdp.num_features)) * 3)}
-    plain_ll, _ = RewardEmission(dom.mdp).log_likelihoods(params, data)
-    noisy_ll, _ = noisy.log_likelihoods(params, data)
+    plain_ll, _ = jax.jit(RewardEmission(dom.mdp).log_likelihoods)(params, data)
+    noisy_ll, _ = jax.jit(noisy.log_likelihoods)(params, data)
     A = dom.mdp.num_actions
     expected = np.log(0.95 * np.exp(np.asarray(plain_ll)) + 0.05 / A)
     np.testing.assert_allclose(np.where(data.mask[..., None], noisy_ll, 0), np.where(data.mask[..., None], expected, 0),
@@ -207,7 +207,7 @@ def test_data_driven_proposal_is_the_defensive_mixture_it_scores():
     data = HMMData.from_demonstrations(demos)
     em = RewardEmission(dom.mdp, proposal_broad_weight=0.2, proposal_broad_scale=5.0)
     weights = jnp.asarray(data.mask, jnp.float64)
-    mean, chol = (np.asarray(x) for x in em._proposal(data, weights))
+    mean, chol = (np.asarray(x) for x in jax.jit(em._proposal)(data, weights))
     D = mean.shape[0]
     other = {"theta": jnp.asarray(mean + 7.0 * np.diag(chol))}
     draw = jax.jit(jax.vmap(lambda k: em.propose_and_score(k, data, weights, other)))
@@ -221,7 +221,7 @@ def test_data_driven_proposal_is_the_defensive_mixture_it_scores():
 
     np.testing.assert_allclose(np.asarray(log_q)[:20], mixture(thetas[:20]), rtol=1e-8)
     np.testing.assert_allclose(np.asarray(log_q_other)[0], mixture(np.asarray(other["theta"])), rtol=1e-8)
-    np.testing.assert_allclose(float(em.log_proposal({"theta": jnp.asarray(thetas[0])}, data, weights)),
+    np.testing.assert_allclose(float(jax.jit(em.log_proposal)({"theta": jnp.asarray(thetas[0])}, data, weights)),
                                mixture(thetas[0]), rtol=1e-8)
     r2 = np.sum(np.linalg.solve(chol, (thetas - mean).T) ** 2, axis=0)
     q = chi2_dist.ppf(0.99, D)
