@@ -274,6 +274,11 @@ class SamplerConfig:
     init_skills, init_window: the initial segmentation (skills used; window length);
     moves: options of the kernel's trans-dimensional moves, passed to ``BPHMMKernel(moves=...)``
     and checked by it.
+    bucket: pad the demonstrations to bucket sizes of trajectories and steps
+    (:func:`npbrs.models.emissions.bucket_size`), so that a data set of similar size reuses the
+    compiled sampler. The padding trajectories have no steps: the posterior of the real ones is
+    the same, but the random streams have other shapes, so the draws differ from an unpadded
+    run's (the same seed gives the same draws with the same setting).
     """
 
     chains: int = 4
@@ -284,6 +289,7 @@ class SamplerConfig:
     init_skills: Optional[int] = None
     init_window: int = 25
     moves: Dict[str, Any] = field(default_factory=dict)
+    bucket: bool = False
 
     def __post_init__(self):
         self.chains = _integer("sampler.chains", self.chains, 1)
@@ -298,6 +304,9 @@ class SamplerConfig:
         self.init_window = _integer("sampler.init_window", self.init_window, 1)
         self.moves = _plain("sampler.moves", _table("sampler.moves", self.moves))
         _check_moves(self.moves)
+        if not isinstance(self.bucket, bool):
+            raise ValueError(f"sampler.bucket: expected true or false, got {_describe(self.bucket)}")
+        self.bucket = bool(self.bucket)
 
     @classmethod
     def from_dict(cls, data) -> "SamplerConfig":

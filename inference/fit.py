@@ -144,7 +144,7 @@ def resolve_config(config=None, **overrides) -> ModelConfig:
             data["prior"][name] = {"value": value, "shape": shape, "rate": rate}
     renames = {"num_chains": "chains", "num_samples": "samples", "num_warmup": "warmup"}
     for key in ("num_chains", "num_samples", "num_warmup", "seed", "chain_method", "init_skills", "init_window",
-                "moves"):
+                "moves", "bucket"):
         value = overrides.pop(key, None)
         if value is not None:
             data["sampler"][renames.get(key, key)] = value
@@ -242,14 +242,14 @@ def _compiled(cfg: ModelConfig, em: Emission, em_key: str, demos: Demonstrations
     compiled sweep is the expensive part of a short run)."""
     prior, sampler = cfg.prior, cfg.sampler
     key = json.dumps([em_key, demos.fingerprint(), cfg.max_skills, prior.to_dict(), sampler.init_skills,
-                      sampler.init_window, sampler.moves, sampler.warmup], sort_keys=True)
+                      sampler.init_window, sampler.moves, sampler.warmup, sampler.bucket], sort_keys=True)
     if key in _COMPILED:
         _COMPILED.move_to_end(key)
         return _COMPILED[key]
     kwargs = dict(alpha=prior.alpha.value, kappa=prior.kappa.value, gamma=prior.gamma.value,
                   hyperpriors=prior.hyperpriors or None, init_skills=sampler.init_skills,
                   init_window=sampler.init_window, moves=dict(sampler.moves))
-    kernel = BPHMMKernel(em, HMMData.from_demonstrations(demos), cfg.max_skills, **kwargs)
+    kernel = BPHMMKernel(em, HMMData.from_demonstrations(demos, bucket=sampler.bucket), cfg.max_skills, **kwargs)
     entry = _Compiled(kernel, tuple(prior.hyperpriors))
     _COMPILED[key] = entry
     while len(_COMPILED) > _COMPILED_MAX:
@@ -453,6 +453,7 @@ def fit(mdp, demos: Demonstrations, config: Union[ModelConfig, dict, str, os.Pat
         seed: Optional[int] = None, chain_method: Optional[str] = None, alpha: Optional[float] = None,
         kappa: Optional[float] = None, gamma: Optional[float] = None, hyperpriors: Optional[dict] = None,
         init_skills: Optional[int] = None, init_window: Optional[int] = None, moves: Optional[dict] = None,
+        bucket: Optional[bool] = None,
         init_segmentation=None, progress_bar: bool = True, checkpoint_path=None,
         checkpoint_every: Optional[int] = None, resume: bool = False) -> FitResult:
     """Segment demonstrations into skills.
@@ -478,6 +479,9 @@ def fit(mdp, demos: Demonstrations, config: Union[ModelConfig, dict, str, os.Pat
             (``{"greedy_merge": 1, "greedy_split": 1, "greedy_from": 0.75}``) for emissions
             with ``fit_evidence`` and ``fit_point`` (the reward and policy emissions);
             ``{"greedy_merge": 0, "greedy_split": 0}`` turns them off.
+        bucket: pad the demonstrations to shape buckets (a quarter at most more trajectories
+            and steps), so that another data set of similar size reuses the compiled sampler
+            (see :class:`~npbrs.inference.config.SamplerConfig`; off by default).
         init_segmentation: start every chain from this segmentation instead of random windows:
             per trajectory an integer label per step (any integers, e.g. a previous result's
             ``segmentation`` or hand labels), or a FitResult. The skills' initial parameters are
@@ -504,7 +508,7 @@ def fit(mdp, demos: Demonstrations, config: Union[ModelConfig, dict, str, os.Pat
     cfg = resolve_config(config, emission=emission, emission_options=emission_options, num_chains=num_chains,
                          num_samples=num_samples, num_warmup=num_warmup, max_skills=max_skills, seed=seed,
                          chain_method=chain_method, alpha=alpha, kappa=kappa, gamma=gamma, hyperpriors=hyperpriors,
-                         init_skills=init_skills, init_window=init_window, moves=moves)
+                         init_skills=init_skills, init_window=init_window, moves=moves, bucket=bucket)
     if not isinstance(demos, Demonstrations):
         raise ValueError(f"demos must be npbrs.domains.Demonstrations, got {type(demos).__name__}")
     demos.validate(mdp)

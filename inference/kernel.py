@@ -196,6 +196,7 @@ class BPHMMKernel(MCMCKernel, Pytree):
         (N, T) array; ValueError naming the trajectory and step of a bad entry."""
         N, T = self.data.states.shape
         lengths = np.asarray(self.data.mask).sum(1)
+        N_real = int(np.sum(lengths > 0))  # trajectories padding the data to a bucket have no step
         if isinstance(z, np.ndarray) and z.ndim == 2:
             z = [z[i, :lengths[i]] for i in range(z.shape[0])] if z.shape == (N, T) else list(z)
         try:
@@ -203,8 +204,10 @@ class BPHMMKernel(MCMCKernel, Pytree):
         except TypeError:
             raise ValueError(f"init_segmentation must be a sequence of per-trajectory label arrays, got "
                              f"{type(z).__name__}") from None
-        if len(rows) != N:
-            raise ValueError(f"init_segmentation has {len(rows)} trajectories, the demonstrations {N}")
+        if len(rows) == N and N_real < N:
+            rows = rows[:N_real]
+        if len(rows) != N_real:
+            raise ValueError(f"init_segmentation has {len(rows)} trajectories, the demonstrations {N_real}")
         for i, r in enumerate(rows):
             if r.shape != (lengths[i],):
                 raise ValueError(f"init_segmentation[{i}] has shape {r.shape}; trajectory {i} has {lengths[i]} steps")
@@ -230,13 +233,21 @@ class BPHMMKernel(MCMCKernel, Pytree):
         return self.sweep(state)
 
     # ------------------------------------------------------------------ pieces
+    @property
+    def _valid(self):
+        """(N,) the trajectories with steps: the others pad the data to a shape bucket. They are
+        data-less trajectories of the model: their features and transition weights are sampled
+        from their conditionals (the prior given omega), which leaves the posterior of the real
+        ones unchanged, and the log joint leaves them out."""
+        return jnp.any(self.data.mask, axis=1)
+
     def _finish(self, state: BPHMMState) -> BPHMMState:
         """Recompute likelihoods, the log joint and the summaries of ``state``."""
         K = self.max_skills
         log_lik, cache = self.emission.log_likelihoods(state.params, self.data, state.cache)
         log_marg = log_marginal_likelihoods(state.features, state.eta, log_lik, self.data.mask)
         terms = log_joint_terms(state.omega, state.features, state.eta, state.params, log_marg, state.hyper,
-                                self.emission, self.hyperpriors or None)
+                                self.emission, self.hyperpriors or None, valid=self._valid)
         log_joint = sum(terms.values())
         num_skills, num_switches = _label_invariant(state.z, self.data.mask, K)
         return state._replace(cache=cache, log_lik=log_lik, log_marginals=log_marg, log_joint=log_joint,
@@ -313,8 +324,9 @@ class BPHMMKernel(MCMCKernel, Pytree):
         flipped = features.at[:, k].set(jnp.where(is_on, 0.0, 1.0))
         lm_flip = log_marginal_likelihoods(flipped, state.eta, state.log_lik, self.data.mask)
         lm_on, lm_off = jnp.where(is_on, current, lm_flip), jnp.where(is_on, lm_flip, current)
-        # a trajectory must keep at least one skill
-        lm_off = jnp.where(jnp.sum(off, -1) > 0, lm_off, -jnp.inf)
+        # a trajectory must keep at least one skill (to emit its steps: one without steps, padding
+        # to a shape bucket, may have none, or its features would weigh on omega)
+        lm_off = jnp.where((jnp.sum(off, -1) > 0) | ~self._valid, lm_off, -jnp.inf)
         prior = dist.Bernoulli(probs=state.omega[k])
         return (lm_on + prior.log_prob(1.0)) - (lm_off + prior.log_prob(0.0)), lm_on, lm_off
 
@@ -451,7 +463,7 @@ class BPHMMKernel(MCMCKernel, Pytree):
 
         def log_target(h):
             terms = log_joint_terms(state.omega, state.features, state.eta, state.params, zeros, h,
-                                    self.emission, self.hyperpriors)
+                                    self.emission, self.hyperpriors, valid=self._valid)
             return terms["omega"] + terms["features"] + terms["eta"] + sum(
                 terms[n] for n in self.hyperpriors)
 

@@ -134,7 +134,9 @@ def birth_death(key, emission, data, hyper, features, eta, params, log_lik, min_
     free = m == 0
     unique = (features[i] > 0) & (m == 1)
     candidates = jnp.where(is_birth, free, unique)
-    possible = jnp.any(candidates) & (is_birth | (features[i].sum() >= 2))
+    # a death may not take a trajectory's last skill, unless it has no steps (padding to a shape
+    # bucket: it needs no skill to emit them)
+    possible = jnp.any(candidates) & (is_birth | (features[i].sum() >= 2) | ~jnp.any(data.mask[i]))
     k = jax.random.categorical(k_slot, jnp.where(candidates, 0.0, -jnp.inf))
     k = jnp.where(possible, k, 0)
     old_one = _get_slot(params, k)

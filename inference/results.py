@@ -113,18 +113,23 @@ class FitResult:
         """
         best_lj = np.asarray(last_state.best_log_joint)
         chain = int(np.argmax(best_lj))
-        chain_best_z = np.asarray(last_state.best_z).astype(np.int64)
+        # (a fit padded to a shape bucket has more trajectories and steps than the demonstrations)
+        N, T = len(demos.lengths), int(np.max(demos.lengths))
+        chain_best_z = np.asarray(last_state.best_z).astype(np.int64)[:, :N, :T]
         rows = _rows(chain_best_z[chain], demos.lengths)
         segmentation, slots = _compact(rows)
         best_params = {k: np.asarray(v)[chain][slots] for k, v in last_state.best_params.items()}
         draws = {k: np.asarray(v) for k, v in draws.items()}
+        if "features" in draws:
+            draws["features"] = draws["features"][:, :, :N]
         stats = {k: v for k, v in draws.items() if v.ndim == 2 and k not in sample_names}
         samples = {k: v for k, v in draws.items() if k not in stats}
         return cls(segmentation=segmentation, num_skills=len(slots), skill_params=best_params, skill_slots=slots,
                    best_chain=chain, best_log_joint=float(best_lj[chain]), stats=stats, samples=samples,
                    config=dict(config or {}), fingerprint=demos.fingerprint(), wall_time=float(wall_time),
                    emission=dict(emission or {}), feature_names=tuple(feature_names), chain_best_z=chain_best_z,
-                   demos=demos, init_segmentation=_rows(init_segmentation, demos.lengths),
+                   demos=demos, init_segmentation=None if init_segmentation is None else
+                   _rows(np.asarray(init_segmentation)[:N, :T], demos.lengths),
                    mdp_fingerprint=str(mdp_fingerprint or ""),
                    warmup_stats=None if not warmup_stats else {k: np.asarray(v) for k, v in warmup_stats.items()})
 

@@ -223,18 +223,21 @@ def bphmm_model(data, emission, max_skills: int, alpha=1.0, kappa=10.0, gamma=1.
 
 
 def log_joint_terms(omega, features, eta, params, log_marginals, hyper: Hyper, emission,
-                    hyperpriors: Optional[Dict] = None):
+                    hyperpriors: Optional[Dict] = None, valid=None):
     """The model's log density split into its terms, from already computed marginals.
 
     The kernel uses this to avoid recomputing emission log-likelihoods; a test checks that the
-    sum equals ``numpyro.infer.util.log_density(bphmm_model, ...)``.
+    sum equals ``numpyro.infer.util.log_density(bphmm_model, ...)``. ``valid`` (N,) bool: the
+    trajectories that are data; the others (padding to a shape bucket, no steps) are left out
+    of the feature and transition-weight terms, so the sum is the density of the real ones.
     """
     N, K = features.shape
     priors = prior_distributions(N, K, hyper)
+    row = (lambda x: jnp.sum(x)) if valid is None else (lambda x: jnp.sum(jnp.where(valid, x, 0.0)))
     terms = {
         "omega": priors["omega"].log_prob(omega),
-        "features": priors["features"](omega).log_prob(features),
-        "eta": priors["eta"].log_prob(eta),
+        "features": row(priors["features"](omega).base_dist.log_prob(features).sum(-1)),
+        "eta": row(priors["eta"].base_dist.log_prob(eta).sum((-2, -1))),
         "params": jnp.sum(emission.log_prior(params)),
         "log_likelihood": jnp.sum(log_marginals),
     }

@@ -42,11 +42,12 @@ from typing import Any, Callable, Dict, NamedTuple
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from npbrs.domains.pytree import Pytree
 from npbrs.domains.precision import float64_all
 
-__all__ = ["HMMData", "Emission", "register_emission", "get_emission_class", "EMISSIONS"]
+__all__ = ["HMMData", "Emission", "register_emission", "get_emission_class", "EMISSIONS", "bucket_size"]
 
 
 class HMMData(NamedTuple):
@@ -62,9 +63,26 @@ class HMMData(NamedTuple):
     mask: jax.Array
 
     @classmethod
-    def from_demonstrations(cls, demos) -> "HMMData":
+    def from_demonstrations(cls, demos, bucket: bool = False) -> "HMMData":
+        """The demonstrations padded to their longest trajectory; with ``bucket``, also padded
+        to :func:`bucket_size` trajectories and steps (extra trajectories have no step), so that
+        data sets of similar sizes share compiled programs."""
         states, actions, mask = demos.padded()
+        if bucket:
+            (N, T), (Nb, Tb) = states.shape, (bucket_size(states.shape[0]), bucket_size(states.shape[1]))
+            pad = ((0, Nb - N), (0, Tb - T))
+            states, actions, mask = np.pad(states, pad), np.pad(actions, pad), np.pad(mask, pad)
         return cls(jnp.asarray(states, jnp.int32), jnp.asarray(actions, jnp.int32), jnp.asarray(mask, bool))
+
+
+def bucket_size(n: int) -> int:
+    """The smallest bucket size >= n: every integer up to 8, then 4 sizes per doubling (10, 12,
+    14, 16, 20, 24, 28, 32, 40, ...), so padding adds at most a quarter."""
+    n = int(n)
+    if n <= 8:
+        return max(n, 1)
+    step = 1 << (n.bit_length() - 3)  # a quarter of the power of two below n
+    return -(-n // step) * step
 
 
 class Emission(Pytree):

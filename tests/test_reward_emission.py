@@ -133,6 +133,39 @@ def test_a_new_dataset_and_mdp_of_the_same_shapes_reuse_the_compiled_sampler():
     assert second.equals(fit(other.mdp, demos, **kwargs))  # the reused program: the same seed, the same draws
 
 
+def test_a_data_set_in_the_same_shape_bucket_reuses_the_compiled_sampler():
+    """``fit(bucket=True)`` pads to bucket sizes: another data set of other sizes in the same
+    bucket compiles nothing, and the result has the demonstrations' own shapes."""
+    from jax._src.dispatch import BACKEND_COMPILE_EVENT
+
+    from npbrs.models.emissions import bucket_size
+
+    sizes = [bucket_size(n) for n in range(1, 1025)]
+    assert all(s >= n and (n <= 8 or s <= 1.25 * n) for n, s in zip(range(1, 1025), sizes))
+    assert len(set(sizes)) <= 40 and sizes == sorted(sizes)
+    kwargs = dict(emission="reward", num_chains=2, num_samples=3, num_warmup=3, max_skills=4, progress_bar=False,
+                  bucket=True)
+    dom = gridworld()
+    fit(dom.mdp, generate_demonstrations(dom, num_trajectories=10, length=50, seed=5), **kwargs)  # 10 x 56
+    demos = generate_demonstrations(dom, num_trajectories=9, length=52, seed=6)  # the same bucket
+    compiles = []
+
+    def listen(event, duration, **_):
+        if event == BACKEND_COMPILE_EVENT:
+            compiles.append(duration)
+
+    jax.monitoring.register_event_duration_secs_listener(listen)
+    try:
+        result = fit(dom.mdp, demos, **kwargs)
+    finally:
+        jax.monitoring.unregister_event_duration_listener(listen)
+    assert compiles == [], f"the second fit compiled {len(compiles)} programs ({sum(compiles):.1f} s)"
+    assert [len(z) for z in result.segmentation] == list(demos.lengths)
+    assert result.samples["features"].shape[2] == 9 and result.chain_best_z.shape[1:] == (9, 52)
+    assert result.config["sampler"]["bucket"] is True
+    assert result.equals(fit(dom.mdp, demos, **kwargs))
+
+
 _X64_SCRIPT = """
 import sys
 import jax, jax.numpy as jnp, numpy as np
