@@ -7,8 +7,9 @@ machine, unless ``--cache``):
 - ``tiny``: highway, 8 trajectories x 128 steps, 2 chains, 20 + 20 sweeps, the reward emission
   with ``fit``'s other defaults: the first fit (``first_total_s``, ``first_compile_s``,
   ``first_sweep_ms``), a second dataset of the same shapes (``second_total_s``,
-  ``second_compile_s``) and a dataset of other sizes, 6 x 100 (``bucket_total_s``,
-  ``bucket_compile_s``: npbrs does not pad to shape buckets yet, so this one compiles again);
+  ``second_compile_s``) and a dataset of other sizes in the same shape bucket, 8 x 115
+  (``bucket_total_s``, ``bucket_compile_s``); these three fits pad to shape buckets
+  (``bucket=True``); ``unbucketed_*``: the 8 x 115 data again without buckets (it compiles);
 - ``highway500`` and ``quadcopter500``: 16 x 500 steps, 4 chains, the reproduction's sweeps for
   NPBRS (20 + 20 highway, 15 + 15 quadcopter), ``fit``'s other defaults: ``total_s``,
   ``compile_s``, ``sweep_ms``, with the skills found and the accuracy.
@@ -68,12 +69,12 @@ def main(argv=None):
 
     jax.monitoring.register_event_duration_secs_listener(listen)
 
-    def timed(domain, demos, chains, warmup, samples):
+    def timed(domain, demos, chains, warmup, samples, **options):
         compiling[0] = 0.0
         load = os.getloadavg()[0]
         t = time.perf_counter()
         result = fit(domain.mdp, demos, num_chains=chains, num_warmup=warmup, num_samples=samples, seed=0,
-                     progress_bar=False)
+                     progress_bar=False, **options)
         total = time.perf_counter() - t
         sweeps = warmup + samples
         row = {"total_s": round(total, 2), "compile_s": round(compiling[0], 2),
@@ -85,14 +86,18 @@ def main(argv=None):
     if "tiny" in parts:
         dom = highway()
         rows = {}
-        for name, (n, length, seed) in {"first": (8, 128, 0), "second": (8, 128, 1), "bucket": (6, 100, 2)}.items():
+        runs = {"first": (8, 128, 0, True), "second": (8, 128, 1, True), "bucket": (8, 115, 2, True),
+                "unbucketed": (8, 115, 2, False)}
+        for name, (n, length, seed, bucket) in runs.items():
             demos = generate_demonstrations(dom, num_trajectories=n, length=length, seed=seed)
-            rows[name] = timed(dom, demos, 2, 20, 20)
+            rows[name] = timed(dom, demos, 2, 20, 20, bucket=bucket)
             print(f"tiny {name} ({n} x {length}): {rows[name]}", flush=True)
         out["tiny"] = {"first_total_s": rows["first"]["total_s"], "first_compile_s": rows["first"]["compile_s"],
                        "first_sweep_ms": rows["first"]["sweep_ms"], "second_total_s": rows["second"]["total_s"],
                        "second_compile_s": rows["second"]["compile_s"], "bucket_total_s": rows["bucket"]["total_s"],
-                       "bucket_compile_s": rows["bucket"]["compile_s"], "runs": rows}
+                       "bucket_compile_s": rows["bucket"]["compile_s"],
+                       "unbucketed_total_s": rows["unbucketed"]["total_s"],
+                       "unbucketed_compile_s": rows["unbucketed"]["compile_s"], "runs": rows}
     for name, make, sweeps in (("highway500", highway, 20), ("quadcopter500", quadcopter, 15)):
         if name not in parts:
             continue
