@@ -105,18 +105,11 @@ def test_the_sampler_recovers_planted_reward_skills_in_a_gridworld():
     assert result.rhat["log_joint"] < 1.1
 
 
-def test_a_new_dataset_and_mdp_of_the_same_shapes_reuse_the_compiled_sampler():
-    """The demonstrations and the MDP's arrays are arguments of the compiled programs, not
-    constants: a second fit of other demonstrations in another MDP of the same shapes compiles
-    nothing (it failed, compiling the sweep again, when the kernel was closed over)."""
+def _compiling(fn, *args, **kwargs):
+    """fn(*args, **kwargs) and the seconds of every program JAX compiled (or loaded from its
+    persistent cache) meanwhile; a call served by programs already in memory compiles none."""
     from jax._src.dispatch import BACKEND_COMPILE_EVENT
 
-    kwargs = dict(emission="reward", num_chains=4, num_samples=3, num_warmup=3, max_skills=5, progress_bar=False)
-    dom = gridworld()
-    first = fit(dom.mdp, generate_demonstrations(dom, num_trajectories=10, length=64, switch_prob=0.05, seed=3),
-                **kwargs)
-    other = gridworld(slip=0.2)
-    demos = generate_demonstrations(other, num_trajectories=10, length=64, switch_prob=0.05, seed=4)
     compiles = []
 
     def listen(event, duration, **_):
@@ -125,9 +118,22 @@ def test_a_new_dataset_and_mdp_of_the_same_shapes_reuse_the_compiled_sampler():
 
     jax.monitoring.register_event_duration_secs_listener(listen)
     try:
-        second = fit(other.mdp, demos, **kwargs)
+        return fn(*args, **kwargs), compiles
     finally:
         jax.monitoring.unregister_event_duration_listener(listen)
+
+
+def test_a_new_dataset_and_mdp_of_the_same_shapes_reuse_the_compiled_sampler():
+    """The demonstrations and the MDP's arrays are arguments of the compiled programs, not
+    constants: a second fit of other demonstrations in another MDP of the same shapes compiles
+    nothing (it failed, compiling the sweep again, when the kernel was closed over)."""
+    kwargs = dict(emission="reward", num_chains=4, num_samples=3, num_warmup=3, max_skills=5, progress_bar=False)
+    dom = gridworld()
+    first = fit(dom.mdp, generate_demonstrations(dom, num_trajectories=10, length=64, switch_prob=0.05, seed=3),
+                **kwargs)
+    other = gridworld(slip=0.2)
+    demos = generate_demonstrations(other, num_trajectories=10, length=64, switch_prob=0.05, seed=4)
+    second, compiles = _compiling(fit, other.mdp, demos, **kwargs)
     assert compiles == [], f"the second fit compiled {len(compiles)} programs ({sum(compiles):.1f} s)"
     assert second.fingerprint != first.fingerprint and second.mdp_fingerprint != first.mdp_fingerprint
     assert second.equals(fit(other.mdp, demos, **kwargs))  # the reused program: the same seed, the same draws
@@ -136,8 +142,6 @@ def test_a_new_dataset_and_mdp_of_the_same_shapes_reuse_the_compiled_sampler():
 def test_a_data_set_in_the_same_shape_bucket_reuses_the_compiled_sampler():
     """``fit(bucket=True)`` pads to bucket sizes: another data set of other sizes in the same
     bucket compiles nothing, and the result has the demonstrations' own shapes."""
-    from jax._src.dispatch import BACKEND_COMPILE_EVENT
-
     from npbrs.models.emissions import bucket_size
 
     sizes = [bucket_size(n) for n in range(1, 1025)]
@@ -149,17 +153,7 @@ def test_a_data_set_in_the_same_shape_bucket_reuses_the_compiled_sampler():
     dom = gridworld()
     fit(dom.mdp, generate_demonstrations(dom, num_trajectories=9, length=58, seed=5), **kwargs)
     demos = generate_demonstrations(dom, num_trajectories=9, length=61, seed=6)  # the same bucket
-    compiles = []
-
-    def listen(event, duration, **_):
-        if event == BACKEND_COMPILE_EVENT:
-            compiles.append(duration)
-
-    jax.monitoring.register_event_duration_secs_listener(listen)
-    try:
-        result = fit(dom.mdp, demos, **kwargs)
-    finally:
-        jax.monitoring.unregister_event_duration_listener(listen)
+    result, compiles = _compiling(fit, dom.mdp, demos, **kwargs)
     assert compiles == [], f"the second fit compiled {len(compiles)} programs ({sum(compiles):.1f} s)"
     assert [len(z) for z in result.segmentation] == list(demos.lengths)
     assert result.samples["features"].shape[2] == 9 and result.chain_best_z.shape[1:] == (9, 61)
