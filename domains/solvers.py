@@ -423,12 +423,12 @@ def _solve_batch(solver, r, v0):
     return solver._solve_batch(r, v0)
 
 
-def _call_flat(solve, solver, r, v0, S, A):
-    """Call a jitted solve on K = prod(batch) systems and restore the batch shape, so that every
-    batch shape with the same number of systems shares one compiled program."""
+def _call_flat(solver, r, v0, S, A):
+    """Call the solver's compiled solve on K = prod(batch) systems and restore the batch shape,
+    so that every batch shape with the same number of systems shares one compiled program."""
     batch = r.shape[:-2]
     K = int(np.prod(batch, dtype=int))
-    res = solve(solver, r.reshape(K, S, A), None if v0 is None else v0.reshape(K, S))
+    res = _solve_batch(solver, r.reshape(K, S, A), None if v0 is None else v0.reshape(K, S))
     return SolveResult(res.V.reshape(batch + (S,)), res.Q.reshape(batch + (S, A)), res.num_iter.reshape(batch),
                        res.residual.reshape(batch), res.num_matvec.reshape(batch))
 
@@ -556,7 +556,7 @@ class SoftSolver(Pytree):
             _check_v0(v0, shape[:-2], S)
         rewards = jnp.asarray(rewards, jnp.float64)
         v0 = None if v0 is None else jnp.asarray(v0, jnp.float64)
-        return _call_flat(_solve_batch, self, rewards, v0, S, A)
+        return _call_flat(self, rewards, v0, S, A)
 
     def rewards(self, theta) -> jax.Array:
         """Reward tables r = phi . theta, (..., S, A) for theta (..., D)."""
@@ -725,7 +725,7 @@ class HardSolver(Pytree):
             if _is_concrete(v0):
                 _check_v0(v0, shape[:-2], S)
             v0 = jnp.asarray(v0, jnp.float64)
-        return _call_flat(_solve_batch, self, jnp.asarray(rewards, jnp.float64), v0, S, A)
+        return _call_flat(self, jnp.asarray(rewards, jnp.float64), v0, S, A)
 
 
 def make_hard_solver(mdp, *, tol: float = 1e-12, max_iter: Optional[int] = None, method: str = "policy",

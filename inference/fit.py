@@ -171,10 +171,6 @@ class _Compiled:
         self.kernel = kernel
         self.hyper_names = tuple(hyper_names)
 
-    def record(self, state) -> dict:
-        """The fields kept after a sweep, of one chain."""
-        return _record(self.kernel, self.hyper_names, state)
-
     def init(self, keys, num_warmup: int, z0=None):
         """Every chain's initial state (keys (C, 2)), on the host; z0: an initial segmentation
         (N, T) shared by the chains, or None (random windows)."""
@@ -188,6 +184,7 @@ class _Compiled:
 
 
 def _record(kernel: BPHMMKernel, hyper_names, state) -> dict:
+    """The fields kept after a sweep, of one chain."""
     out = {}
     for name in dict.fromkeys((kernel.sample_field,) + tuple(kernel.default_fields)):
         value = attrgetter(name)(state)
