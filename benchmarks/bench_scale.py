@@ -1,0 +1,203 @@
+"""How npbrs scales: the soft Bellman solve in the number of states S (``--part states``), and
+(room left for it) the sampler in the number of trajectories N (``--part trajectories``).
+
+    python benchmarks/bench_scale.py [--json PATH] [--part states|trajectories|all]
+                                     [--sizes 1e4 1e5 1e6] [--skills 4] [--repeats 3]
+
+States. The world is :func:`npbrs.domains.gridworld.open_gridworld` with side L = round(sqrt(S))
+(S = 10^4, 99856, 10^6), 5 actions, 3 successor slots, 4 goal-nearness features, discount 0.95.
+The rewards are K = ``--skills`` tables solved together in one call, skill k seeking goal k
+(theta = 5 e_k; with K > 4, the weights cycle). The solver is ``make_soft_solver(mdp)`` with its
+defaults (Newton-GMRES, relative tolerance 1e-10, float64). Each size runs in a fresh
+process of its own (so that its peak memory is its own), and reports
+
+- ``build_s``: building the world; ``first_call_s``: the first solve from V = 0, compilation
+  included (no persistent compilation cache: what a new process pays; this is the "cold" solve
+  of ``solve_1e6_cold_s``);
+- ``solve_s``: the same solve again, compiled (the median of ``--repeats``; ``solve_runs_s``
+  all of them);
+- ``warm_start_s``: a solve after the rewards change by a relative 1e-3, started from the
+  previous values (a sampler's or an optimiser's step; the median of ``--repeats``);
+- ``newton_steps``, ``matvecs``: per reward table, of the solve from V = 0 and the warm start;
+- ``peak_rss_mb``: the process's peak resident memory (``ru_maxrss``), ``build_rss_mb`` its
+  peak after building the world (before JAX touched it).
+
+The growth exponent ``exponent_s`` is the least-squares slope of log(solve_s) against log(S)
+over the sizes (``exponent_s_warm_start`` the same for warm_start_s). The machine's load
+(``os.getloadavg()``) and the other busy processes are recorded before and after each size:
+on a shared 2-core machine another job's processes halve what a run gets.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import platform
+import resource
+import statistics
+import subprocess
+import sys
+import time
+
+import numpy as np
+
+HERE = os.path.dirname(os.path.abspath(__file__))
+DEFAULT_SIZES = (10 ** 4, 10 ** 5, 10 ** 6)
+
+
+# ------------------------------------------------------------------------------- machine
+def machine_state() -> dict:
+    """The load averages and the processes (other than this one and its children) using CPU."""
+    others = []
+    try:
+        out = subprocess.run(["ps", "-eo", "pid,ppid,pcpu,rss,etime,args", "--sort=-pcpu"], capture_output=True,
+                             text=True, timeout=10).stdout.splitlines()[1:]
+        mine = {os.getpid()}
+        for line in out:
+            pid, ppid, pcpu, rss, etime, args = line.split(None, 5)
+            if int(pid) in mine or int(ppid) in mine or "ps -eo" in args or float(pcpu) < 5.0:
+                continue
+            others.append({"pid": int(pid), "cpu_percent": float(pcpu), "rss_mb": round(int(rss) / 1024),
+                           "elapsed": etime, "command": args[:120]})
+    except (OSError, subprocess.SubprocessError, ValueError):
+        pass
+    return {"loadavg": [round(x, 2) for x in os.getloadavg()], "busy_processes": others[:8]}
+
+
+def fit_exponent(sizes, times) -> float:
+    """Least-squares slope of log(time) against log(size)."""
+    x, y = np.log(np.asarray(sizes, float)), np.log(np.asarray(times, float))
+    return float(np.polyfit(x, y, 1)[0])
+
+
+# ---------------------------------------------------------------------------- states part
+def measure_states(S: int, skills: int, repeats: int) -> dict:
+    """One size, in this process: build, first call, compiled and warm-started solves."""
+    import jax
+
+    from npbrs.domains import make_soft_solver
+    from npbrs.domains.gridworld import open_gridworld
+
+    L = int(round(math.sqrt(S)))
+    t = time.perf_counter()
+    mdp = open_gridworld(L)
+    build_s = time.perf_counter() - t
+    build_rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+    solver = make_soft_solver(mdp)
+    theta = np.zeros((skills, mdp.num_features))
+    theta[np.arange(skills), np.arange(skills) % mdp.num_features] = 5.0
+    rewards = np.asarray(solver.rewards(theta))
+    stepped = rewards * (1.0 + 1e-3)
+    v0 = np.zeros((skills, mdp.num_states))  # an explicit zero start: one program for every solve
+
+    def timed(r, v):
+        t = time.perf_counter()
+        res = solver(r, v)
+        jax.block_until_ready(res.V)
+        return time.perf_counter() - t, res
+
+    first, res = timed(rewards, v0)
+    runs = [timed(rewards, v0)[0] for _ in range(repeats)]
+    warm = [timed(stepped, res.V) for _ in range(repeats)]
+    ws = warm[-1][1]
+    return {
+        "S": mdp.num_states, "L": L, "A": mdp.num_actions, "B": mdp.num_successors, "K": skills,
+        "build_s": build_s, "first_call_s": first, "solve_s": statistics.median(runs), "solve_runs_s": runs,
+        "warm_start_s": statistics.median(w[0] for w in warm), "warm_start_runs_s": [w[0] for w in warm],
+        "newton_steps": np.asarray(res.num_iter).tolist(), "matvecs": np.asarray(res.num_matvec).tolist(),
+        "residual_max": float(np.max(res.residual)),
+        "warm_start_newton_steps": np.asarray(ws.num_iter).tolist(),
+        "warm_start_matvecs": np.asarray(ws.num_matvec).tolist(),
+        "build_rss_mb": build_rss, "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
+    }
+
+
+def part_states(sizes, skills: int, repeats: int) -> dict:
+    """Every size in a fresh process; the table, the exponents and the 10^6 figures."""
+    rows = []
+    for S in sizes:
+        before = machine_state()
+        out = subprocess.run([sys.executable, os.path.abspath(__file__), "--_states-child", str(S),
+                              "--skills", str(skills), "--repeats", str(repeats)],
+                             capture_output=True, text=True)
+        if out.returncode != 0:
+            raise RuntimeError(f"the S = {S} run failed:\n{out.stderr[-4000:]}")
+        row = json.loads(out.stdout.strip().splitlines()[-1])
+        row["machine_before"], row["machine_after"] = before, machine_state()
+        rows.append(row)
+        print(f"  S = {row['S']:>8}: first call {row['first_call_s']:7.2f} s, solve {row['solve_s']:7.2f} s, "
+              f"warm start {row['warm_start_s']:7.2f} s, peak {row['peak_rss_mb']:6.0f} MB "
+              f"(load {before['loadavg'][0]:.1f})", flush=True)
+    result = {"rows": rows}
+    if len(rows) >= 2:
+        result["exponent_s"] = fit_exponent([r["S"] for r in rows], [r["solve_s"] for r in rows])
+        result["exponent_s_warm_start"] = fit_exponent([r["S"] for r in rows], [r["warm_start_s"] for r in rows])
+    big = [r for r in rows if r["S"] == 10 ** 6]
+    if big:
+        result["solve_1e6_cold_s"] = big[0]["first_call_s"]
+        result["solve_1e6_compiled_s"] = big[0]["solve_s"]
+        result["solve_1e6_warm_start_s"] = big[0]["warm_start_s"]
+        result["peak_rss_1e6_mb"] = big[0]["peak_rss_mb"]
+    return result
+
+
+def print_states(result: dict) -> None:
+    print(f"{'S':>9} {'build s':>8} {'first s':>8} {'solve s':>8} {'warm s':>7} {'Newton':>7} {'matvecs':>8} "
+          f"{'peak MB':>8} {'load':>5}")
+    for r in result["rows"]:
+        print(f"{r['S']:>9} {r['build_s']:>8.2f} {r['first_call_s']:>8.2f} {r['solve_s']:>8.2f} "
+              f"{r['warm_start_s']:>7.2f} {max(r['newton_steps']):>7} {max(r['matvecs']):>8} "
+              f"{r['peak_rss_mb']:>8.0f} {r['machine_before']['loadavg'][0]:>5.1f}")
+    if "exponent_s" in result:
+        print(f"growth exponent in S: {result['exponent_s']:.3f} (solve), "
+              f"{result['exponent_s_warm_start']:.3f} (warm start)")
+
+
+# ------------------------------------------------------------------------ trajectories part
+def part_trajectories(args) -> dict:
+    """The sampler's sweep time in the number of trajectories N (not written yet)."""
+    raise NotImplementedError("--part trajectories is not written yet")
+
+
+# ------------------------------------------------------------------------------------ main
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--json", help="write the results here")
+    parser.add_argument("--part", choices=("states", "trajectories", "all"), default="states")
+    parser.add_argument("--sizes", nargs="+", type=float, default=DEFAULT_SIZES, help="numbers of states")
+    parser.add_argument("--skills", type=int, default=4, help="reward tables solved together")
+    parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument("--_states-child", type=float, help=argparse.SUPPRESS)
+    args = parser.parse_args(argv)
+    if args._states_child:
+        print(json.dumps(measure_states(int(args._states_child), args.skills, args.repeats)))
+        return 0
+
+    import jax
+
+    report = {"benchmark": "bench_scale", "command": " ".join([os.path.basename(sys.executable)] + sys.argv),
+              "machine": {"cpus": os.cpu_count(), "platform": platform.platform(), "python": platform.python_version(),
+                          "jax": jax.__version__, "xla_flags": os.environ.get("XLA_FLAGS", "")},
+              "started": time.strftime("%Y-%m-%d %H:%M:%S"), "machine_at_start": machine_state()}
+    if args.part in ("states", "all"):
+        print(f"states: sizes {[int(s) for s in args.sizes]}, K = {args.skills}", flush=True)
+        report["states"] = part_states([int(s) for s in args.sizes], args.skills, args.repeats)
+        report.update({k: v for k, v in report["states"].items() if k != "rows"})
+        print_states(report["states"])
+    if args.part in ("trajectories", "all"):
+        report["trajectories"] = part_trajectories(args)
+    report["machine_at_end"] = machine_state()
+    if args.json:
+        os.makedirs(os.path.dirname(os.path.abspath(args.json)), exist_ok=True)
+        tmp = args.json + ".tmp"
+        with open(tmp, "w") as f:
+            json.dump(report, f, indent=1)
+        os.replace(tmp, args.json)
+        print(f"wrote {args.json}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
