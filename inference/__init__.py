@@ -9,5 +9,3 @@ from .runs import load, load_mdp, save_mdp
 from .diagnostics import convergence, relabel, skill_summary
 from .predictive import HeldOut, SkillProbabilities, log_predictive
 from .plots import plot_segmentation, plot_skill_rewards, plot_trace, skill_styles
-from . import reward_move  # reward_move.init / reward_move.build_kernel: MALA on reward weights
-from .reward_move import RewardMALAInfo, RewardMALAState

@@ -53,6 +53,7 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 
+from npbrs.models.mcmc import select
 from npbrs.models.bphmm import collapsed_feature_log_prob, collapsed_sequence_log_prob
 
 from .split_merge import _allocate, _skill_counts
@@ -92,7 +93,7 @@ def _structure_log_prob(hyper, mask, z, features):
 
 def _keep(accept, info, new, old):
     """The new (features, z, params, log_lik) where accepted, else the old, and the info."""
-    return (*jax.tree.map(lambda x, y: jnp.where(accept, x, y), new, old), info)
+    return (*select(accept, new, old), info)
 
 
 def greedy_merge(key, emission, data, hyper, features, z, params, log_lik):

@@ -28,6 +28,7 @@ from numpyro.infer.mcmc import MCMCKernel
 from npbrs.domains.pytree import Pytree
 from npbrs.models.bphmm import (Hyper, bphmm_model, eta_from_gammas, eta_gamma_shapes, hmm_parameters, log_joint_terms,
                                 log_marginal_likelihoods)
+from npbrs.models.mcmc import metropolis_accept
 from npbrs.models.emissions import Emission, HMMData
 from npbrs.models.hmm import batch_backward_sample, batch_forward_filter, transition_counts
 
@@ -474,7 +475,7 @@ class BPHMMKernel(MCMCKernel, Pytree):
             cand = hyper._replace(**{name: prop})
             # log-scale proposal: Jacobian log(prop / old)
             log_ratio = log_target(cand) - log_target(hyper) + jnp.log(prop) - jnp.log(old)
-            accept = jnp.log(jax.random.uniform(k2)) < log_ratio
+            accept, _ = metropolis_accept(k2, log_ratio)
             hyper = hyper._replace(**{name: jnp.where(accept, prop, old)})
         return hyper
 

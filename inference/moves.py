@@ -31,6 +31,7 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 
+from npbrs.models.mcmc import metropolis_accept, select
 from npbrs.models.bphmm import collapsed_feature_log_prob, hmm_parameters
 from npbrs.models.hmm import forward_filter
 from npbrs.domains.precision import float64_all
@@ -146,10 +147,9 @@ def birth_death(key, emission, data, hyper, features, eta, params, log_lik, min_
     log_ratio, f2, p2, ll2 = birth_death_log_ratio(emission, data, hyper, features, eta, params, log_lik, i, k,
                                                    new_one, window, is_birth,
                                                    log_q=jnp.where(is_birth, log_q_new, log_q_old))
-    accept = possible & (jnp.log(jax.random.uniform(k_acc)) < log_ratio)
-    pick = lambda a, b: jax.tree.map(lambda x, y: jnp.where(accept, x, y), a, b)  # noqa: E731
+    accept, _ = metropolis_accept(k_acc, log_ratio, possible)
     info = BirthDeathInfo(is_birth, possible, accept, jnp.where(possible, log_ratio, -jnp.inf))
-    return pick(f2, features), pick(p2, params), pick(ll2, log_lik), info
+    return (*select(accept, (f2, p2, ll2), (features, params, log_lik)), info)
 
 
 float64_all(globals())  # npbrs.domains.precision: float64 inside, the user's setting outside

@@ -98,6 +98,7 @@ from typing import NamedTuple, Optional
 import jax
 import jax.numpy as jnp
 
+from npbrs.models.mcmc import metropolis_accept, select
 from npbrs.models.bphmm import collapsed_feature_log_prob, eta_from_gammas, eta_gamma_shapes, hmm_parameters
 from npbrs.models.hmm import NEG_LOG, batch_backward_sample, batch_forward_filter, transition_counts, viterbi
 from npbrs.domains.precision import float64_all
@@ -437,10 +438,9 @@ def split_merge(key, emission, data, hyper, features, eta, z, params, log_lik, n
     log_p_rev = _choice_log_prob(~is_split, _skill_counts(z2, mask, K), k1, jnp.where(is_split, k2, k1))
     log_ratio = log_ratio + log_p_rev - log_p_fwd
     possible = possible & can
-    accept = possible & (jnp.log(jax.random.uniform(k_acc)) < log_ratio)
-    pick = lambda a, b: jax.tree.map(lambda x, y: jnp.where(accept, x, y), a, b)  # noqa: E731
+    accept, _ = metropolis_accept(k_acc, log_ratio, possible)
     info = SplitMergeInfo(is_split, possible, accept, jnp.where(possible, log_ratio, -jnp.inf))
-    return pick(f2, features), pick(eta2, eta), pick(z2, z), pick(p2, params), pick(ll2, log_lik), info
+    return (*select(accept, (f2, eta2, z2, p2, ll2), (features, eta, z, params, log_lik)), info)
 
 
 float64_all(globals())  # npbrs.domains.precision: float64 inside, the user's setting outside

@@ -1,8 +1,11 @@
 """The reward (Boltzmann / maximum-entropy IRL) emission's numerics.
 
 A skill is a reward r_k(s, a) = phi(s, a) . theta_k; its demonstrator acts with the Boltzmann
-policy pi_k(a | s) = exp(Q_k(s, a) - V_k(s)) of the soft Bellman equation (the inverse
-temperature is folded into theta). Because
+policy pi_k(a | s) = exp(Q_k(s, a) - V_k(s)) of the soft Bellman equation of the rewards
+tau * r_k (tau: the demonstrator's inverse temperature, 1 by default), mixed with uniform actions
+at rate epsilon for a noisy expert. ``log_policy`` is the one place tau and epsilon enter, and
+``log_posterior`` the one density of a skill's weights (the MALA move of
+:mod:`npbrs.models.reward_mala`, the IRL fits and the MAP update all use it). Because
 
     sum_t w_t log pi(a_t | s_t) = sum_{s, a} C[s, a] log pi(a | s),
 
@@ -42,8 +45,8 @@ from ..domains.solvers import SoftSolver, make_soft_solver
 from npbrs.domains.precision import float64_all
 
 __all__ = ["PRIOR_SCALE", "count_table", "log_policy", "step_log_likelihoods", "count_log_likelihood",
-           "count_log_likelihood_and_grad", "fisher_information", "log_prior", "irl_fit", "fit_reward", "IRLFit",
-           "as_solver"]
+           "count_log_likelihood_and_grad", "fisher_information", "log_prior", "log_posterior", "Posterior", "irl_fit",
+           "fit_reward", "IRLFit", "as_solver"]
 
 PRIOR_SCALE = 10.0
 
@@ -133,21 +136,31 @@ def count_table(states, actions, weights, num_states: int, num_actions: int, mas
 
 
 # --------------------------------------------------------------------------- policies
-def log_policy(solver: SoftSolver, theta, v0=None):
+def _solve_policy(solver, theta, v0=None, temperature=1.0, epsilon=0.0):
+    """The one place the demonstrator's policy is made from reward weights: the soft solve of
+    the rewards tau * phi . theta (tau: the inverse temperature), its Boltzmann log-policy mixed
+    with uniform actions at rate epsilon. Returns (log_pi, V, the solver's residual)."""
+    res = solver(solver.rewards(theta * temperature), v0)
+    return noisy_log_policy(res.Q - res.V[..., None], epsilon), res.V, res.residual
+
+
+def log_policy(solver: SoftSolver, theta, v0=None, temperature: float = 1.0, epsilon: float = 0.0):
     """Boltzmann log-policies of reward weights.
 
     Args:
         solver: a SoftSolver (:func:`npbrs.domains.make_soft_solver`), or a TabularMDP.
         theta: (D,) or (K, D) reward weights.
         v0: optional warm start (K, S) (or (S,)), e.g. the V of a previous call.
+        temperature: inverse temperature tau: the policy of the rewards tau * phi . theta.
+        epsilon: the noisy expert's random-action probability (:func:`noisy_log_policy`).
     Returns:
         (log_pi, V): log pi(a | s), (K, S, A) (or (S, A)), and the soft values (K, S) (or (S,)).
     """
     solver = as_solver(solver)
     if _is_concrete(theta):
         _check_theta(theta, solver.num_features)
-    res = solver(solver.rewards(theta), v0)
-    return res.Q - res.V[..., None], res.V
+    log_pi, V, _ = _solve_policy(solver, theta, v0, temperature, epsilon)
+    return log_pi, V
 
 
 def step_log_likelihoods(log_pi, states, actions, mask=None) -> jax.Array:
@@ -238,18 +251,51 @@ def count_log_likelihood_and_grad(solver: SoftSolver, theta, counts, v0=None, ep
     return _LL_AND_GRAD(solver, theta, counts, v0, float(epsilon))
 
 
-def _ll_grad_residual(solver, theta, counts, v0, epsilon=0.0):
-    """(K,) log-likelihoods, (K, D) gradients, (K, S) values and (K,) solver residuals of K
-    skills, by one batched solve and one batched adjoint solve (skill k's log-likelihood
-    depends on theta_k only, so the gradient of their sum holds every skill's gradient)."""
+def _ll_grad_residual(solver, theta, counts, v0, epsilon=0.0, temperature=1.0):
+    """(K,) log-likelihoods, (K, D) gradients and (K, S) values of K skills, and whether each
+    solve converged (K,), by one batched solve and one batched adjoint solve (skill k's
+    log-likelihood depends on theta_k only, so the gradient of their sum holds every skill's
+    gradient)."""
 
     def total(t):
-        res = solver(solver.rewards(t), v0)
-        ll = jnp.sum(counts * noisy_log_policy(res.Q - res.V[..., None], epsilon), axis=(-2, -1))
-        return jnp.sum(ll), (ll, res.V, res.residual)
+        log_pi, V, residual = _solve_policy(solver, t, v0, temperature, epsilon)
+        ll = jnp.sum(counts * log_pi, axis=(-2, -1))
+        return jnp.sum(ll), (ll, V, residual)
 
     (_, (ll, V, residual)), g = jax.value_and_grad(total, has_aux=True)(theta)
-    return ll, g, V, residual
+    return ll, g, V, residual <= solver.tol
+
+
+class Posterior(NamedTuple):
+    """:func:`log_posterior` of K skills: log_density (K,) up to a constant, its gradient
+    (K, D), the soft values V (K, S) (the next solve's warm start), ok (K,) (the solve
+    converged and both are finite) and the log-likelihood alone, log_lik (K,)."""
+
+    log_density: jax.Array
+    grad: jax.Array
+    V: jax.Array
+    ok: jax.Array
+    log_lik: jax.Array
+
+
+def log_posterior(solver, theta, counts, v0, prior_scale=PRIOR_SCALE, temperature=1.0, epsilon=0.0) -> Posterior:
+    """The conditional log-posterior of K skills' reward weights given their steps' count
+    tables, up to a constant: sum_{s,a} C_k[s, a] log pi_k(a | s) + log N(theta_k; 0, sigma_k^2 I),
+    with pi_k the policy of the rewards tau * phi . theta_k (:func:`log_policy`). The one
+    density of the reward moves, the IRL fits and the MAP update.
+
+    Args:
+        solver: a SoftSolver; theta: (K, D); counts: (K, S, A); v0: (K, S) warm start.
+        prior_scale: sigma, scalar or (K,); temperature: tau; epsilon: the noisy expert's rate.
+    Returns:
+        A :class:`Posterior`.
+    """
+    scale = jnp.broadcast_to(jnp.asarray(prior_scale, jnp.float64), theta.shape[:1])[:, None]
+    ll, g, V, converged = _ll_grad_residual(solver, theta, counts, v0, epsilon, temperature)
+    lp = ll + log_prior(theta, scale)
+    grad = g - theta / scale ** 2
+    ok = converged & jnp.isfinite(lp) & jnp.all(jnp.isfinite(grad), axis=-1)
+    return Posterior(lp, grad, V, ok, ll)
 
 
 def _ll_and_grad(solver, theta, counts, v0, epsilon=0.0):
@@ -260,7 +306,7 @@ def _ll_and_grad(solver, theta, counts, v0, epsilon=0.0):
 _LL_AND_GRAD = jax.jit(_ll_and_grad, static_argnums=4)
 
 
-def fisher_information(solver: SoftSolver, theta, counts, v0=None) -> jax.Array:
+def fisher_information(solver: SoftSolver, theta, counts, v0=None, temperature: float = 1.0) -> jax.Array:
     """Fisher information of each skill's weights given its steps' count table,
     sum_s n_s Cov_{a ~ pi(.|s)}[d log pi(a | s) / d theta].
 
@@ -269,6 +315,7 @@ def fisher_information(solver: SoftSolver, theta, counts, v0=None) -> jax.Array:
     Args:
         solver: a SoftSolver or a TabularMDP.
         theta: (K, D) (or (D,)); counts: (K, S, A) (or (S, A)); v0: optional (K, S) warm start.
+        temperature: tau, as in :func:`log_policy` (the information of theta, not of tau theta).
     Returns:
         (K, D, D) (or (D, D)).
     """
@@ -276,12 +323,12 @@ def fisher_information(solver: SoftSolver, theta, counts, v0=None) -> jax.Array:
     theta = jnp.asarray(theta, jnp.float64)
     counts = jnp.asarray(counts, jnp.float64)
     if theta.ndim == 1:
-        return fisher_information(solver, theta[None], counts[None], None if v0 is None else jnp.asarray(v0)[None])[0]
+        return fisher_information(solver, theta[None], counts[None], None if v0 is None else jnp.asarray(v0)[None],
+                                  temperature)[0]
     K, D = theta.shape
 
     def log_pi(t):
-        res = solver(solver.rewards(t), v0)
-        return res.Q - res.V[..., None]
+        return _solve_policy(solver, t, v0, temperature)[0]
 
     pi = jnp.exp(log_pi(theta))
     # the D tangent solves batched (vmap), not unrolled: a program of one solve's size for any D
@@ -333,23 +380,24 @@ def _two_loop(g, S_hist, Y_hist, rho, count, newest, history):
 
 
 def fit_reward(solver: SoftSolver, counts, theta0, v0, prior_scale=PRIOR_SCALE, num_steps: int = 30,
-               history: int = 10, max_backtracks: int = 10, epsilon: float = 0.0):
+               history: int = 10, max_backtracks: int = 10, epsilon: float = 0.0, temperature: float = 1.0):
     """The jit-able core of :func:`irl_fit` for K skills: static shapes, no input checks.
 
-    L-BFGS with a backtracking (Armijo) line search on -(log-lik + log-prior) of every skill,
-    all skills in lock-step: each iteration evaluates the objective once per skill (its start,
-    a trial step or a backtrack) by one batched solve and one batched adjoint solve, every
-    solve warm-started from the skill's last accepted values. So the program holds a single
-    copy of the solver and no loop counter is per-skill. A skill stops after ``num_steps``
-    steps, or earlier once the predicted decrease is below the objective's accuracy (ten times
-    the solver's relative tolerance), or after two failed line searches in a row (the first one
-    resets its history and tries the scaled gradient).
+    L-BFGS with a backtracking (Armijo) line search on the negative :func:`log_posterior` of
+    every skill, all skills in lock-step: each iteration evaluates the objective once per skill
+    (its start, a trial step or a backtrack) by one batched solve and one batched adjoint solve,
+    every solve warm-started from the skill's last accepted values. So the program holds a
+    single copy of the solver and no loop counter is per-skill. A skill stops after
+    ``num_steps`` steps, or earlier once the predicted decrease is below the objective's
+    accuracy (ten times the solver's relative tolerance), or after two failed line searches in
+    a row (the first one resets its history and tries the scaled gradient).
 
     Args:
         solver: a SoftSolver.
         counts: (K, S, A); theta0: (K, D); v0: (K, S); prior_scale: scalar or (K,).
         num_steps: L-BFGS steps; history: L-BFGS memory; max_backtracks: halvings per line search.
         epsilon: the noisy expert's random-action probability (:func:`noisy_log_policy`).
+        temperature: the demonstrator's inverse temperature tau (:func:`log_policy`).
     Returns:
         (theta (K, D), log_lik (K,), V (K, S), norm of the log-posterior's gradient (K,),
         number of value-and-gradient evaluations (K,)).
@@ -359,9 +407,8 @@ def fit_reward(solver: SoftSolver, counts, theta0, v0, prior_scale=PRIOR_SCALE, 
     noise = max(10.0 * solver.tol, 1e-13)  # relative accuracy of the objective
 
     def objective(theta, v):
-        ll, g, V = _ll_and_grad(solver, theta, counts, v, epsilon)
-        lp = log_prior(theta, scale[:, None])
-        return -(ll + lp), -(g - theta / scale[:, None] ** 2), ll, V
+        post = log_posterior(solver, theta, counts, v, scale, temperature, epsilon)
+        return -post.log_density, -post.grad, post.log_lik, post.V
 
     def direction(g, Sh, Yh, rho, count, newest):
         d = _two_loop(g, Sh, Yh, rho, count, newest, history)
@@ -427,7 +474,7 @@ def fit_reward(solver: SoftSolver, counts, theta0, v0, prior_scale=PRIOR_SCALE, 
 
 
 def irl_fit(solver, counts, theta0=None, *, prior_scale=PRIOR_SCALE, num_steps: int = 30, v0=None,
-            history: int = 10) -> IRLFit:
+            history: int = 10, temperature: float = 1.0, epsilon: float = 0.0) -> IRLFit:
     """Maximum a posteriori maximum-entropy IRL: argmax_theta sum C log pi_theta + log N(theta; 0, sigma^2 I).
 
     A fixed number of L-BFGS steps with a backtracking line search, every soft solve
@@ -443,6 +490,8 @@ def irl_fit(solver, counts, theta0=None, *, prior_scale=PRIOR_SCALE, num_steps: 
         num_steps: L-BFGS steps.
         v0: optional warm start of the soft values (K, S) (or (S,)).
         history: L-BFGS memory.
+        temperature: the demonstrator's inverse temperature tau (policies of tau * phi . theta).
+        epsilon: the noisy expert's random-action probability (:func:`noisy_log_policy`).
     Returns:
         IRLFit(theta (D,) or (K, D), log_lik () or (K,)).
     """
@@ -467,15 +516,21 @@ def irl_fit(solver, counts, theta0=None, *, prior_scale=PRIOR_SCALE, num_steps: 
         v0 = jnp.zeros((K, S))
     else:
         v0 = jnp.broadcast_to(jnp.asarray(v0, jnp.float64), (K, S))
-    theta, ll, *_ = _fit_jit(solver, C, theta0, v0, prior_scale, int(num_steps), int(history))
+    for name, value in [("temperature", temperature), ("epsilon", epsilon)]:
+        if not np.isfinite(value) or value < 0 or (name == "temperature" and value == 0) or \
+                (name == "epsilon" and value >= 1):
+            raise ValueError(f"{name} must be {'positive' if name == 'temperature' else 'in [0, 1)'}, got {value!r}")
+    theta, ll, *_ = _fit_jit(solver, C, theta0, v0, prior_scale, int(num_steps), int(history), float(epsilon),
+                             float(temperature))
     return IRLFit(theta[0], ll[0]) if single else IRLFit(theta, ll)
 
 
-def _fit_jit(solver, counts, theta0, v0, prior_scale, num_steps, history):
-    return _FIT_JIT(solver, counts, theta0, v0, jnp.asarray(prior_scale, jnp.float64), num_steps, history)
+def _fit_jit(solver, counts, theta0, v0, prior_scale, num_steps, history, epsilon=0.0, temperature=1.0):
+    return _FIT_JIT(solver, counts, theta0, v0, jnp.asarray(prior_scale, jnp.float64), num_steps, history, 10,
+                    epsilon, temperature)
 
 
-_FIT_JIT = jax.jit(fit_reward, static_argnums=(5, 6))
+_FIT_JIT = jax.jit(fit_reward, static_argnums=(5, 6, 7, 8))  # temperature is traced
 
 
 float64_all(globals())  # npbrs.domains.precision: float64 inside, the user's setting outside

@@ -36,8 +36,8 @@ import numpyro.distributions as dist
 
 from ..domains.solvers import make_soft_solver
 from .emissions import Emission, register_emission
-from .reward import (count_log_likelihood_and_grad, count_table, fisher_information, fit_reward, noisy_log_policy,
-                     step_log_likelihoods)
+from . import reward_mala
+from .reward import count_table, fisher_information, fit_reward, log_policy, step_log_likelihoods
 from npbrs.domains.precision import float64_all
 
 __all__ = ["RewardEmission", "SingleRewardEmission"]
@@ -140,22 +140,13 @@ class RewardEmission(Emission):
         return {"V": jnp.zeros((K, self.num_states)), "log_step": jnp.full((K,), np.log(self.step_size)),
                 "scale": jnp.full((K, self.num_features), self.prior_scale)}
 
-    def _scaled(self, theta):
-        return theta * self.temperature
-
-    @property
-    def _fit_scale(self):
-        """The IRL fits work in the scaled weights tau * theta, whose prior scale is tau * sigma."""
-        return self.prior_scale * self.temperature
-
     def _counts(self, data, weights):
         return count_table(data.states, data.actions, weights, self.num_states, self.num_actions, data.mask)
 
     def _log_policies_and_values(self, theta, cache=()):
         K = theta.shape[0]
         v0 = cache["V"] if isinstance(cache, dict) and cache["V"].shape[0] == K else None
-        res = self.solver(self.solver.rewards(self._scaled(theta)), v0)
-        return noisy_log_policy(res.Q - res.V[..., None], self.epsilon), res.V
+        return log_policy(self.solver, theta, v0, self.temperature, self.epsilon)
 
     def log_policies(self, params):
         """The demonstrator's policies: Boltzmann in the soft Q of tau * reward, mixed with
@@ -170,12 +161,6 @@ class RewardEmission(Emission):
         new_cache["V"] = V
         return ll, new_cache
 
-    def _log_post_and_grad(self, theta, counts, V):
-        ll, g, V = count_log_likelihood_and_grad(self.solver, self._scaled(theta), counts, V, self.epsilon)
-        lp = ll + self.log_prior({"theta": theta})
-        grad = g * self.temperature - theta / self.prior_scale ** 2
-        return lp, grad, V
-
     # ------------------------------------------------------------------ moves
     def update(self, key, params, cache, data, weights, adapt):
         theta = params["theta"]
@@ -184,9 +169,8 @@ class RewardEmission(Emission):
         has_steps = jnp.sum(counts, axis=(1, 2)) > 0
         k_prior, k_move = jax.random.split(key)
         if self.update_kind == "map":
-            new, _, V, _, _ = fit_reward(self.solver, counts, self._scaled(theta), cache["V"], self._fit_scale,
-                                         self.map_steps, epsilon=self.epsilon)
-            new = new / self.temperature
+            new, _, V, _, _ = fit_reward(self.solver, counts, theta, cache["V"], self.prior_scale, self.map_steps,
+                                         epsilon=self.epsilon, temperature=self.temperature)
             accept = jnp.ones(K)
             cache = {**cache, "V": V}
         else:
@@ -206,39 +190,29 @@ class RewardEmission(Emission):
         expensive part of a warmup sweep with many features); the sampling sweeps keep it fixed."""
         theta = params["theta"]
         counts = self._counts(data, weights)
-        fisher = jax.vmap(lambda t, c, v: jnp.diag(fisher_information(self.solver, self._scaled(t), c, v)))(
-            theta, counts, cache["V"]) * self.temperature ** 2
+        fisher = jax.vmap(lambda t, c, v: jnp.diag(fisher_information(self.solver, t, c, v, self.temperature)))(
+            theta, counts, cache["V"])
         return {**cache, "scale": 1.0 / jnp.sqrt(jnp.maximum(fisher, 0.0) + 1.0 / self.prior_scale ** 2)}
 
     def _mala(self, key, theta, counts, cache, adapt):
-        K, D = theta.shape
-        scale = cache["scale"]  # the preconditioner, refreshed by :meth:`tune` during warmup
-        lp, grad, V = self._log_post_and_grad(theta, counts, cache["V"])
+        """``mala_steps`` steps of the reward move (:mod:`npbrs.models.reward_mala`) with the
+        cache's preconditioner (refreshed by :meth:`tune` during warmup); in warmup each skill's
+        step size follows its acceptance rate towards ``target_accept``."""
+        kernel = reward_mala.build_kernel(self.solver, self.prior_scale, temperature=self.temperature,
+                                          epsilon=self.epsilon)
+        minv = cache["scale"] ** 2
+        state = reward_mala.init(self.solver, theta, counts, self.prior_scale, cache["V"],
+                                 temperature=self.temperature, epsilon=self.epsilon)
 
         def step(carry, key):
-            theta, lp, grad, V, log_step, acc_sum = carry
-            h = jnp.exp(log_step)[:, None] * scale  # (K, D) per-coordinate step
-            k1, k2 = jax.random.split(key)
-            mean_fwd = theta + 0.5 * h ** 2 * grad
-            prop = mean_fwd + h * jax.random.normal(k1, theta.shape)
-            lp_p, grad_p, V_p = self._log_post_and_grad(prop, counts, V)
-            mean_bwd = prop + 0.5 * h ** 2 * grad_p
-            log_q_fwd = -jnp.sum((prop - mean_fwd) ** 2 / (2 * h ** 2), -1)
-            log_q_bwd = -jnp.sum((theta - mean_bwd) ** 2 / (2 * h ** 2), -1)
-            log_ratio = lp_p - lp + log_q_bwd - log_q_fwd
-            log_ratio = jnp.where(jnp.isfinite(log_ratio), log_ratio, -jnp.inf)
-            acc_prob = jnp.exp(jnp.minimum(log_ratio, 0.0))
-            ok = jax.random.uniform(k2, (K,)) < acc_prob
-            theta = jnp.where(ok[:, None], prop, theta)
-            lp = jnp.where(ok, lp_p, lp)
-            grad = jnp.where(ok[:, None], grad_p, grad)
-            V = jnp.where(ok[:, None], V_p, V)
-            log_step = jnp.where(adapt, log_step + 0.3 * (acc_prob - self.target_accept), log_step)
-            return (theta, lp, grad, V, log_step, acc_sum + acc_prob), None
+            state, log_step, acc_sum = carry
+            state, info = kernel(key, state, counts, jnp.exp(log_step), minv)
+            log_step = jnp.where(adapt, log_step + 0.3 * (info.acceptance_rate - self.target_accept), log_step)
+            return (state, log_step, acc_sum + info.acceptance_rate), None
 
-        init = (theta, lp, grad, V, cache["log_step"], jnp.zeros(K))
-        (theta, lp, grad, V, log_step, acc_sum), _ = jax.lax.scan(step, init, jax.random.split(key, self.mala_steps))
-        return theta, {**cache, "V": V, "log_step": log_step, "scale": scale}, acc_sum / self.mala_steps
+        init = (state, cache["log_step"], jnp.zeros(theta.shape[0]))
+        (state, log_step, acc_sum), _ = jax.lax.scan(step, init, jax.random.split(key, self.mala_steps))
+        return state.theta, {**cache, "V": state.V, "log_step": log_step}, acc_sum / self.mala_steps
 
     # ------------------------------------------------------------------ data-driven proposal
     def fit_point(self, data, weights, init=None):
@@ -246,11 +220,11 @@ class RewardEmission(Emission):
         ``init``, or twice as many from theta = 0."""
         counts = self._counts(data, weights)  # (M, S, A)
         M, D = counts.shape[0], self.num_features
-        theta0 = jnp.zeros((M, D)) if init is None else self._scaled(init["theta"])
+        theta0 = jnp.zeros((M, D)) if init is None else init["theta"]
         steps = 2 * self.refit_steps if init is None else self.refit_steps
-        fit, _, _, _, _ = fit_reward(self.solver, counts, theta0, jnp.zeros((M, self.num_states)), self._fit_scale,
-                                     steps, epsilon=self.epsilon)
-        return {"theta": fit / self.temperature}
+        fit, _, _, _, _ = fit_reward(self.solver, counts, theta0, jnp.zeros((M, self.num_states)), self.prior_scale,
+                                     steps, epsilon=self.epsilon, temperature=self.temperature)
+        return {"theta": fit}
 
     def _laplace(self, counts, init=None):
         """IRL fits (M, D) to count tables (M, S, A), ``refit_steps`` L-BFGS steps from ``init``
@@ -258,13 +232,13 @@ class RewardEmission(Emission):
         precisions (M, D, D) at the fits, F + I / sigma^2 (F: the Fisher information, the
         observed one's stand-in), symmetrised. Shared by the proposal and the evidence."""
         M, D = counts.shape[0], self.num_features
-        theta0 = jnp.zeros((M, D)) if init is None else self._scaled(init["theta"])
+        theta0 = jnp.zeros((M, D)) if init is None else init["theta"]
         steps = self.fit_steps if init is None else self.refit_steps
         fit, log_lik, V, _, _ = fit_reward(self.solver, counts, theta0, jnp.zeros((M, self.num_states)),
-                                           self._fit_scale, steps, epsilon=self.epsilon)
-        F = fisher_information(self.solver, fit, counts, V) * self.temperature ** 2  # (M, D, D)
+                                           self.prior_scale, steps, epsilon=self.epsilon, temperature=self.temperature)
+        F = fisher_information(self.solver, fit, counts, V, self.temperature)  # (M, D, D)
         precision = F + jnp.eye(D) / self.prior_scale ** 2
-        return fit / self.temperature, log_lik, 0.5 * (precision + jnp.swapaxes(precision, -1, -2))
+        return fit, log_lik, 0.5 * (precision + jnp.swapaxes(precision, -1, -2))
 
     def fit_evidence(self, data, weights, init=None):
         """IRL fits (M, D) to weighted steps (N, T, M) and each skill's Laplace log evidence at

@@ -4,8 +4,12 @@ import numpy as np
 import pytest
 from numpyro.diagnostics import effective_sample_size
 
+from scipy.optimize import brentq
+from scipy.special import expit
+
 from npbrs.domains import TabularMDP, make_soft_solver
-from npbrs.inference.reward_move import RewardMALAInfo, RewardMALAState, build_kernel, init
+from npbrs.models.reward import irl_fit
+from npbrs.models.reward_mala import RewardMALAInfo, RewardMALAState, build_kernel, init
 
 
 def logistic_mdp(gamma=0.9):
@@ -15,28 +19,32 @@ def logistic_mdp(gamma=0.9):
                       features=np.array([[[0.0], [1.0]]]), discount=gamma)
 
 
-def exact_posterior(counts, sigma):
-    """Mean and variance of theta given counts (n0, n1) by quadrature on a fine grid."""
+def exact_posterior(counts, sigma, tau=1.0, eps=0.0):
+    """Mean and variance of theta given counts (n0, n1) by quadrature on a fine grid, for the
+    policy pi(1) = (1 - eps) sigmoid(tau theta) + eps / 2."""
     grid = np.linspace(-30, 30, 600001)
     n0, n1 = counts
-    logp = n1 * grid - (n0 + n1) * np.logaddexp(0.0, grid) - 0.5 * grid ** 2 / sigma ** 2
+    p1 = (1 - eps) * expit(tau * grid) + eps / 2
+    logp = n1 * np.log(p1) + n0 * np.log1p(-p1) - 0.5 * grid ** 2 / sigma ** 2
     w = np.exp(logp - logp.max())
     w /= w.sum()
     mean = (w * grid).sum()
     return mean, (w * (grid - mean) ** 2).sum()
 
 
-def test_mala_samples_the_exact_posterior_of_a_logistic_conditional():
-    """Two skills at once (vmapped), each with its own counts: chain means and variances agree
-    with quadrature within Monte Carlo standard errors."""
+@pytest.mark.parametrize("tau, eps", [(1.0, 0.0), (2.0, 0.1)])
+def test_mala_samples_the_exact_posterior_of_a_logistic_conditional(tau, eps):
+    """Two skills at once, each with its own counts: chain means and variances agree with
+    quadrature within Monte Carlo standard errors, at temperature 1 and at temperature 2 with a
+    noisy expert (epsilon 0.1)."""
     sigma = 2.0
     counts = np.array([[3.0, 7.0], [10.0, 2.0]])
-    truth = [exact_posterior(c, sigma) for c in counts]
+    truth = [exact_posterior(c, sigma, tau, eps) for c in counts]
     solver = make_soft_solver(logistic_mdp(), tol=1e-12)
     C = jnp.asarray(counts[:, None, :])  # (K, S=1, A=2)
-    kernel = build_kernel(solver, prior_scale=sigma)
+    kernel = build_kernel(solver, prior_scale=sigma, temperature=tau, epsilon=eps)
     step = jnp.asarray([1.1 * np.sqrt(v) for _, v in truth])
-    state = init(solver, jnp.zeros((2, 1)), C, prior_scale=sigma)
+    state = init(solver, jnp.zeros((2, 1)), C, prior_scale=sigma, temperature=tau, epsilon=eps)
     assert isinstance(state, RewardMALAState)
 
     @jax.jit
@@ -62,9 +70,44 @@ def test_mala_samples_the_exact_posterior_of_a_logistic_conditional():
         ess_var = float(effective_sample_size(dev[None]))
         assert abs(dev.mean() - var) < 4 * dev.std() / np.sqrt(ess_var), (k, dev.mean(), var, ess_var)
     # the state carried along the chain is the density and gradient at its theta
-    fresh = init(solver, last.theta, C, prior_scale=sigma, v0=last.V)
+    fresh = init(solver, last.theta, C, prior_scale=sigma, v0=last.V, temperature=tau, epsilon=eps)
     np.testing.assert_allclose(last.log_density, fresh.log_density, rtol=1e-10)
     np.testing.assert_allclose(last.grad, fresh.grad, rtol=1e-8, atol=1e-10)
+
+
+@pytest.mark.parametrize("tau", [0.5, 1.0, 2.0])
+def test_the_irl_fit_finds_the_analytic_mode_at_any_temperature(tau):
+    """30 steps of action 0 and 70 of action 1 with prior N(0, 1): the mode of
+    70 tau theta - 100 log(1 + exp(tau theta)) - theta^2 / 2 is the root of
+    70 tau - 100 tau sigmoid(tau theta) - theta (0.4187 at tau = 2; a prior applied to tau theta
+    instead of theta gives 0.4045 there). The temperature is traced: one program for all three."""
+    mode = brentq(lambda t: 70 * tau - 100 * tau * expit(tau * t) - t, -10, 10)
+    fit = irl_fit(make_soft_solver(logistic_mdp(), tol=1e-12), np.array([[30.0, 70.0]]), prior_scale=1.0,
+                  num_steps=40, temperature=tau)
+    np.testing.assert_allclose(float(fit.theta[0]), mode, atol=1e-5)
+    if tau == 2.0:
+        assert abs(mode - 0.4187) < 1e-4
+
+
+def test_a_proposal_whose_solve_failed_is_rejected():
+    """A solver capped at one value-iteration sweep never reaches its tolerance: every proposal
+    is rejected, the state stays as it was, and the info says why."""
+    solver = make_soft_solver(logistic_mdp(gamma=0.99), tol=1e-12, method="vi", max_iter=1)
+    C = jnp.asarray([[[3.0, 7.0]], [[10.0, 2.0]]])
+    state = init(solver, jnp.ones((2, 1)), C, prior_scale=2.0)
+    kernel = jax.jit(build_kernel(solver, prior_scale=2.0))
+    for seed in range(5):
+        new, info = kernel(jax.random.PRNGKey(seed), state, C, 0.5)
+        assert np.asarray(info.solver_failed).all() and not np.asarray(info.is_accepted).any()
+        assert np.all(np.asarray(info.acceptance_rate) == 0.0)
+        for a, b in zip(new, state):
+            np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+    # the same proposals with a solver that converges are accepted now and then
+    good = make_soft_solver(logistic_mdp(gamma=0.99), tol=1e-12)
+    state = init(good, jnp.ones((2, 1)), C, prior_scale=2.0)
+    accepted = [np.asarray(jax.jit(build_kernel(good, prior_scale=2.0))(jax.random.PRNGKey(s), state, C, 0.5)[1]
+                           .is_accepted) for s in range(5)]
+    assert np.any(accepted)
 
 
 def test_bad_shapes_are_reported():
@@ -78,3 +121,9 @@ def test_bad_shapes_are_reported():
         init(solver, jnp.zeros((1, 2)), C)
     with pytest.raises(ValueError, match="counts"):
         init(solver, jnp.zeros((1, 1)), jnp.zeros((2, 1, 2)))
+    with pytest.raises(ValueError, match="temperature"):
+        build_kernel(solver, temperature=0.0)
+    with pytest.raises(ValueError, match="epsilon"):
+        init(solver, jnp.zeros((1, 1)), C, epsilon=1.0)
+    with pytest.raises(ValueError, match="prior_scale"):
+        build_kernel(solver, prior_scale=-1.0)

@@ -1,0 +1,149 @@
+"""The reward move: Metropolis-adjusted Langevin (MALA) steps on K skills' reward weights.
+
+The target is each skill's conditional posterior given its steps' count table,
+
+    p(theta_k | C_k) ∝ exp(sum_{s,a} C_k[s, a] log pi_k(a | s)) N(theta_k; 0, sigma_k^2 I),
+
+the one density :func:`npbrs.models.reward.log_posterior` (temperature and epsilon enter there).
+One step proposes, for all skills at once,
+
+    theta' = theta + (eps^2 / 2) M^-1 grad log p(theta) + eps M^-1/2 xi,
+
+and accepts with the Metropolis-Hastings ratio including both proposal densities, so the
+conditional is left invariant exactly (up to the solver's tolerance). All skills' proposals are
+solved together (one batched solve and one batched adjoint solve per step), warm-started from
+the current values. A proposal whose solve did not reach the solver's tolerance (a far-out
+theta, or the iteration cap) is rejected, so no proposal is accepted on a wrong density
+(``info.solver_failed`` says when that happened).
+
+Blackjax-style: ``init`` makes the state, ``build_kernel`` returns
+``kernel(rng_key, state, counts, step_size, inverse_mass=None) -> (state, info)``; both are pure
+and jit-able with static shapes. The reward emission (:mod:`npbrs.models.reward_emission`) runs
+this kernel and adds only the warmup tuning (the step size per skill and the preconditioner
+M^-1 from the Fisher information).
+"""
+
+from __future__ import annotations
+
+from typing import Callable, NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from .mcmc import metropolis_accept, select
+from .reward import PRIOR_SCALE, _is_concrete, as_solver, log_posterior
+from npbrs.domains.precision import float64_all
+
+__all__ = ["RewardMALAState", "RewardMALAInfo", "init", "build_kernel"]
+
+
+class RewardMALAState(NamedTuple):
+    """State of the reward-weight MALA chain of K skills.
+
+    theta: (K, D) reward weights. log_density: (K,) log-likelihood of the counts plus log-prior.
+    grad: (K, D) its gradient. V: (K, S) soft values at theta (the next solve's warm start).
+    """
+
+    theta: jax.Array
+    log_density: jax.Array
+    grad: jax.Array
+    V: jax.Array
+
+
+class RewardMALAInfo(NamedTuple):
+    """Diagnostics of one MALA step, per skill (K,).
+
+    acceptance_rate: min(1, Metropolis-Hastings ratio) (0 for a failed solve). is_accepted:
+    whether the proposal was taken. proposal_log_density: log density at the proposal.
+    solver_failed: the proposal's solve missed the tolerance (the proposal was rejected).
+    """
+
+    acceptance_rate: jax.Array
+    is_accepted: jax.Array
+    proposal_log_density: jax.Array
+    solver_failed: jax.Array
+
+
+_POSTERIOR = jax.jit(log_posterior, static_argnums=6)  # epsilon static (0 skips the mixture)
+
+
+def _check_options(prior_scale, temperature, epsilon):
+    if _is_concrete(prior_scale) and not np.all(np.isfinite(prior_scale) & (np.asarray(prior_scale) > 0)):
+        raise ValueError(f"prior_scale must be positive and finite, got {prior_scale!r}")
+    if not (np.isfinite(temperature) and temperature > 0):
+        raise ValueError(f"temperature must be a positive number, got {temperature!r}")
+    if not (np.isfinite(epsilon) and 0 <= epsilon < 1):
+        raise ValueError(f"epsilon must lie in [0, 1), got {epsilon!r}")
+    return float(temperature), float(epsilon)
+
+
+def _check_counts(solver, counts, K):
+    if counts.shape != (K, solver.num_states, solver.num_actions):
+        raise ValueError(f"counts must have shape ({K}, {solver.num_states}, {solver.num_actions}), got {counts.shape}")
+
+
+def init(solver, theta, counts, prior_scale=PRIOR_SCALE, v0=None, *, temperature: float = 1.0,
+         epsilon: float = 0.0) -> RewardMALAState:
+    """The chain's state at theta (K, D) for counts (K, S, A).
+
+    Args:
+        solver: a SoftSolver (:func:`npbrs.domains.make_soft_solver`) or a TabularMDP.
+        theta: (K, D) starting weights; counts: (K, S, A) count tables.
+        prior_scale: sigma of the Gaussian prior, scalar or (K,).
+        v0: optional (K, S) warm start of the first solve.
+        temperature, epsilon: the demonstrator's inverse temperature and random-action rate.
+    """
+    solver = as_solver(solver)
+    temperature, epsilon = _check_options(prior_scale, temperature, epsilon)
+    theta = jnp.asarray(theta, jnp.float64)
+    counts = jnp.asarray(counts, jnp.float64)
+    if theta.ndim != 2 or theta.shape[1] != solver.num_features:
+        raise ValueError(f"theta must have shape (K, {solver.num_features}), got {theta.shape}")
+    K = theta.shape[0]
+    _check_counts(solver, counts, K)
+    v0 = jnp.zeros((K, solver.num_states)) if v0 is None else jnp.asarray(v0, jnp.float64)
+    post = _POSTERIOR(solver, theta, counts, v0, prior_scale, temperature, epsilon)
+    return RewardMALAState(theta, post.log_density, post.grad, post.V)
+
+
+def build_kernel(solver, prior_scale=PRIOR_SCALE, *, temperature: float = 1.0, epsilon: float = 0.0) -> Callable:
+    """A MALA kernel for K skills' reward weights.
+
+    Args:
+        solver: a SoftSolver or a TabularMDP (its tolerance sets the density's accuracy).
+        prior_scale: sigma of the Gaussian prior, scalar or (K,) (an array may be traced).
+        temperature, epsilon: the demonstrator's inverse temperature and random-action rate.
+    Returns:
+        ``kernel(rng_key, state, counts, step_size, inverse_mass=None) -> (state, info)`` with
+        counts (K, S, A), step_size scalar or (K,), inverse_mass (the diagonal preconditioner
+        M^-1) None, (D,) or (K, D).
+    """
+    solver = as_solver(solver)
+    temperature, epsilon = _check_options(prior_scale, temperature, epsilon)
+
+    def kernel(rng_key, state: RewardMALAState, counts, step_size, inverse_mass=None):
+        K, D = state.theta.shape
+        counts = jnp.asarray(counts, jnp.float64)
+        _check_counts(solver, counts, K)
+        eps = jnp.broadcast_to(jnp.asarray(step_size, jnp.float64), (K,))[:, None]
+        minv = jnp.ones((K, D)) if inverse_mass is None else \
+            jnp.broadcast_to(jnp.asarray(inverse_mass, jnp.float64), (K, D))
+        k_prop, k_acc = jax.random.split(rng_key)
+        theta, lp, grad, V = state
+        mean_fwd = theta + 0.5 * eps ** 2 * minv * grad
+        prop = mean_fwd + eps * jnp.sqrt(minv) * jax.random.normal(k_prop, theta.shape)
+        # all skills' proposals in one batched solve, warm-started from the current values
+        new = _POSTERIOR(solver, prop, counts, V, prior_scale, temperature, epsilon)
+        mean_bwd = prop + 0.5 * eps ** 2 * minv * new.grad
+        log_q_fwd = -0.5 * jnp.sum((prop - mean_fwd) ** 2 / minv / eps ** 2, -1)
+        log_q_bwd = -0.5 * jnp.sum((theta - mean_bwd) ** 2 / minv / eps ** 2, -1)
+        log_ratio = new.log_density - lp + log_q_bwd - log_q_fwd
+        accept, rate = metropolis_accept(k_acc, log_ratio, possible=new.ok)
+        state = select(accept, RewardMALAState(prop, new.log_density, new.grad, new.V), state)
+        return state, RewardMALAInfo(rate, accept, new.log_density, ~new.ok)
+
+    return kernel
+
+
+float64_all(globals())  # npbrs.domains.precision: float64 inside, the user's setting outside
