@@ -1,10 +1,13 @@
 """The scalable open gridworld (npbrs.domains.gridworld): its dynamics and features against a
 brute-force construction, and the soft solve on it against the dense NumPy reference."""
 
+import jax
+import jax.numpy as jnp
 import numpy as np
 import pytest
 
 from npbrs.domains import make_soft_solver
+from npbrs.domains.solvers import _Columns, _policy_solve
 from npbrs.domains.gridworld import ACTIONS, goal_cells, open_gridworld
 
 from test_solvers import numpy_soft_vi
@@ -85,6 +88,26 @@ def test_soft_solve_equals_dense_reference():
         np.testing.assert_allclose(np.asarray(res.V[k]), V_ref, rtol=1e-9, atol=1e-9 * scale)
         np.testing.assert_allclose(np.asarray(res.Q[k]), Q_ref, rtol=1e-9, atol=1e-9 * scale)
     assert np.all(np.asarray(res.residual) <= 1e-12)
+
+
+@pytest.mark.parametrize("transpose", [False, True])
+def test_policy_evaluation_solves_the_linear_system(transpose):
+    """(I - gamma P_pi) x = b (or its transpose), as the Newton steps and the implicit
+    derivatives use it, against a dense solve: its preconditioned GMRES must return the
+    solution, not merely a Newton step that the next backup corrects."""
+    mdp = open_gridworld(4, slip=0.3, discount=0.95, seed=1)
+    rng = np.random.default_rng(0)
+    pi = rng.dirichlet(np.ones(5), size=(2, 16))  # (K, S, A)
+    b = rng.normal(size=(2, 16))
+    with jax.enable_x64(True):
+        op = _Columns(mdp, "sparse")
+        solve = jax.jit(lambda op, pi, b: _policy_solve(op, 0.95, pi, b, 1e-13, 4, 5, 40, transpose=transpose)[0])
+        x = solve(op, tuple(jnp.asarray(pi[..., a]) for a in range(5)), jnp.asarray(b))
+    P = mdp.dense_transitions()
+    for k in range(2):
+        M = np.eye(16) - 0.95 * np.einsum("sa,sat->st", pi[k], P)
+        np.testing.assert_allclose(np.asarray(x[k]), np.linalg.solve(M.T if transpose else M, b[k]), rtol=1e-10,
+                                   atol=1e-10)
 
 
 @pytest.mark.parametrize("kwargs, message", [
