@@ -4,6 +4,15 @@ Boltzmann (maximum-entropy) policy of that reward, pi_k(a | s) = exp(Q_k(s, a) -
 Prior theta_k ~ Normal(0, prior_scale^2 I). The conditional of theta_k given its steps
 depends on the steps only through their (S, A) count table (:mod:`npbrs.models.reward`).
 
+With ``scale_prior=(a, b)`` each skill's prior variance is sampled instead: sigma_k^2 ~
+InvGamma(a, b) (the site ``sigma2``), theta_k | sigma_k ~ Normal(0, sigma_k^2 I), so that the data
+say how large rewards are (one weight per state, the usual choice without features, wants a
+much narrower prior than three hand-made features do). After the move on theta_k, sigma_k^2 is
+drawn from its exact conditional InvGamma(a + D/2, b + |theta_k|^2 / 2); a skill without steps
+draws both from the prior. Proposals fit theta at the fixed ``prior_scale`` (a reference only)
+and draw sigma^2 from its conditional given the proposed theta, so that the proposal's ratio
+to the prior is the marginal (Student-t) prior of theta.
+
 Moves on theta_k (``update``):
 
 - ``"mala"`` (default): Metropolis-adjusted Langevin steps with the implicit gradient of the
@@ -65,6 +74,9 @@ class RewardEmission(Emission):
         proposal_inflation: factor on the proposal's standard deviations.
         proposal_broad_weight, proposal_broad_scale: weight w and scale s of the broad
             component of the defensive-mixture proposal (w = 0: a single Gaussian).
+        scale_prior: None (the prior's sigma is ``prior_scale``) or (a, b): each skill's prior
+            variance sigma_k^2 ~ InvGamma(a, b) is sampled (see the module docstring);
+            ``prior_scale`` then only sets the proposals' fits and the first preconditioner.
         solver_options: keyword options of :func:`npbrs.domains.make_soft_solver`.
         epsilon: probability that the demonstrator acts uniformly at random instead of by the
             skill's Boltzmann policy (a noisy expert): pi = (1 - eps) Boltzmann + eps / A. A few
@@ -77,7 +89,7 @@ class RewardEmission(Emission):
                  update: str = "mala", mala_steps: int = 3, step_size: float = 0.5, target_accept: float = 0.6,
                  map_steps: int = 5, fit_steps: int = 20, refit_steps: int = 3, proposal_inflation: float = 1.5,
                  solver_options: Optional[dict] = None, epsilon: float = 0.0, proposal_broad_weight: float = 0.1,
-                 proposal_broad_scale: float = 10.0):
+                 proposal_broad_scale: float = 10.0, scale_prior=None):
         if update not in _UPDATES:
             raise ValueError(f"unknown reward update {update!r}; expected one of {_UPDATES}")
         for name, value in [("prior_scale", prior_scale), ("temperature", temperature), ("step_size", step_size),
@@ -94,6 +106,13 @@ class RewardEmission(Emission):
                             ("refit_steps", refit_steps)]:
             if not isinstance(value, (int, np.integer)) or value < 1:
                 raise ValueError(f"{name} must be an integer >= 1, got {value!r}")
+        if scale_prior is not None:
+            if np.ndim(scale_prior) != 1 or len(scale_prior) != 2 or not all(
+                    np.isfinite(v) and v > 0 for v in scale_prior):
+                raise ValueError(f"scale_prior must be None or (a, b), two positive numbers (sigma^2 ~ InvGamma(a, b)), "
+                                 f"got {scale_prior!r}")
+            scale_prior = (float(scale_prior[0]), float(scale_prior[1]))
+        self.scale_prior = scale_prior
         if discount is not None:
             mdp = mdp.with_discount(discount)
         self.mdp = mdp
@@ -122,18 +141,41 @@ class RewardEmission(Emission):
                 "step_size": self.step_size, "target_accept": self.target_accept, "map_steps": self.map_steps,
                 "fit_steps": self.fit_steps, "refit_steps": self.refit_steps, "proposal_inflation": self.proposal_inflation,
                 "epsilon": self.epsilon, "proposal_broad_weight": self.proposal_broad_weight,
-                "proposal_broad_scale": self.proposal_broad_scale}
+                "proposal_broad_scale": self.proposal_broad_scale, "scale_prior": self.scale_prior}
 
     # ------------------------------------------------------------------ prior
-    def _prior(self):
-        return dist.Normal(0.0, self.prior_scale)
+    def _variance_prior(self):
+        return dist.InverseGamma(*self.scale_prior)
+
+    def _scales(self, params):
+        """The prior's sigma: (K,) sampled, or the fixed ``prior_scale``."""
+        return jnp.sqrt(params["sigma2"]) if self.scale_prior else self.prior_scale
+
+    def _with_variance(self, theta, sigma2=None):
+        """Params of weights (K, D) (or (D,)), with their sigma^2 when it is sampled."""
+        return {"theta": theta, "sigma2": sigma2} if self.scale_prior else {"theta": theta}
+
+    def _variance_conditional(self, theta):
+        """The exact conditional of sigma^2 given weights (..., D): InvGamma(a + D/2, b + |theta|^2 / 2)."""
+        a, b = self.scale_prior
+        return dist.InverseGamma(a + 0.5 * theta.shape[-1], b + 0.5 * jnp.sum(theta ** 2, axis=-1))
 
     def sample_params(self, K):
-        theta = numpyro.sample("theta", self._prior().expand([K, self.num_features]).to_event(2))
-        return {"theta": theta}
+        if not self.scale_prior:
+            theta = numpyro.sample("theta", dist.Normal(0.0, self.prior_scale).expand([K, self.num_features]).to_event(2))
+            return {"theta": theta}
+        sigma2 = numpyro.sample("sigma2", self._variance_prior().expand([K]).to_event(1))
+        theta = numpyro.sample("theta", dist.Normal(0.0, jnp.sqrt(sigma2)[:, None]).expand(
+            [K, self.num_features]).to_event(2))
+        return {"theta": theta, "sigma2": sigma2}
 
     def log_prior(self, params):
-        return jnp.sum(self._prior().log_prob(params["theta"]), axis=-1)
+        scale = self._scales(params)
+        lp = jnp.sum(dist.Normal(0.0, jnp.asarray(scale)[..., None] if self.scale_prior else scale).log_prob(
+            params["theta"]), axis=-1)
+        if self.scale_prior:
+            lp = lp + self._variance_prior().log_prob(params["sigma2"])
+        return lp
 
     # ------------------------------------------------------------------ likelihood
     def init_cache(self, K):
@@ -168,17 +210,25 @@ class RewardEmission(Emission):
         counts = self._counts(data, weights)  # (K, S, A)
         has_steps = jnp.sum(counts, axis=(1, 2)) > 0
         k_prior, k_move = jax.random.split(key)
+        scale = self._scales(params)
         if self.update_kind == "map":
-            new, _, V, _, _ = fit_reward(self.solver, counts, theta, cache["V"], self.prior_scale, self.map_steps,
+            new, _, V, _, _ = fit_reward(self.solver, counts, theta, cache["V"], scale, self.map_steps,
                                          epsilon=self.epsilon, temperature=self.temperature)
             accept = jnp.ones(K)
             cache = {**cache, "V": V}
         else:
-            new, cache, accept = self._mala(k_move, theta, counts, cache, adapt)
-        prior_draw = self.prior_scale * jax.random.normal(k_prior, (K, D))
-        new = jnp.where(has_steps[:, None], new, prior_draw)
-        return {"theta": new}, cache, {"accept": jnp.sum(jnp.where(has_steps, accept, 0.0)) /
-                                       jnp.maximum(jnp.sum(has_steps), 1)}
+            new, cache, accept = self._mala(k_move, theta, counts, cache, adapt, scale)
+        info = {"accept": jnp.sum(jnp.where(has_steps, accept, 0.0)) / jnp.maximum(jnp.sum(has_steps), 1)}
+        if not self.scale_prior:
+            prior_draw = self.prior_scale * jax.random.normal(k_prior, (K, D))
+            return {"theta": jnp.where(has_steps[:, None], new, prior_draw)}, cache, info
+        # sigma^2 | theta exactly; a skill without steps draws (sigma^2, theta) from the prior
+        k_prior, k_var, k_var0 = jax.random.split(k_prior, 3)
+        sigma2 = self._variance_conditional(new).sample(k_var)
+        sigma2_0 = self._variance_prior().sample(k_var0, (K,))
+        prior_draw = jnp.sqrt(sigma2_0)[:, None] * jax.random.normal(k_prior, (K, D))
+        return ({"theta": jnp.where(has_steps[:, None], new, prior_draw), "sigma2": jnp.where(has_steps, sigma2, sigma2_0)},
+                cache, info)
 
     # warmup sweeps between refreshes of the preconditioner (see :meth:`tune`)
     tune_every = 10
@@ -192,16 +242,17 @@ class RewardEmission(Emission):
         counts = self._counts(data, weights)
         fisher = jax.vmap(lambda t, c, v: jnp.diag(fisher_information(self.solver, t, c, v, self.temperature)))(
             theta, counts, cache["V"])
-        return {**cache, "scale": 1.0 / jnp.sqrt(jnp.maximum(fisher, 0.0) + 1.0 / self.prior_scale ** 2)}
+        scale = jnp.asarray(self._scales(params))
+        return {**cache, "scale": 1.0 / jnp.sqrt(jnp.maximum(fisher, 0.0) + 1.0 / scale[..., None] ** 2)}
 
-    def _mala(self, key, theta, counts, cache, adapt):
+    def _mala(self, key, theta, counts, cache, adapt, prior_scale):
         """``mala_steps`` steps of the reward move (:mod:`npbrs.models.reward_mala`) with the
         cache's preconditioner (refreshed by :meth:`tune` during warmup); in warmup each skill's
         step size follows its acceptance rate towards ``target_accept``."""
-        kernel = reward_mala.build_kernel(self.solver, self.prior_scale, temperature=self.temperature,
+        kernel = reward_mala.build_kernel(self.solver, prior_scale, temperature=self.temperature,
                                           epsilon=self.epsilon)
         minv = cache["scale"] ** 2
-        state = reward_mala.init(self.solver, theta, counts, self.prior_scale, cache["V"],
+        state = reward_mala.init(self.solver, theta, counts, prior_scale, cache["V"],
                                  temperature=self.temperature, epsilon=self.epsilon)
 
         def step(carry, key):
@@ -224,7 +275,14 @@ class RewardEmission(Emission):
         steps = 2 * self.refit_steps if init is None else self.refit_steps
         fit, _, _, _, _ = fit_reward(self.solver, counts, theta0, jnp.zeros((M, self.num_states)), self.prior_scale,
                                      steps, epsilon=self.epsilon, temperature=self.temperature)
-        return {"theta": fit}
+        return self._point(fit)
+
+    def _point(self, theta):
+        """Params at fitted weights: sigma^2, when sampled, at its conditional mode given them."""
+        if not self.scale_prior:
+            return {"theta": theta}
+        cond = self._variance_conditional(theta)
+        return {"theta": theta, "sigma2": cond.rate / (cond.concentration + 1.0)}
 
     def _laplace(self, counts, init=None):
         """IRL fits (M, D) to count tables (M, S, A), ``refit_steps`` L-BFGS steps from ``init``
@@ -246,9 +304,10 @@ class RewardEmission(Emission):
         (see :meth:`_laplace`)."""
         theta, log_lik, precision = self._laplace(self._counts(data, weights), init)
         _, logdet = jnp.linalg.slogdet(precision)
-        log_ev = (log_lik + self.log_prior({"theta": theta}) + 0.5 * self.num_features * jnp.log(2 * jnp.pi)
+        params = self._point(theta)
+        log_ev = (log_lik + self.log_prior(params) + 0.5 * self.num_features * jnp.log(2 * jnp.pi)
                   - 0.5 * logdet)
-        return {"theta": theta}, log_ev
+        return params, log_ev
 
     def _proposal(self, data, weights, init=None):
         """Mean (D,) and Cholesky factor (D, D) of the proposal fitted to weighted steps."""
@@ -267,34 +326,45 @@ class RewardEmission(Emission):
         scale = jnp.where(jax.random.bernoulli(k_pick, broad_weight), self.proposal_broad_scale, 1.0)
         return mean + scale * (chol @ jax.random.normal(k_draw, mean.shape))
 
-    def _log_q(self, theta, mean, chol):
-        """log-density of the (mixture) proposal around mean at theta."""
+    def _log_q(self, one, mean, chol):
+        """log-density of the (mixture) proposal around mean at one skill's params (with the
+        conditional density of its sigma^2 given theta, when sampled)."""
+        theta = one["theta"]
         w = self.proposal_broad_weight
-        narrow = dist.MultivariateNormal(mean, scale_tril=chol).log_prob(theta)
-        if w == 0:
-            return narrow
-        broad = dist.MultivariateNormal(mean, scale_tril=self.proposal_broad_scale * chol).log_prob(theta)
-        return jnp.logaddexp(jnp.log1p(-w) + narrow, jnp.log(w) + broad)
+        lq = dist.MultivariateNormal(mean, scale_tril=chol).log_prob(theta)
+        if w > 0:
+            broad = dist.MultivariateNormal(mean, scale_tril=self.proposal_broad_scale * chol).log_prob(theta)
+            lq = jnp.logaddexp(jnp.log1p(-w) + lq, jnp.log(w) + broad)
+        if self.scale_prior:
+            lq = lq + self._variance_conditional(theta).log_prob(one["sigma2"])
+        return lq
+
+    def _propose_one(self, key, mean, chol):
+        if not self.scale_prior:
+            return {"theta": self._draw(key, mean, chol, self.proposal_broad_weight)}
+        k_theta, k_var = jax.random.split(key)
+        theta = self._draw(k_theta, mean, chol, self.proposal_broad_weight)
+        return {"theta": theta, "sigma2": self._variance_conditional(theta).sample(k_var)}
 
     def init_params(self, key, data, weights):
         """A starting point: a draw of the Laplace proposal (the narrow component only) around
         each skill's IRL fit to its weighted steps. (K, D)."""
         keys = jax.random.split(key, weights.shape[-1])
-        return {"theta": jax.vmap(lambda k, w: self._draw(k, *self._proposal(data, w), 0.0), in_axes=(0, 2))(
-            keys, weights)}
+        return self._point(jax.vmap(lambda k, w: self._draw(k, *self._proposal(data, w), 0.0), in_axes=(0, 2))(
+            keys, weights))
 
     def propose(self, key, data, weights):
         mean, chol = self._proposal(data, weights)
-        theta = self._draw(key, mean, chol, self.proposal_broad_weight)
-        return {"theta": theta}, self._log_q(theta, mean, chol)
+        one = self._propose_one(key, mean, chol)
+        return one, self._log_q(one, mean, chol)
 
     def propose_and_score(self, key, data, weights, other_one, init=None):
         mean, chol = self._proposal(data, weights, init)
-        theta = self._draw(key, mean, chol, self.proposal_broad_weight)
-        return {"theta": theta}, self._log_q(theta, mean, chol), self._log_q(other_one["theta"], mean, chol)
+        one = self._propose_one(key, mean, chol)
+        return one, self._log_q(one, mean, chol), self._log_q(other_one, mean, chol)
 
     def log_proposal(self, params_one, data, weights):
-        return self._log_q(params_one["theta"], *self._proposal(data, weights))
+        return self._log_q(params_one, *self._proposal(data, weights))
 
 
 @register_emission("single")

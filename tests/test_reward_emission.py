@@ -23,7 +23,12 @@ def test_reward_emission_follows_the_protocol():
     demos = generate_demonstrations(dom, num_trajectories=3, length=12, seed=1)
     # (the sampler's part, a compiled reward sweep, is left to the planted-skills fit below; the
     # log joint's emission term is log_prior, checked against the sites here)
-    check_emission(RewardEmission(dom.mdp), HMMData.from_demonstrations(demos), sampler=False)
+    # the emission with sampled prior variances: the same code plus the sigma2 site, its
+    # conditional in the proposals and its Gibbs step (so it covers the fixed-scale emission's
+    # paths too; those run in every fit below)
+    check_emission(RewardEmission(dom.mdp, scale_prior=(2.0, 8.0)), HMMData.from_demonstrations(demos), sampler=False)
+    with pytest.raises(ValueError, match="scale_prior"):
+        RewardEmission(dom.mdp, scale_prior=(2.0, -1.0))
     # the noisy expert's emission: its likelihoods are the mixture's (the rest of the protocol is
     # the same code as above; its likelihood's gradient is tested in test_reward.py, and a second
     # full protocol run here cost a minute of the test suite's compiling)
@@ -53,27 +58,40 @@ def test_fisher_information_of_a_logistic_policy():
     np.testing.assert_allclose(float(F[0, 0]), 8 * p * (1 - p), rtol=1e-8)
 
 
-def test_mala_move_leaves_the_logistic_posterior_invariant():
+@pytest.mark.parametrize("scale_prior", [None, (2.0, 2.0)])
+def test_mala_move_leaves_the_logistic_posterior_invariant(scale_prior):
+    """The reward update (MALA with the preconditioner refreshed in warmup, as the sampler does)
+    samples the exact posterior of a logistic conditional; with a sampled prior variance
+    (sigma^2 ~ InvGamma(a, b), its Gibbs step after MALA) theta's marginal prior is a Student-t
+    with 2a degrees of freedom and scale sqrt(b / a), and E[sigma^2 | data] =
+    E[(b + theta^2 / 2) / (a - 1/2) | data]: both checked against quadrature."""
     from numpyro.diagnostics import effective_sample_size
+    from scipy.stats import t as student_t
 
     n0, n1, sigma = 3, 9, 2.0
-    em = RewardEmission(one_state_mdp(), prior_scale=sigma, mala_steps=2)
+    em = RewardEmission(one_state_mdp(), prior_scale=sigma, mala_steps=2, scale_prior=scale_prior)
     T = n0 + n1
     data = HMMData(jnp.zeros((1, T), jnp.int32), jnp.asarray([[0] * n0 + [1] * n1], jnp.int32), jnp.ones((1, T), bool))
     weights = jnp.ones((1, T, 1))
 
     def log_post(t):
-        return -0.5 * t ** 2 / sigma ** 2 + n1 * np.log(expit(t)) + n0 * np.log(expit(-t))
+        if scale_prior is None:
+            prior = -0.5 * t ** 2 / sigma ** 2
+        else:
+            a, b = scale_prior
+            prior = student_t.logpdf(t, df=2 * a, scale=np.sqrt(b / a))
+        return prior + n1 * np.log(expit(t)) + n0 * np.log(expit(-t))
 
     Z = integrate.quad(lambda t: np.exp(log_post(t)), -30, 30)[0]
     mean = integrate.quad(lambda t: t * np.exp(log_post(t)), -30, 30)[0] / Z
     var = integrate.quad(lambda t: (t - mean) ** 2 * np.exp(log_post(t)), -30, 30)[0] / Z
 
     chains, warmup, draws = 8, 100, 1500
-    update = jax.jit(lambda k, p, c, adapt: em.update(k, p, c, data, weights, adapt))
+    start = {"theta": jnp.zeros((1, 1))} if scale_prior is None else {"theta": jnp.zeros((1, 1)),
+                                                                       "sigma2": jnp.ones(1)}
 
     def run(key):
-        params, cache = {"theta": jnp.zeros((1, 1))}, em.init_cache(1)
+        params, cache = start, em.init_cache(1)
 
         def body(carry, xs):
             params, cache = carry
@@ -81,18 +99,26 @@ def test_mala_move_leaves_the_logistic_posterior_invariant():
             # as the sampler does: the preconditioner refreshed in warmup, then fixed
             cache = jax.lax.cond(adapt, lambda c: em.tune(params, c, data, weights), lambda c: c, cache)
             params, cache, info = em.update(key, params, cache, data, weights, adapt)
-            return (params, cache), params["theta"][0, 0]
+            return (params, cache), jax.tree.map(lambda x: x[0], params)
 
         adapt = jnp.arange(warmup + draws) < warmup
-        _, thetas = jax.lax.scan(body, (params, cache), (jax.random.split(key, warmup + draws), adapt))
-        return thetas[warmup:]
+        _, trace = jax.lax.scan(body, (params, cache), (jax.random.split(key, warmup + draws), adapt))
+        return jax.tree.map(lambda x: x[warmup:], trace)
 
-    thetas = np.asarray(jax.jit(jax.vmap(run))(jax.random.split(jax.random.PRNGKey(0), chains)))
+    trace = jax.jit(jax.vmap(run))(jax.random.split(jax.random.PRNGKey(0), chains))
+    thetas = np.asarray(trace["theta"])[..., 0]
     ess = float(effective_sample_size(thetas))
     assert ess > 500
     assert abs(thetas.mean() - mean) < 4 * np.sqrt(var / ess)
     # the variance's standard error: var * sqrt(2 / ess) for a near-Gaussian posterior
     assert abs(thetas.var() - var) < 4 * var * np.sqrt(2 / ess)
+    if scale_prior is not None:
+        a, b = scale_prior
+        want = integrate.quad(lambda t: (b + t ** 2 / 2) / (a - 0.5) * np.exp(log_post(t)), -30, 30)[0] / Z
+        s2 = np.asarray(trace["sigma2"])
+        ess_s2 = float(effective_sample_size(s2))
+        assert ess_s2 > 300
+        assert abs(s2.mean() - want) < 4 * s2.std() / np.sqrt(ess_s2), (s2.mean(), want, ess_s2)
 
 
 def test_the_sampler_recovers_planted_reward_skills_in_a_gridworld():
