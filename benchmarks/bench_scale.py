@@ -2,7 +2,7 @@
 (room left for it) the sampler in the number of trajectories N (``--part trajectories``).
 
     python benchmarks/bench_scale.py [--json PATH] [--part states|trajectories|all]
-                                     [--sizes 1e4 1e5 1e6] [--skills 4] [--repeats 3]
+                                     [--sizes 1e4 1e5 1e6] [--skills 4] [--repeats 3] [--note TEXT]
 
 States. The world is :func:`npbrs.domains.gridworld.open_gridworld` with side L = round(sqrt(S))
 (S = 10^4, 99856, 10^6), 5 actions, 3 successor slots, 4 goal-nearness features, discount 0.95.
@@ -18,6 +18,9 @@ process of its own (so that its peak memory is its own), and reports
   all of them);
 - ``warm_start_s``: a solve after the rewards change by a relative 1e-3, started from the
   previous values (a sampler's or an optimiser's step; the median of ``--repeats``);
+- ``*_cpu_s``: the same figures in CPU time of the process (all its threads): on a shared machine
+  the wall times grow with the other jobs' load, the CPU times much less (they still grow with
+  the memory bandwidth those jobs take);
 - ``newton_steps``, ``matvecs``: per reward table, of the solve from V = 0 and the warm start;
 - ``peak_rss_mb``: the process's peak resident memory (``ru_maxrss``), ``build_rss_mb`` its
   peak after building the world (before JAX touched it).
@@ -93,19 +96,22 @@ def measure_states(S: int, skills: int, repeats: int) -> dict:
     v0 = np.zeros((skills, mdp.num_states))  # an explicit zero start: one program for every solve
 
     def timed(r, v):
-        t = time.perf_counter()
+        t, c = time.perf_counter(), time.process_time()
         res = solver(r, v)
         jax.block_until_ready(res.V)
-        return time.perf_counter() - t, res
+        return time.perf_counter() - t, time.process_time() - c, res
 
-    first, res = timed(rewards, v0)
-    runs = [timed(rewards, v0)[0] for _ in range(repeats)]
+    first, first_cpu, res = timed(rewards, v0)
+    runs = [timed(rewards, v0)[:2] for _ in range(repeats)]
     warm = [timed(stepped, res.V) for _ in range(repeats)]
-    ws = warm[-1][1]
+    ws = warm[-1][2]
     return {
         "S": mdp.num_states, "L": L, "A": mdp.num_actions, "B": mdp.num_successors, "K": skills,
-        "build_s": build_s, "first_call_s": first, "solve_s": statistics.median(runs), "solve_runs_s": runs,
+        "build_s": build_s, "first_call_s": first, "first_call_cpu_s": first_cpu,
+        "solve_s": statistics.median(r[0] for r in runs), "solve_runs_s": [r[0] for r in runs],
+        "solve_cpu_s": statistics.median(r[1] for r in runs),
         "warm_start_s": statistics.median(w[0] for w in warm), "warm_start_runs_s": [w[0] for w in warm],
+        "warm_start_cpu_s": statistics.median(w[1] for w in warm),
         "newton_steps": np.asarray(res.num_iter).tolist(), "matvecs": np.asarray(res.num_matvec).tolist(),
         "residual_max": float(np.max(res.residual)),
         "warm_start_newton_steps": np.asarray(ws.num_iter).tolist(),
@@ -134,25 +140,30 @@ def part_states(sizes, skills: int, repeats: int) -> dict:
     if len(rows) >= 2:
         result["exponent_s"] = fit_exponent([r["S"] for r in rows], [r["solve_s"] for r in rows])
         result["exponent_s_warm_start"] = fit_exponent([r["S"] for r in rows], [r["warm_start_s"] for r in rows])
+        result["exponent_s_cpu"] = fit_exponent([r["S"] for r in rows], [r["solve_cpu_s"] for r in rows])
     big = [r for r in rows if r["S"] == 10 ** 6]
     if big:
         result["solve_1e6_cold_s"] = big[0]["first_call_s"]
+        result["solve_1e6_cold_cpu_s"] = big[0]["first_call_cpu_s"]
         result["solve_1e6_compiled_s"] = big[0]["solve_s"]
+        result["solve_1e6_compiled_cpu_s"] = big[0]["solve_cpu_s"]
         result["solve_1e6_warm_start_s"] = big[0]["warm_start_s"]
         result["peak_rss_1e6_mb"] = big[0]["peak_rss_mb"]
     return result
 
 
 def print_states(result: dict) -> None:
-    print(f"{'S':>9} {'build s':>8} {'first s':>8} {'solve s':>8} {'warm s':>7} {'Newton':>7} {'matvecs':>8} "
+    print("seconds, wall (CPU)")
+    print(f"{'S':>9} {'build':>6} {'first call':>15} {'solve':>15} {'warm start':>15} {'Newton':>7} {'matvecs':>8} "
           f"{'peak MB':>8} {'load':>5}")
     for r in result["rows"]:
-        print(f"{r['S']:>9} {r['build_s']:>8.2f} {r['first_call_s']:>8.2f} {r['solve_s']:>8.2f} "
-              f"{r['warm_start_s']:>7.2f} {max(r['newton_steps']):>7} {max(r['matvecs']):>8} "
-              f"{r['peak_rss_mb']:>8.0f} {r['machine_before']['loadavg'][0]:>5.1f}")
+        print(f"{r['S']:>9} {r['build_s']:>6.2f} {r['first_call_s']:>7.2f} ({r['first_call_cpu_s']:>5.2f}) "
+              f"{r['solve_s']:>7.2f} ({r['solve_cpu_s']:>5.2f}) {r['warm_start_s']:>7.2f} ({r['warm_start_cpu_s']:>5.2f}) "
+              f"{max(r['newton_steps']):>7} {max(r['matvecs']):>8} {r['peak_rss_mb']:>8.0f} "
+              f"{r['machine_before']['loadavg'][0]:>5.1f}")
     if "exponent_s" in result:
         print(f"growth exponent in S: {result['exponent_s']:.3f} (solve), "
-              f"{result['exponent_s_warm_start']:.3f} (warm start)")
+              f"{result['exponent_s_warm_start']:.3f} (warm start), {result['exponent_s_cpu']:.3f} (solve, CPU time)")
 
 
 # ------------------------------------------------------------------------ trajectories part
@@ -169,6 +180,7 @@ def main(argv=None) -> int:
     parser.add_argument("--sizes", nargs="+", type=float, default=DEFAULT_SIZES, help="numbers of states")
     parser.add_argument("--skills", type=int, default=4, help="reward tables solved together")
     parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument("--note", default="", help="free text saved in the JSON (what else the machine was doing)")
     parser.add_argument("--_states-child", type=float, help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
     if args._states_child:
@@ -180,7 +192,7 @@ def main(argv=None) -> int:
     report = {"benchmark": "bench_scale", "command": " ".join([os.path.basename(sys.executable)] + sys.argv),
               "machine": {"cpus": os.cpu_count(), "platform": platform.platform(), "python": platform.python_version(),
                           "jax": jax.__version__, "xla_flags": os.environ.get("XLA_FLAGS", "")},
-              "started": time.strftime("%Y-%m-%d %H:%M:%S"), "machine_at_start": machine_state()}
+              "started": time.strftime("%Y-%m-%d %H:%M:%S"), "note": args.note, "machine_at_start": machine_state()}
     if args.part in ("states", "all"):
         print(f"states: sizes {[int(s) for s in args.sizes]}, K = {args.skills}", flush=True)
         report["states"] = part_states([int(s) for s in args.sizes], args.skills, args.repeats)
