@@ -32,22 +32,26 @@ def check_emission(emission: Emission, data: HMMData, max_skills: int = 3, seed:
     N, T = data.states.shape
     key = jax.random.PRNGKey(seed)
 
-    # prior: the sites of sample_params and log_prior agree, per skill
-    with handlers.seed(rng_seed=seed):
-        tr = handlers.trace(lambda: emission.sample_params(K)).get_trace()
-    params = {name: site["value"] for name, site in tr.items() if site["type"] == "sample"}
+    # prior: the sites of sample_params and log_prior agree, per skill (compiled as one program:
+    # run op by op, the distributions' code compiled a hundred tiny programs)
+    def prior(rng_key):
+        with handlers.seed(rng_seed=rng_key):
+            tr = handlers.trace(lambda: emission.sample_params(K)).get_trace()
+        params = {name: site["value"] for name, site in tr.items() if site["type"] == "sample"}
+        site_lp = sum(jnp.sum(site["fn"].log_prob(site["value"])) for site in tr.values() if site["type"] == "sample")
+        return params, site_lp, emission.log_prior(params)
+
+    params, site_lp, lp = jax.jit(prior)(key)
     assert params, "sample_params must declare at least one sample site"
     for name, value in params.items():
         assert value.shape[0] == K, f"site {name!r} must have a leading axis of K={K}, got {value.shape}"
-    site_lp = sum(jnp.sum(site["fn"].log_prob(site["value"])) for site in tr.values() if site["type"] == "sample")
-    lp = emission.log_prior(params)
     assert lp.shape == (K,), f"log_prior must return shape ({K},), got {lp.shape}"
     np.testing.assert_allclose(float(jnp.sum(lp)), float(site_lp), rtol=1e-8, atol=1e-8)
 
     # likelihoods: (N, T, K), finite on real steps, independent of the cache (each piece is
     # compiled once and called twice, not run op by op: that compiled hundreds of one-operation
     # programs, a minute of the suite for the reward emission)
-    cache = emission.init_cache(K)
+    cache = jax.jit(emission.init_cache, static_argnums=0)(K)
     log_likelihoods = jax.jit(emission.log_likelihoods)
     log_proposal = jax.jit(emission.log_proposal)
     ll, cache = log_likelihoods(params, data, cache)
@@ -57,8 +61,7 @@ def check_emission(emission: Emission, data: HMMData, max_skills: int = 3, seed:
     np.testing.assert_allclose(np.asarray(ll_again), np.asarray(ll), rtol=1e-7, atol=1e-6)
 
     # update: jit-able, keeps shapes
-    z = jax.random.randint(key, (N, T), 0, K)
-    weights = jax.nn.one_hot(z, K) * data.mask[..., None]
+    weights = jax.jit(lambda k, m: jax.nn.one_hot(jax.random.randint(k, (N, T), 0, K), K) * m[..., None])(key, data.mask)
     new, cache2, info = jax.jit(emission.update)(key, params, cache, data, weights, jnp.bool_(True))
     assert jax.tree.structure(new) == jax.tree.structure(params)
     for a, b in zip(jax.tree.leaves(new), jax.tree.leaves(params)):

@@ -63,16 +63,22 @@ def test_feature_conditional_equals_the_model_density_ratio(kernel_and_state):
     kernel, state = kernel_and_state
     rng = np.random.default_rng(3)
     features = jnp.asarray(rng.integers(0, 2, state.features.shape), jnp.float64).at[:, 0].set(1.0)
-    state = kernel._finish(state._replace(features=features))
+    state = jax.jit(kernel._finish)(state._replace(features=features))
+    # (compiled once, k traced: op by op, this test compiled some 250 small programs)
+    logits_of = jax.jit(lambda st, k: kernel.feature_logits(st, st.features, k))
+    carried_of = jax.jit(lambda st, k: kernel.feature_logits(st, st.features, k, st.log_marginals))
+    F = np.asarray(state.features)
     for k in range(kernel.max_skills):
-        logits = np.asarray(kernel.feature_logits(state, state.features, k))
+        logits = np.asarray(logits_of(state, k))
         # the sweep's path: the current features' marginals known, only the flipped one filtered
-        carried = np.asarray(kernel.feature_logits(state, state.features, k, state.log_marginals))
+        carried = np.asarray(carried_of(state, k))
         np.testing.assert_allclose(carried, logits, rtol=1e-12, atol=1e-12)
-        for i in range(state.features.shape[0]):
-            on = model_log_density(kernel, state, features=state.features.at[i, k].set(1.0))
-            off_features = state.features.at[i, k].set(0.0)
-            off = model_log_density(kernel, state, features=off_features) if off_features[i].sum() > 0 else -np.inf
+        for i in range(F.shape[0]):
+            on_features, off_features = F.copy(), F.copy()
+            on_features[i, k], off_features[i, k] = 1.0, 0.0
+            on = model_log_density(kernel, state, features=jnp.asarray(on_features))
+            off = model_log_density(kernel, state, features=jnp.asarray(off_features)) \
+                if off_features[i].sum() > 0 else -np.inf
             if np.isinf(off):
                 assert np.isinf(logits[i]) and logits[i] > 0
             else:
@@ -85,7 +91,8 @@ def test_transition_weights_follow_the_gamma_dirichlet_conditional(kernel_and_st
     features = state.features.at[0].set(jnp.array([1.0, 1.0, 0.0, 1.0]))
     z = state.z.at[0].set(jnp.where(kernel.data.mask[0], jnp.arange(state.z.shape[1]) // 10 % 2, -1))
     hyper = state.hyper
-    draws = jax.vmap(lambda k: kernel._sample_eta(k, z, features, hyper))(jax.random.split(jax.random.PRNGKey(1), 4000))
+    draws = jax.jit(jax.vmap(lambda k: kernel._sample_eta(k, z, features, hyper)))(
+        jax.random.split(jax.random.PRNGKey(1), 4000))
     from npbrs.models.hmm import transition_counts
 
     counts = np.asarray(transition_counts(z, kernel.data.mask, K))[0]
