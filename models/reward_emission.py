@@ -7,9 +7,10 @@ depends on the steps only through their (S, A) count table (:mod:`npbrs.models.r
 With ``scale_prior=(a, b)`` each skill's prior variance is sampled instead: sigma_k^2 ~
 InvGamma(a, b) (the site ``sigma2``), theta_k | sigma_k ~ Normal(0, sigma_k^2 I), so that the data
 say how large rewards are (one weight per state, the usual choice without features, wants a
-much narrower prior than three hand-made features do). After the move on theta_k, sigma_k^2 is
-drawn from its exact conditional InvGamma(a + D/2, b + |theta_k|^2 / 2); a skill without steps
-draws both from the prior. Proposals fit theta at the fixed ``prior_scale`` (a reference only)
+much narrower prior than three hand-made features do). After the move on theta_k, a joint move
+of its magnitude, (theta_k, sigma_k^2) -> (c theta_k, c^2 sigma_k^2), and then sigma_k^2 from its
+exact conditional InvGamma(a + D/2, b + |theta_k|^2 / 2); a skill without steps draws both from
+the prior. Proposals fit theta at the fixed ``prior_scale`` (a reference only)
 and draw sigma^2 from its conditional given the proposed theta, so that the proposal's ratio
 to the prior is the marginal (Student-t) prior of theta.
 
@@ -46,7 +47,8 @@ import numpyro.distributions as dist
 from ..domains.solvers import make_soft_solver
 from .emissions import Emission, register_emission
 from . import reward_mala
-from .reward import count_table, fisher_information, fit_reward, log_policy, step_log_likelihoods
+from .mcmc import metropolis_accept, select
+from .reward import count_table, fisher_information, fit_reward, log_policy, log_posterior, log_prior, step_log_likelihoods
 from npbrs.domains.precision import float64_all
 
 __all__ = ["RewardEmission", "SingleRewardEmission"]
@@ -179,8 +181,11 @@ class RewardEmission(Emission):
 
     # ------------------------------------------------------------------ likelihood
     def init_cache(self, K):
-        return {"V": jnp.zeros((K, self.num_states)), "log_step": jnp.full((K,), np.log(self.step_size)),
-                "scale": jnp.full((K, self.num_features), self.prior_scale)}
+        cache = {"V": jnp.zeros((K, self.num_states)), "log_step": jnp.full((K,), np.log(self.step_size)),
+                 "scale": jnp.full((K, self.num_features), self.prior_scale)}
+        if self.scale_prior:  # the step of the magnitude move (:meth:`_rescale`)
+            cache["log_rescale"] = jnp.full((K,), np.log(0.1))
+        return cache
 
     def _counts(self, data, weights):
         return count_table(data.states, data.actions, weights, self.num_states, self.num_actions, data.mask)
@@ -217,7 +222,10 @@ class RewardEmission(Emission):
             accept = jnp.ones(K)
             cache = {**cache, "V": V}
         else:
-            new, cache, accept = self._mala(k_move, theta, counts, cache, adapt, scale)
+            k_move, k_rescale = jax.random.split(k_move) if self.scale_prior else (k_move, None)
+            new, cache, accept, log_density = self._mala(k_move, theta, counts, cache, adapt, scale)
+            if self.scale_prior:
+                new, sigma2, cache = self._rescale(k_rescale, new, params["sigma2"], log_density, counts, cache, adapt)
         info = {"accept": jnp.sum(jnp.where(has_steps, accept, 0.0)) / jnp.maximum(jnp.sum(has_steps), 1)}
         if not self.scale_prior:
             prior_draw = self.prior_scale * jax.random.normal(k_prior, (K, D))
@@ -263,7 +271,27 @@ class RewardEmission(Emission):
 
         init = (state, cache["log_step"], jnp.zeros(theta.shape[0]))
         (state, log_step, acc_sum), _ = jax.lax.scan(step, init, jax.random.split(key, self.mala_steps))
-        return state.theta, {**cache, "V": state.V, "log_step": log_step}, acc_sum / self.mala_steps
+        return state.theta, {**cache, "V": state.V, "log_step": log_step}, acc_sum / self.mala_steps, state.log_density
+
+    def _rescale(self, key, theta, sigma2, log_density, counts, cache, adapt):
+        """A joint move of each skill's magnitude: (theta, sigma^2) -> (c theta, c^2 sigma^2),
+        log c ~ N(0, h^2). The prior of theta given sigma cancels (with the Jacobian c^(D+2)),
+        so the ratio is L(c theta) / L(theta) IG(c^2 sigma^2) / IG(sigma^2) c^2: the weights that
+        the skill's steps leave alone (most of them, with one weight per state) move with the
+        scale instead of holding it where it is. h is tuned in warmup to accept 40%."""
+        K = theta.shape[0]
+        ll_old = log_density - log_prior(theta, jnp.sqrt(sigma2)[:, None])
+        k_c, k_acc = jax.random.split(key)
+        log_c = jnp.exp(cache["log_rescale"]) * jax.random.normal(k_c, (K,))
+        c = jnp.exp(log_c)
+        prop, s2_prop = theta * c[:, None], sigma2 * c ** 2
+        post = log_posterior(self.solver, prop, counts, cache["V"], jnp.sqrt(s2_prop), self.temperature, self.epsilon)
+        prior = self._variance_prior()
+        log_ratio = post.log_lik - ll_old + prior.log_prob(s2_prop) - prior.log_prob(sigma2) + 2.0 * log_c
+        accept, rate = metropolis_accept(k_acc, log_ratio, post.ok)
+        theta, sigma2, V = select(accept, (prop, s2_prop, post.V), (theta, sigma2, cache["V"]))
+        log_rescale = jnp.where(adapt, cache["log_rescale"] + 0.3 * (rate - 0.4), cache["log_rescale"])
+        return theta, sigma2, {**cache, "V": V, "log_rescale": log_rescale}
 
     # ------------------------------------------------------------------ data-driven proposal
     def fit_point(self, data, weights, init=None):
