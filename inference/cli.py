@@ -16,7 +16,7 @@ import os
 import sys
 from typing import Optional
 
-from .cli_generate import _at_least
+from .cli_generate import at_least
 from npbrs.domains.precision import float64_all
 
 __all__ = ["build_parser", "main", "compilation_cache_dir", "DEMO_CONFIG", "QUICK_DEMO_CONFIG"]
@@ -62,15 +62,15 @@ def _add_fit(sub):
     add_world_arguments(p)
     p.add_argument("--config", help="model configuration (TOML)")
     p.add_argument("--emission", help="emission model name (overrides the config)")
-    p.add_argument("--max-skills", type=_at_least(1), help="truncation: skill slots (overrides the config)")
-    p.add_argument("--chains", type=_at_least(1), help="number of chains")
-    p.add_argument("--samples", type=_at_least(1), help="sweeps kept per chain")
-    p.add_argument("--warmup", type=_at_least(0), help="warmup sweeps per chain")
-    p.add_argument("--seed", type=_at_least(0), help="random seed")
+    p.add_argument("--max-skills", type=at_least(1), help="truncation: skill slots (overrides the config)")
+    p.add_argument("--chains", type=at_least(1), help="number of chains")
+    p.add_argument("--samples", type=at_least(1), help="sweeps kept per chain")
+    p.add_argument("--warmup", type=at_least(0), help="warmup sweeps per chain")
+    p.add_argument("--seed", type=at_least(0), help="random seed")
     p.add_argument("-o", "--output", required=True, help="the run file to write (.nc)")
     p.add_argument("--init-from", metavar="RUN", help="start every chain from the segmentation of a saved run (.nc)")
     p.add_argument("--resume", action="store_true", help="continue from the output's checkpoint if there is one")
-    p.add_argument("--checkpoint-every", type=_at_least(0), default=100,
+    p.add_argument("--checkpoint-every", type=at_least(0), default=100,
                    help="sweeps between checkpoints (100; 0: no checkpoints)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.set_defaults(func=fit_command)
@@ -235,7 +235,7 @@ def _add_demo(sub):
     p.add_argument("--quick", action="store_true", help="a tiny version (seconds after compilation)")
     p.add_argument("--out", default="npbrs-demo", help="output directory (npbrs-demo)")
     p.add_argument("--emission", help="emission model (default: reward)")
-    p.add_argument("--seed", type=_at_least(0), default=0, help="random seed (0)")
+    p.add_argument("--seed", type=at_least(0), default=0, help="random seed (0)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.set_defaults(func=demo_command)
     return p

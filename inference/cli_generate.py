@@ -8,10 +8,12 @@ from npbrs.domains.demos import generate_demonstrations
 from npbrs.domains.registry import DOMAINS, get_domain
 from npbrs.inference.metrics import num_switches
 
-__all__ = ["add_parser", "generate_command"]
+__all__ = ["add_parser", "generate_command", "at_least"]
 
 
-def _at_least(minimum: int):
+def at_least(minimum: int):
+    """An argparse type: an integer of at least ``minimum`` (the commands' counts and seeds)."""
+
     def parse(text: str) -> int:
         value = int(text)
         if value < minimum:
@@ -35,8 +37,8 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
         description="Generate demonstrations as in the paper's section IV-A: optimal experts, one per skill, "
                     "switching skill with a fixed probability per step; the true skills are saved.")
     parser.add_argument("domain", choices=sorted(DOMAINS), help="the domain")
-    parser.add_argument("--trajectories", type=_at_least(1), default=16, help="number of trajectories (16)")
-    parser.add_argument("--length", type=_at_least(2), default=500, help="steps per trajectory (500)")
+    parser.add_argument("--trajectories", type=at_least(1), default=16, help="number of trajectories (16)")
+    parser.add_argument("--length", type=at_least(2), default=500, help="steps per trajectory (500)")
     parser.add_argument("--switch-prob", type=_probability, default=0.02,
                         help="probability of switching skill after each step (0.02)")
     parser.add_argument("--seed", type=int, default=0, help="random seed (0)")

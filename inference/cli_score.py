@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import os
 
-from .cli_generate import _at_least
+from .cli_generate import at_least
 
 __all__ = ["add_parsers"]
 
@@ -19,9 +19,9 @@ def _world(p):
     from .cli import add_world_arguments
 
     add_world_arguments(p, "the run was fitted in")
-    p.add_argument("--samples", type=_at_least(1), default=None,
+    p.add_argument("--samples", type=at_least(1), default=None,
                    help="Monte Carlo samples of a trajectory's skill set and transition weights per draw")
-    p.add_argument("--seed", type=_at_least(0), default=0, help="seed of those samples (0)")
+    p.add_argument("--seed", type=at_least(0), default=0, help="seed of those samples (0)")
 
 
 def add_parsers(sub):
@@ -33,7 +33,7 @@ def add_parsers(sub):
     p.add_argument("run", help="the run file (.nc) written by npbrs fit")
     p.add_argument("demos", help="held-out demonstrations (.npz)")
     _world(p)
-    p.add_argument("--draws", type=_at_least(1), default=100, help="posterior draws used (100)")
+    p.add_argument("--draws", type=at_least(1), default=100, help="posterior draws used (100)")
     p.set_defaults(func=score_command)
     p = sub.add_parser("segment", help="the run's skills at every step of new demonstrations",
                        description="Posterior probabilities of the run's skills at every step of demonstrations "
@@ -45,7 +45,7 @@ def add_parsers(sub):
     p.add_argument("run", help="the run file (.nc) written by npbrs fit")
     p.add_argument("demos", help="demonstrations to segment (.npz)")
     _world(p)
-    p.add_argument("--draws", type=_at_least(1), default=100, help="posterior draws used (100)")
+    p.add_argument("--draws", type=at_least(1), default=100, help="posterior draws used (100)")
     p.add_argument("-o", "--output", required=True, help="the labels file to write (.npz)")
     p.add_argument("--plot", metavar="PNG", help="also draw the first trajectories' skill probabilities")
     p.set_defaults(func=segment_command)
