@@ -32,7 +32,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .mcmc import metropolis_accept, select
-from .reward import PRIOR_SCALE, _is_concrete, as_solver, log_posterior
+from .reward import PRIOR_SCALE, as_solver, log_posterior
 from npbrs.domains.precision import float64_all
 
 __all__ = ["RewardMALAState", "RewardMALAInfo", "init", "build_kernel"]
@@ -69,7 +69,7 @@ _POSTERIOR = jax.jit(log_posterior, static_argnums=6)  # epsilon static (0 skips
 
 
 def _check_options(prior_scale, temperature, epsilon):
-    if _is_concrete(prior_scale) and not np.all(np.isfinite(prior_scale) & (np.asarray(prior_scale) > 0)):
+    if not isinstance(prior_scale, jax.core.Tracer) and not np.all(np.isfinite(prior_scale) & (np.asarray(prior_scale) > 0)):
         raise ValueError(f"prior_scale must be positive and finite, got {prior_scale!r}")
     if not (np.isfinite(temperature) and temperature > 0):
         raise ValueError(f"temperature must be a positive number, got {temperature!r}")
