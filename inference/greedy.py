@@ -56,7 +56,7 @@ import jax.numpy as jnp
 from npbrs.models.mcmc import select
 from npbrs.models.bphmm import collapsed_feature_log_prob, collapsed_sequence_log_prob
 
-from .split_merge import _allocate, _skill_counts
+from .split_merge import _allocate, _skill_counts, _visiting_order
 from npbrs.domains.precision import float64_all
 
 __all__ = ["GreedyInfo", "greedy_merge", "greedy_merge_at", "greedy_split", "greedy_split_at", "merge_score"]
@@ -86,9 +86,11 @@ def merge_score(emission, data, hyper, features, z, init=None):
 
 
 def _structure_log_prob(hyper, mask, z, features):
-    """log p(z | F) + log p(F), eta and omega integrated out."""
-    return (jnp.sum(collapsed_sequence_log_prob(z, mask, features, hyper.kappa, hyper.gamma))
-            + collapsed_feature_log_prob(features, hyper.alpha))
+    """log p(z | F) + log p(F), eta and omega integrated out (trajectories without steps,
+    padding, left out)."""
+    valid = jnp.any(mask, axis=1)
+    return (jnp.sum(jnp.where(valid, collapsed_sequence_log_prob(z, mask, features, hyper.kappa, hyper.gamma), 0.0))
+            + collapsed_feature_log_prob(features, hyper.alpha, valid))
 
 
 def _keep(accept, info, new, old):
@@ -167,11 +169,11 @@ def greedy_split_at(key, anchors, emission, data, hyper, features, z, params, lo
     mask = data.mask
     ia, ta, ib, tb = anchors
     k1 = z[ia, ta]
-    free = features.sum(0) == 0  # no trajectory may use the slot, so z does not
+    real = jnp.any(mask, axis=1)  # (trajectories without steps, padding, count for no skill)
+    free = jnp.sum(jnp.where(real[:, None], features, 0.0), axis=0) == 0  # no trajectory may use the slot
     k2 = jnp.argmax(free)
     possible = jnp.any(free) & (z[ib, tb] == k1) & ~((ia == ib) & (ta == tb)) & mask[ia, ta] & mask[ib, tb]
-    priority = jax.random.uniform(key, (N,)).at[ib].set(-1.0).at[ia].set(-2.0)
-    order = jnp.argsort(priority).astype(jnp.int32)
+    order = _visiting_order(key, mask, ia, ib)
     theta_k1 = jax.tree.map(lambda p: p[k1], params)
     z_new, alloc_fits = _allocate(emission, data, z, features, k1, k2, anchors, order, theta_k1, num_blocks)
     z_new = z_new.astype(z.dtype)

@@ -85,9 +85,12 @@ def _skill_weights(z, mask, K):
 
 
 def _label_invariant(z, mask, K):
+    """(skills used, mean switches per trajectory), trajectories without steps (padding) left out."""
     used = jnp.any(_skill_weights(z, mask, K) > 0, axis=(0, 1))
     switches = jnp.sum((z[:, 1:] != z[:, :-1]) & mask[:, 1:], axis=1)
-    return jnp.sum(used).astype(jnp.int32), jnp.mean(switches.astype(jnp.float64))
+    real = jnp.sum(jnp.any(mask, axis=1))
+    mean = jnp.sum(switches.astype(jnp.float64)) / jnp.maximum(real, 1).astype(jnp.float64)
+    return jnp.sum(used).astype(jnp.int32), mean
 
 
 class BPHMMKernel(MCMCKernel, Pytree):
@@ -236,10 +239,12 @@ class BPHMMKernel(MCMCKernel, Pytree):
     # ------------------------------------------------------------------ pieces
     @property
     def _valid(self):
-        """(N,) the trajectories with steps: the others pad the data to a shape bucket. They are
-        data-less trajectories of the model: their features and transition weights are sampled
-        from their conditionals (the prior given omega), which leaves the posterior of the real
-        ones unchanged, and the log joint leaves them out."""
+        """(N,) the trajectories with steps: the others pad the data (to a shape bucket, or to a
+        multiple of the devices that shard the trajectories), after the real ones. They are left
+        out of the model: their features and transition weights are drawn (from the prior given
+        omega) but nothing reads them: omega's conditional, the moves' counts of skill users and
+        the log joint count the real trajectories only, and every random draw is numbered per
+        trajectory, so a padded run's draws of the real trajectories are the unpadded run's."""
         return jnp.any(self.data.mask, axis=1)
 
     def _finish(self, state: BPHMMState) -> BPHMMState:
@@ -289,22 +294,34 @@ class BPHMMKernel(MCMCKernel, Pytree):
         return self._sample_eta_omega(key, z, features, hyper)[0]
 
     def _sample_eta_omega(self, key, z, features, hyper):
-        """eta | z, F and omega | F, from a single batch of Gamma draws (one Gamma sampler
-        in the compiled sweep instead of five).
+        """eta | z, F and omega | F, from two batches of Gamma draws (two Gamma samplers in
+        the compiled sweep instead of five).
 
         eta: Dirichlet(conc + counts) proportions over the active skills times a
         Gamma(sum conc) total (the Gamma-Dirichlet decomposition); inactive entries keep
-        their Gamma prior. omega_k ~ Beta(alpha/K + m_k, 1 + N - m_k) as a ratio of Gammas.
+        their Gamma prior. omega_k ~ Beta(alpha/K + m_k, 1 + N - m_k) as a ratio of Gammas,
+        N and m_k counting the trajectories with steps (padding trajectories are left out of
+        the model: their features are drawn, but nothing depends on them).
+
+        omega's Gammas and the trajectories' are two draws, the latter laid out trajectory by
+        trajectory (N, K^2 + K): JAX's partitionable threefry numbers each draw by its position,
+        so a trajectory's draws do not depend on how many trajectories follow it (padding the
+        data with empty trajectories, for shape buckets or devices, leaves the real ones' draws
+        alone) nor on the devices the trajectories are sharded over (each draws its own).
         """
         N, K = features.shape
         shape_g, shape_total, active = eta_gamma_shapes(transition_counts(z, self.data.mask, K), features, hyper)
-        m = features.sum(0)
-        shape_omega = jnp.concatenate([hyper.alpha / K + m, 1.0 + N - m])  # (2K,)
-        shapes = jnp.concatenate([shape_g.ravel(), shape_total.ravel(), shape_omega])
-        draws = jnp.maximum(jax.random.gamma(key, jnp.maximum(shapes, 1e-300)), 1e-300)
-        g = draws[:N * K * K].reshape(N, K, K)
-        total = draws[N * K * K:N * K * K + N * K].reshape(N, K, 1)
-        a, b = draws[N * K * K + N * K:].reshape(2, K)
+        valid = self._valid
+        m = jnp.sum(jnp.where(valid[:, None], features, 0.0), axis=0)
+        n = jnp.sum(valid).astype(m.dtype)
+        shape_omega = jnp.concatenate([hyper.alpha / K + m, 1.0 + n - m])  # (2K,)
+        per_trajectory = jnp.concatenate([shape_g.reshape(N, K * K), shape_total], axis=1)  # (N, K^2 + K)
+        k_omega, k_rows = jax.random.split(key)
+        gamma = lambda k, shape: jnp.maximum(jax.random.gamma(k, jnp.maximum(shape, 1e-300)), 1e-300)  # noqa: E731
+        a, b = gamma(k_omega, shape_omega).reshape(2, K)
+        rows = gamma(k_rows, per_trajectory)
+        g = rows[:, :K * K].reshape(N, K, K)
+        total = rows[:, K * K:].reshape(N, K, 1)
         eta = eta_from_gammas(g, total, active)
         omega = jnp.clip(a / (a + b), 1e-300, 1.0 - 1e-16)
         return eta, omega

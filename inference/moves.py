@@ -66,6 +66,11 @@ def window_weights(key, mask, i, min_len: int, max_len: int):
     return jnp.zeros((N, T)).at[i].set(row)
 
 
+def _skill_users(features, real):
+    """m_k: the trajectories with steps that have skill k, (K,)."""
+    return jnp.sum(jnp.where(real[:, None], features, 0.0), axis=0)
+
+
 def _set_slot(params, k, one):
     return jax.tree.map(lambda p, o: p.at[k].set(o), params, one)
 
@@ -108,15 +113,16 @@ def birth_death_log_ratio(emission, data, hyper, features, eta, params, log_lik,
     log_p0 = emission.log_prior(jax.tree.map(lambda x: x[None], used))[0]
     if log_q is None:
         log_q = emission.log_proposal(used, data, window)
-    m = features.sum(0)
-    m_new = new_features.sum(0)
+    real = jnp.any(data.mask, axis=1)  # trajectories without steps (padding) are left out
+    m = _skill_users(features, real)
+    m_new = _skill_users(new_features, real)
     n_free_before_birth = jnp.where(is_birth, jnp.sum(m == 0), jnp.sum(m_new == 0))
-    unique_i = lambda f: jnp.sum((f[i] > 0) & (f.sum(0) == 1))  # noqa: E731
-    n_unique_after_birth = jnp.where(is_birth, unique_i(new_features), unique_i(features))
+    unique_i = lambda f, m: jnp.sum((f[i] > 0) & (m == 1))  # noqa: E731
+    n_unique_after_birth = jnp.where(is_birth, unique_i(new_features, m_new), unique_i(features, m))
     birth = (log_p0 - log_q + jnp.log(n_free_before_birth) - jnp.log(n_unique_after_birth))
     sign = jnp.where(is_birth, 1.0, -1.0)
-    log_ratio = (lm_new - lm_old) + (collapsed_feature_log_prob(new_features, hyper.alpha)
-                                     - collapsed_feature_log_prob(features, hyper.alpha)) + sign * birth
+    log_ratio = (lm_new - lm_old) + (collapsed_feature_log_prob(new_features, hyper.alpha, real)
+                                     - collapsed_feature_log_prob(features, hyper.alpha, real)) + sign * birth
     return log_ratio, new_features, new_params, new_log_lik
 
 
@@ -129,15 +135,18 @@ def birth_death(key, emission, data, hyper, features, eta, params, log_lik, min_
     N, K = features.shape
     k_type, k_i, k_win, k_slot, k_prop, k_prior, k_acc = jax.random.split(key, 7)
     is_birth = jax.random.bernoulli(k_type)
-    i = jax.random.randint(k_i, (), 0, N)
+    # the trajectory among those with steps: trajectories that pad the data (shape buckets,
+    # sharding) come last and are left out of the move and of the skills' counts, so that
+    # padding does not change the draws
+    real = jnp.any(data.mask, axis=1)
+    i = jax.random.randint(k_i, (), 0, jnp.maximum(jnp.sum(real), 1))
     window = window_weights(k_win, data.mask, i, min_len, max_len)
-    m = features.sum(0)
+    m = _skill_users(features, real)
     free = m == 0
     unique = (features[i] > 0) & (m == 1)
     candidates = jnp.where(is_birth, free, unique)
-    # a death may not take a trajectory's last skill, unless it has no steps (padding to a shape
-    # bucket: it needs no skill to emit them)
-    possible = jnp.any(candidates) & (is_birth | (features[i].sum() >= 2) | ~jnp.any(data.mask[i]))
+    # a death may not take a trajectory's last skill
+    possible = jnp.any(candidates) & (is_birth | (features[i].sum() >= 2)) & real[i]
     k = jax.random.categorical(k_slot, jnp.where(candidates, 0.0, -jnp.inf))
     k = jnp.where(possible, k, 0)
     old_one = _get_slot(params, k)

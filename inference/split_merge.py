@@ -136,17 +136,45 @@ def _run_around(z_row, mask_row, t):
     return (run == run[t]) & mask_row
 
 
+def _visiting_order(key, mask, ia, ib):
+    """(N,) a random order of the trajectories, anchor a's first and b's second, the
+    trajectories without steps (padding) last: the real ones' order does not depend on how many
+    padding trajectories there are (their uniform keys are numbered by position)."""
+    N = mask.shape[0]
+    priority = jax.random.uniform(key, (N,))
+    priority = jnp.where(jnp.any(mask, axis=1), priority, 2.0).at[ib].set(-1.0).at[ia].set(-2.0)
+    return jnp.argsort(priority).astype(jnp.int32)
+
+
+def _blocks(order, num_real, num_blocks):
+    """The allocation's blocks of ``order`` (padding trajectories last), (num_blocks, per_block)
+    with -1 for no trajectory, and (num_blocks,) whether each block is in use.
+
+    The real trajectories are split as if they were all there is: min(num_blocks, num_real)
+    blocks of ceil(num_real / blocks) (``num_real`` traced), in blocks of the static size
+    ceil(N / num_blocks) >= that; the blocks past them are not used, so padding the data with
+    empty trajectories changes nothing (with num_real = N these are the plain blocks)."""
+    N = order.shape[0]
+    per_block = -(-N // num_blocks)
+    used_blocks = jnp.minimum(num_blocks, jnp.maximum(num_real, 1))
+    per_real = -(-num_real // used_blocks)
+    b, j = jnp.arange(num_blocks)[:, None], jnp.arange(per_block)[None, :]
+    pos = b * per_real + j
+    take = (j < per_real) & (pos < num_real)
+    return jnp.where(take, order[jnp.clip(pos, 0, N - 1)], -1), jnp.arange(num_blocks) < used_blocks
+
+
 def _allocate(emission, data, z_m, f_m, k1, k2, anchors, order, init_one, num_blocks):
-    """Deterministic sequential allocation of the k1-steps of (z_m, f_m) between k1 and k2.
+    """Deterministic sequential allocation of the k1-steps of (z_m, f_m) between k1 and k2,
+    trajectories in ``order`` (:func:`_visiting_order`: padding last) in ``num_blocks`` blocks,
+    the point fits refitted after each block.
 
     Returns (z (N, T) allocated, point fits (2, ...) of the final allocation)."""
     N, T = data.mask.shape
     K = f_m.shape[1]
     mask = data.mask
     ia, ta, ib, tb = anchors
-    per_block = -(-N // num_blocks)
-    padded = jnp.concatenate([order, jnp.full(per_block * num_blocks - N, -1, order.dtype)])
-    blocks = padded.reshape(num_blocks, per_block)
+    blocks, in_use = _blocks(order, jnp.sum(jnp.any(mask, axis=1)), num_blocks)
     t_idx = jnp.arange(T)
     cols = jnp.arange(K)
     log_trans = jnp.log(jnp.ones((K, K)) + 10.0 * jnp.eye(K))  # a sticky chain for the allocation
@@ -173,18 +201,20 @@ def _allocate(emission, data, z_m, f_m, k1, k2, anchors, order, init_one, num_bl
         path, _ = viterbi(jnp.zeros(K), log_trans, jnp.where(allowed, emit, NEG_LOG), mi, (f_m[i] > 0) | (cols == k2))
         return jnp.where(go, path, zi)
 
-    def block(carry, rows):
+    def block(carry, rows_used):
         z, done, fits = carry
+        rows, used = rows_used
         lik_ab, _ = emission.log_likelihoods(fits, data, emission.init_cache(2))  # (N, T, 2)
         valid = rows >= 0
         zs = jax.vmap(lambda i, v: one_trajectory(i, v, lik_ab))(rows, valid)
         safe = jnp.where(valid, rows, N)  # out of range: dropped by the scatter
         z = z.at[safe].set(zs, mode="drop")
         done = done.at[safe].set(True, mode="drop")
-        fits = emission.fit_point(data, weights_of(z, done), fits)
+        refit = emission.fit_point(data, weights_of(z, done), fits)
+        fits = jax.tree.map(lambda new, old: jnp.where(used, new, old), refit, fits)
         return (z, done, fits), None
 
-    (z, _, fits), _ = jax.lax.scan(block, (z_m, jnp.zeros(N, bool), fits0), blocks)
+    (z, _, fits), _ = jax.lax.scan(block, (z_m, jnp.zeros(N, bool), fits0), (blocks, in_use))
     return z, fits
 
 
@@ -274,11 +304,13 @@ def split_merge_at(key, emission, data, hyper, features, eta, z, params, log_lik
     l2 = z[ib, tb]
     same_step = (ia == ib) & (ta == tb)
     is_split = k1 == l2
-    free = features.sum(0) == 0
+    # trajectories without steps (padding to a shape bucket or to a multiple of the devices)
+    # are left out: their features count for no skill and the move does not touch them
+    real = jnp.any(mask, axis=1)
+    free = _users(features, real) == 0
     k2_free = jax.random.categorical(k_slot, jnp.where(free, 0.0, -jnp.inf))
     k2 = jnp.where(is_split, jnp.where(jnp.any(free), k2_free, (k1 + 1) % K), l2)
-    priority = jax.random.uniform(k_order, (N,)).at[ib].set(-1.0).at[ia].set(-2.0)
-    order = jnp.argsort(priority).astype(jnp.int32)  # auxiliary visiting order, anchors first
+    order = _visiting_order(k_order, mask, ia, ib)  # auxiliary visiting order, anchors first
     current = _two(params, k1, k2)
     log_p0 = lambda one: emission.log_prior(jax.tree.map(lambda x: x[None], one))[0]  # noqa: E731
     rows = jnp.arange(N)
@@ -297,7 +329,7 @@ def split_merge_at(key, emission, data, hyper, features, eta, z, params, log_lik
         used_a = jnp.any((z_alloc == k1) & mask, axis=1)
         used_b = jnp.any((z_alloc == k2) & mask, axis=1)
         table = _pair_table(used_a, used_b, N, ia, ib)
-        involved = f_m[:, k1] > 0
+        involved = (f_m[:, k1] > 0) & real
         if key is not None:
             k_pairs, k_two = jax.random.split(key)
             pick = jax.random.categorical(k_pairs, table)
@@ -314,7 +346,7 @@ def split_merge_at(key, emission, data, hyper, features, eta, z, params, log_lik
             two_s, lq_two = new, jnp.sum(lq_new)
         else:
             lq_two = jnp.sum(lq_other)
-        n_free = jnp.sum(f_m.sum(0) == 0)
+        n_free = jnp.sum(_users(f_m, real) == 0)
         return f_s, two_s, -jnp.log(jnp.maximum(n_free, 1).astype(jnp.float64)) + lq_pairs + lq_two, z_alloc
 
     def merge_proposal(z_s, two_s, two_m, key):
@@ -357,7 +389,7 @@ def split_merge_at(key, emission, data, hyper, features, eta, z, params, log_lik
     new_labels = (k1, jnp.where(is_split, k2, k1))
     # transition weights of the trajectories that use k1 or k2: redrawn from their
     # conditional given the move's allocation (the merged labels, or the split's)
-    involved = (features[:, k1] > 0) | (features[:, k2] > 0)
+    involved = ((features[:, k1] > 0) | (features[:, k2] > 0)) & real
     counts_fwd = _eta_counts(alloc_fwd, new_f, mask)  # one count for the draw and its density
     new_eta = _draw_eta(k_eta, eta, counts_fwd, new_f, involved, hyper) if forced_eta is None else forced_eta
     li_o, lt_o, act_o = hmm_parameters(features, eta)
@@ -376,13 +408,19 @@ def split_merge_at(key, emission, data, hyper, features, eta, z, params, log_lik
 
     lq_rev, alloc_rev = jax.lax.cond(is_split, reverse_of_split, reverse_of_merge, None)
     log_ratio = (jnp.sum(lm_new) - jnp.sum(lm_old)
-                 + collapsed_feature_log_prob(new_f, hyper.alpha) - collapsed_feature_log_prob(features, hyper.alpha)
+                 + collapsed_feature_log_prob(new_f, hyper.alpha, real)
+                 - collapsed_feature_log_prob(features, hyper.alpha, real)
                  + jnp.sum(emission.log_prior(new_two)) - jnp.sum(emission.log_prior(current))
                  + lq_rev - lq_fwd
                  + _eta_log_p_over_q(new_eta, counts_fwd, new_f, involved, hyper)
                  - _eta_log_p_over_q(eta, _eta_counts(alloc_rev, features, mask), features, involved, hyper))
     possible = ~same_step & (~is_split | jnp.any(free)) & jnp.isfinite(log_ratio) & (log_ratio > 0.5 * NEG_LOG)
     return log_ratio, possible, is_split, new_f, new_eta, new_z, new_params, new_log_lik
+
+
+def _users(features, real):
+    """m_k: the trajectories with steps (``real``) that have skill k, (K,)."""
+    return jnp.sum(jnp.where(real[:, None], features, 0.0), axis=0)
 
 
 def _skill_counts(z, mask, K):

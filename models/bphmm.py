@@ -146,13 +146,19 @@ def predictive_log_likelihoods(key, log_lik, mask, p_on, hyper: Hyper, num_sampl
     return (log_marg, post) if marginals else log_marg
 
 
-def collapsed_feature_log_prob(features, alpha):
+def collapsed_feature_log_prob(features, alpha, valid=None):
     """log p(F) with the skill popularities omega integrated out of the model's
     omega_k ~ Beta(alpha/K, 1), f_ik ~ Bernoulli(omega_k):
-    sum_k [log B(m_k + alpha/K, N - m_k + 1) - log B(alpha/K, 1)], m_k = sum_i f_ik."""
+    sum_k [log B(m_k + alpha/K, N - m_k + 1) - log B(alpha/K, 1)], m_k = sum_i f_ik.
+    ``valid`` (N,) bool: the trajectories that are data; the others (padding, no steps) are
+    left out (N and m_k count the valid ones), so padding does not change the value."""
     N, K = features.shape
     a = alpha / K
-    m = jnp.sum(features, axis=0)
+    if valid is None:
+        m = jnp.sum(features, axis=0)
+    else:
+        m = jnp.sum(jnp.where(valid[:, None], features, 0.0), axis=0)
+        N = jnp.sum(valid).astype(features.dtype)
     return jnp.sum(betaln(m + a, N - m + 1.0) - betaln(a, 1.0))
 
 
