@@ -2,7 +2,7 @@
 
 from .metrics import (confusion, hungarian_accuracy, hungarian_labelling, num_skills, num_switches,
                       paper_accuracy, paper_labelling)
-from .fit import fit, make_emission
+from .fit import device_mesh, fit, make_emission
 from .results import FitResult
 from .config import EmissionConfig, Hyperparameter, ModelConfig, PriorConfig, SamplerConfig
 from .runs import load, load_mdp, save_mdp

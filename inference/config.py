@@ -28,7 +28,7 @@ A TOML variant (every key optional; these are the defaults)::
     samples = 200
     warmup = 200
     seed = 0
-    chain_method = "vectorized"   # or "sequential", "parallel"
+    chain_method = "vectorized"   # or "sequential", "parallel" (chains over the local devices)
     init_window = 25
     # init_skills = 4             # default: (max_skills + 1) // 2
 
@@ -270,7 +270,8 @@ class SamplerConfig:
     """MCMC settings.
 
     chains, samples, warmup: number of chains and of sweeps per chain kept / discarded;
-    seed: the random seed; chain_method: "vectorized", "sequential" or "parallel";
+    seed: the random seed; chain_method: "vectorized", "sequential" or "parallel" (the vectorized
+    sweep with the chains spread over the local devices, ``jax.sharding``; see ``fit``'s ``mesh``);
     init_skills, init_window: the initial segmentation (skills used; window length);
     moves: options of the kernel's trans-dimensional moves, passed to ``BPHMMKernel(moves=...)``
     and checked by it.

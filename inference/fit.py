@@ -14,6 +14,7 @@ from __future__ import annotations
 import hashlib
 import dataclasses
 import json
+import math
 import os
 import signal
 import sys
@@ -27,6 +28,7 @@ from typing import Optional, Union
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
 from npbrs.domains.demos import Demonstrations
 from npbrs.models.emissions import Emission, HMMData, get_emission_class
@@ -36,7 +38,8 @@ from .kernel import BPHMMKernel
 from .results import LABEL_INVARIANT, FitResult
 from npbrs.domains.precision import float64_all
 
-__all__ = ["fit", "make_emission", "resolve_config", "compilation_cache_dir", "use_compilation_cache"]
+__all__ = ["fit", "make_emission", "resolve_config", "compilation_cache_dir", "use_compilation_cache", "device_mesh",
+           "CHAINS", "TRAJECTORIES"]
 
 
 def compilation_cache_dir(environ=None) -> Optional[str]:
@@ -170,17 +173,31 @@ class _Compiled:
     def __init__(self, kernel: BPHMMKernel, hyper_names):
         self.kernel = kernel
         self.hyper_names = tuple(hyper_names)
+        self._placed = {}
 
-    def init(self, keys, num_warmup: int, z0=None):
+    def placed(self, mesh: Optional[Mesh]) -> BPHMMKernel:
+        """The kernel with its arrays on ``mesh``'s devices (the data sharded over its
+        trajectories axis, the rest replicated), or the kernel itself (None)."""
+        if mesh is None:
+            return self.kernel
+        if mesh not in self._placed:
+            self._placed = {mesh: _place_kernel(self.kernel, mesh)}  # one mesh kept
+        return self._placed[mesh]
+
+    def init(self, keys, num_warmup: int, z0=None, mesh: Optional[Mesh] = None):
         """Every chain's initial state (keys (C, 2)), on the host; z0: an initial segmentation
         (N, T) shared by the chains, or None (random windows)."""
-        return _to_host(_init_chains(self.kernel, keys, z0, jnp.int32(num_warmup)))
+        if mesh is None:
+            return _to_host(_init_chains(self.kernel, keys, z0, jnp.int32(num_warmup)))
+        return _to_host(_init_chains(self.placed(mesh), keys, z0, jnp.int32(num_warmup), mesh))
 
-    def step(self, method: str):
-        """state -> (next state, record): batched over chains ("vectorized"), one chain
-        ("sequential") or one chain per device ("parallel")."""
-        fn = {"vectorized": _sweep_batched, "sequential": _sweep_one, "parallel": _sweep_parallel}[method]
-        return partial(fn, self.kernel, self.hyper_names)
+    def step(self, method: str, mesh: Optional[Mesh] = None):
+        """state -> (next state, record): batched over chains ("vectorized"), or one chain
+        ("sequential"); on ``mesh``'s devices when given (state and data placed there)."""
+        fn = {"vectorized": _sweep_batched, "sequential": _sweep_one}[method]
+        if mesh is None:
+            return partial(fn, self.kernel, self.hyper_names)
+        return partial(fn, self.placed(mesh), self.hyper_names, mesh=mesh)
 
 
 def _record(kernel: BPHMMKernel, hyper_names, state) -> dict:
@@ -202,24 +219,168 @@ def _record(kernel: BPHMMKernel, hyper_names, state) -> dict:
     return out
 
 
-@jax.jit
-def _init_chains(kernel, keys, z0, num_warmup):
-    return _strong(kernel.init(keys, num_warmup, None if z0 is None else {"z": z0}, (), {}))
+@partial(jax.jit, static_argnums=4)
+def _init_chains(kernel, keys, z0, num_warmup, mesh=None):
+    state = _strong(kernel.init(keys, num_warmup, None if z0 is None else {"z": z0}, (), {}))
+    return _constrain(state, mesh, batched=True)
 
 
-def _sweep_one_impl(kernel, hyper_names, state):
-    new = _strong(kernel.sample(state, (), {}))
+@partial(jax.jit, static_argnums=(1, 3))
+def _sweep_one(kernel, hyper_names, state, mesh=None):
+    new = _constrain(_strong(kernel.sample(state, (), {})), mesh, batched=False)
     return new, _record(kernel, hyper_names, new)
 
 
-@partial(jax.jit, static_argnums=1)
-def _sweep_batched(kernel, hyper_names, state):
-    new = _strong(kernel.sample(state, (), {}))
+@partial(jax.jit, static_argnums=(1, 3))
+def _sweep_batched(kernel, hyper_names, state, mesh=None):
+    new = _constrain(_strong(kernel.sample(state, (), {})), mesh, batched=True)
     return new, jax.vmap(partial(_record, kernel, hyper_names))(new)
 
 
-_sweep_one = jax.jit(_sweep_one_impl, static_argnums=1)
-_sweep_parallel = jax.pmap(_sweep_one_impl, in_axes=(None, None, 0), static_broadcasted_argnums=1)
+# ------------------------------------------------------------------------------ devices
+CHAINS, TRAJECTORIES = "chains", "trajectories"
+# the state's fields with a trajectory axis (after the chain axis when batched)
+_PER_TRAJECTORY = ("features", "eta", "z", "log_lik", "log_marginals", "best_z", "best_features")
+
+
+def device_mesh(devices=None, num_chains: int = 1) -> Mesh:
+    """The mesh that ``fit(..., devices=devices)`` runs on: a 2-D ``jax.sharding.Mesh`` with
+    axes ("chains", "trajectories") of shape (g, n // g), g = gcd(num_chains, n), over the n
+    devices: the chains are spread over the devices first (they need no communication), the
+    rest shard each chain's trajectories.
+
+    Args:
+        devices: None (every device, ``jax.devices()``: on several hosts, all of theirs), a
+            number n (the first n of ``jax.devices()``) or a sequence of ``jax.Device``.
+        num_chains: the chains of the run.
+    Raises:
+        ValueError: more devices asked for than there are, an empty or repeated list.
+    """
+    available = jax.devices()
+    if devices is None:
+        chosen = list(available)
+    elif isinstance(devices, (int, np.integer)) and not isinstance(devices, bool):
+        if not 1 <= devices <= len(available):
+            raise ValueError(f"devices={int(devices)}: there are {len(available)} devices "
+                             f"({available[0].platform}); ask for 1 to {len(available)}")
+        chosen = list(available[:int(devices)])
+    else:
+        try:
+            chosen = list(devices)
+        except TypeError:
+            raise ValueError(f"devices must be a number of devices or a sequence of jax.Device, got "
+                             f"{type(devices).__name__}") from None
+        if not chosen:
+            raise ValueError("devices is empty")
+        bad = [d for d in chosen if not isinstance(d, jax.Device)]
+        if bad:
+            raise ValueError(f"devices must be jax.Device objects (e.g. from jax.devices()), got {bad[0]!r}")
+        if len(set(chosen)) != len(chosen):
+            raise ValueError(f"devices lists a device twice: {chosen}")
+        unknown = [d for d in chosen if d not in available]
+        if unknown:
+            raise ValueError(f"devices: {unknown[0]} is not one of jax.devices()")
+    n = len(chosen)
+    g = math.gcd(int(num_chains), n)
+    return Mesh(np.array(chosen, dtype=object).reshape(g, n // g), (CHAINS, TRAJECTORIES))
+
+
+def _check_mesh(mesh, num_chains: int, method: str) -> Optional[Mesh]:
+    """The validated mesh, or None when it has one device (nothing to place)."""
+    if not isinstance(mesh, Mesh):
+        raise ValueError(f"mesh must be a jax.sharding.Mesh, got {type(mesh).__name__}")
+    unknown = [name for name in mesh.axis_names if name not in (CHAINS, TRAJECTORIES)]
+    if unknown:
+        raise ValueError(f"mesh axis {unknown[0]!r}: fit knows the axes {CHAINS!r} (chains on separate devices) "
+                         f"and {TRAJECTORIES!r} (each chain's trajectories sharded); name the mesh's axes so")
+    chains = dict(mesh.shape).get(CHAINS, 1)
+    if num_chains % chains:
+        raise ValueError(f"the mesh's {CHAINS!r} axis has {chains} devices, which does not divide num_chains = "
+                         f"{num_chains}; use a divisor of num_chains (or shard trajectories over the rest)")
+    if chains > 1 and method == "sequential":
+        raise ValueError(f"chain_method='sequential' runs one chain at a time, so the mesh's {CHAINS!r} axis "
+                         f"({chains} devices) has nothing to place; use chain_method='vectorized'")
+    return mesh if mesh.devices.size > 1 else None
+
+
+def _axis(mesh, name):
+    return name if name in mesh.axis_names and mesh.shape[name] > 1 else None
+
+
+def _trajectory_devices(mesh: Optional[Mesh]) -> int:
+    return 1 if mesh is None else int(dict(mesh.shape).get(TRAJECTORIES, 1))
+
+
+def _state_shardings(state, mesh: Mesh, batched: bool):
+    """NamedShardings of a state's leaves: the chain axis (when batched) over the mesh's
+    "chains" axis, the per-trajectory fields' trajectory axis over its "trajectories" axis, the
+    rest (skills' parameters, scalars) replicated."""
+    lead = (_axis(mesh, CHAINS),) if batched else ()
+    traj = _axis(mesh, TRAJECTORIES)
+
+    def field(name):
+        spec = PartitionSpec(*lead, traj) if name in _PER_TRAJECTORY else PartitionSpec(*lead)
+        return jax.tree.map(lambda x: NamedSharding(mesh, spec if np.ndim(x) >= len(spec) else PartitionSpec()),
+                            getattr(state, name))
+
+    return type(state)(*[field(name) for name in state._fields])
+
+
+def _constrain(state, mesh: Optional[Mesh], batched: bool):
+    """Inside a compiled sweep: keep the new state where the old one lives."""
+    if mesh is None:
+        return state
+    return jax.lax.with_sharding_constraint(state, _state_shardings(state, mesh, batched))
+
+
+def _place(x, sharding):
+    """A host array as a (possibly multi-host) global array: each process puts its devices'
+    blocks from its own copy, which every process holds."""
+    x = np.asarray(x)
+    return jax.make_array_from_callback(x.shape, sharding, lambda index: x[index])
+
+
+def _place_state(state, mesh: Mesh, batched: bool):
+    return jax.tree.map(_place, state, _state_shardings(state, mesh, batched))
+
+
+def _place_kernel(kernel: BPHMMKernel, mesh: Mesh) -> BPHMMKernel:
+    """The kernel with its demonstrations sharded over the mesh's trajectories axis (axis 0 of
+    states, actions, mask) and the emission's and MDP's arrays replicated on every device."""
+    data = {id(x) for x in jax.tree.leaves(kernel.data)}
+    traj = NamedSharding(mesh, PartitionSpec(_axis(mesh, TRAJECTORIES)))
+    rep = NamedSharding(mesh, PartitionSpec())
+    leaves, treedef = jax.tree.flatten(kernel)
+    return jax.tree.unflatten(treedef, [_place(x, traj if id(x) in data else rep) for x in leaves])
+
+
+def _pad_trajectories(data: HMMData, multiple: int) -> HMMData:
+    """The data with trajectories without steps appended up to a multiple of ``multiple``
+    (the sampler leaves them out: the real trajectories' draws are unchanged)."""
+    N = data.states.shape[0]
+    extra = -N % multiple
+    if not extra:
+        return data
+    return HMMData(*[jnp.concatenate([x, jnp.zeros((extra,) + x.shape[1:], x.dtype)]) for x in data])
+
+
+def _resize_trajectories(leaves, like, fill):
+    """Checkpoint leaves (a state of any trajectory count, e.g. written on other devices)
+    resized to the trajectories of ``like``: rows past it dropped, missing rows (padding for
+    devices) taken from ``fill``, a state of ``like``'s shapes."""
+    paths = [path for path, _ in jax.tree_util.tree_flatten_with_path(like)[0]]
+    expected = jax.tree.leaves(like)
+    filler = jax.tree.leaves(fill)
+    out = []
+    for leaf, path, e, f in zip(leaves, paths, expected, filler):
+        name = getattr(path[0], "name", None) if path else None
+        leaf = np.asarray(leaf)
+        if (name in _PER_TRAJECTORY and leaf.ndim == len(e.shape) >= 2 and leaf.shape[0] == e.shape[0]
+                and leaf.shape[2:] == tuple(e.shape[2:]) and leaf.shape[1] != e.shape[1]):
+            n = e.shape[1]
+            leaf = leaf[:, :n] if leaf.shape[1] > n else np.concatenate([leaf, np.asarray(f)[:, leaf.shape[1]:]], 1)
+        out.append(leaf)
+    return out
 
 
 _COMPILED: "OrderedDict[str, _Compiled]" = OrderedDict()
@@ -234,19 +395,21 @@ DEFAULT_GREEDY_SPLITS = 1
 DEFAULT_GREEDY_FROM = 0.75
 
 
-def _compiled(cfg: ModelConfig, em: Emission, em_key: str, demos: Demonstrations) -> _Compiled:
+def _compiled(cfg: ModelConfig, em: Emission, em_key: str, demos: Demonstrations, multiple: int = 1) -> _Compiled:
     """The kernel of this model and data, reused when the same model is fitted again (its
-    compiled sweep is the expensive part of a short run)."""
+    compiled sweep is the expensive part of a short run); ``multiple``: pad the trajectories to
+    a multiple of it (the devices that shard them)."""
     prior, sampler = cfg.prior, cfg.sampler
     key = json.dumps([em_key, demos.fingerprint(), cfg.max_skills, prior.to_dict(), sampler.init_skills,
-                      sampler.init_window, sampler.moves, sampler.warmup, sampler.bucket], sort_keys=True)
+                      sampler.init_window, sampler.moves, sampler.warmup, sampler.bucket, multiple], sort_keys=True)
     if key in _COMPILED:
         _COMPILED.move_to_end(key)
         return _COMPILED[key]
     kwargs = dict(alpha=prior.alpha.value, kappa=prior.kappa.value, gamma=prior.gamma.value,
                   hyperpriors=prior.hyperpriors or None, init_skills=sampler.init_skills,
                   init_window=sampler.init_window, moves=dict(sampler.moves))
-    kernel = BPHMMKernel(em, HMMData.from_demonstrations(demos, bucket=sampler.bucket), cfg.max_skills, **kwargs)
+    data = _pad_trajectories(HMMData.from_demonstrations(demos, bucket=sampler.bucket), multiple)
+    kernel = BPHMMKernel(em, data, cfg.max_skills, **kwargs)
     entry = _Compiled(kernel, tuple(prior.hyperpriors))
     _COMPILED[key] = entry
     while len(_COMPILED) > _COMPILED_MAX:
@@ -310,20 +473,32 @@ def _strong(tree):
 
 
 def _to_host(tree):
-    return jax.tree.map(np.asarray, jax.device_get(tree))
+    """NumPy copies of a pytree's arrays; an array spread over several hosts' devices is
+    gathered (every process gets the whole)."""
+    def host(x):
+        if isinstance(x, jax.Array) and not x.is_fully_addressable:
+            from jax.experimental import multihost_utils
+
+            return np.asarray(multihost_utils.process_allgather(x, tiled=True))
+        return np.asarray(jax.device_get(x))
+
+    return jax.tree.map(host, tree)
 
 
 class _Chains:
-    """The chains' states under one chain method, advanced one sweep at a time."""
+    """The chains' states under one chain method, advanced one sweep at a time (on ``mesh``'s
+    devices when given)."""
 
-    def __init__(self, compiled: _Compiled, method: str, state):
+    def __init__(self, compiled: _Compiled, method: str, state, mesh: Optional[Mesh] = None):
         self.method = method
-        self.fn = compiled.step(method)
+        self.fn = compiled.step(method, mesh)
         self.num_chains = int(np.shape(jax.tree_util.tree_leaves(state)[0])[0])
         if method == "sequential":
             self.states = [jax.tree.map(lambda x, c=c: x[c], state) for c in range(self.num_chains)]
+            if mesh is not None:
+                self.states = [_place_state(s, mesh, batched=False) for s in self.states]
         else:
-            self.states = state
+            self.states = state if mesh is None else _place_state(state, mesh, batched=True)
 
     def advance(self):
         """One sweep of every chain; returns the records (a list of per-chain dicts or one batched dict)."""
@@ -339,7 +514,8 @@ class _Chains:
     def stack(self, records) -> dict:
         """Records of several sweeps as host arrays {name: (C, n, ...)}."""
         if self.method == "sequential":
-            per_sweep = [{k: np.stack([np.asarray(r[k]) for r in recs]) for k in recs[0]} for recs in records]
+            host = [_to_host(recs) for recs in records]
+            per_sweep = [{k: np.stack([r[k] for r in recs]) for k in recs[0]} for recs in host]
         else:
             per_sweep = [_to_host(r) for r in records]
         return {k: np.stack([r[k] for r in per_sweep], axis=1) for k in per_sweep[0]}
@@ -351,16 +527,30 @@ class _Chains:
         return _to_host(self.states)
 
 
-def _chain_method(method: str, num_chains: int) -> str:
-    if num_chains == 1:
-        return "vectorized"
-    if method == "parallel" and jax.local_device_count() < num_chains:
-        import warnings
+def _chain_method(method: str, num_chains: int, mesh, devices):
+    """(chain method, mesh or None) of a run: "parallel" is the vectorized sweep with the
+    chains over the local devices (``jax.sharding``; it was ``jax.pmap`` before), the largest
+    number of them that divides the chains."""
+    if mesh is not None and devices is not None:
+        raise ValueError("give mesh or devices, not both (devices=... builds a mesh: see device_mesh)")
+    if devices is not None:
+        mesh = device_mesh(devices, num_chains)
+        if method == "sequential":  # one chain at a time: every device shards its trajectories
+            mesh = Mesh(mesh.devices.reshape(1, -1), mesh.axis_names)
+    if method == "parallel":
+        method = "vectorized"
+        if mesh is None:
+            local = jax.local_devices()
+            used = math.gcd(num_chains, len(local))
+            if used == 1 and num_chains > 1:
+                import warnings
 
-        warnings.warn(f"{num_chains} chains but {jax.local_device_count()} devices: running them sequentially",
-                      stacklevel=3)
-        return "sequential"
-    return method
+                warnings.warn(f"chain_method='parallel': {num_chains} chains on {len(local)} device"
+                              f"{'s' if len(local) > 1 else ''}; running them vectorized on one", stacklevel=3)
+            mesh = Mesh(np.array(local[:used], dtype=object).reshape(used, 1), (CHAINS, TRAJECTORIES))
+    if num_chains == 1:
+        method = "vectorized"
+    return method, (None if mesh is None else _check_mesh(mesh, num_chains, method))
 
 
 class _Progress:
@@ -452,7 +642,8 @@ def fit(mdp, demos: Demonstrations, config: Union[ModelConfig, dict, str, os.Pat
         init_skills: Optional[int] = None, init_window: Optional[int] = None, moves: Optional[dict] = None,
         bucket: Optional[bool] = None,
         init_segmentation=None, progress_bar: bool = True, checkpoint_path=None,
-        checkpoint_every: Optional[int] = None, resume: bool = False) -> FitResult:
+        checkpoint_every: Optional[int] = None, resume: bool = False, mesh: Optional[Mesh] = None,
+        devices=None) -> FitResult:
     """Segment demonstrations into skills.
 
     The model and sampler come from ``config`` (defaults: :class:`ModelConfig`); the keyword
@@ -467,7 +658,10 @@ def fit(mdp, demos: Demonstrations, config: Union[ModelConfig, dict, str, os.Pat
         num_chains, num_samples, num_warmup: MCMC sizes (sweeps per chain).
         max_skills: truncation K of the beta process (skill slots).
         seed: the random seed; the same seed gives the same draws, bit for bit.
-        chain_method: "vectorized" (chains vmapped), "sequential" or "parallel" (one per device).
+        chain_method: "vectorized" (chains vmapped), "sequential" (one chain after another) or
+            "parallel": the vectorized sweep with the chains spread over the local devices
+            (the largest number of them that divides num_chains; a mesh with a "chains" axis,
+            see ``mesh``; the same draws as "vectorized").
         alpha, kappa, gamma: BP-HMM hyperparameters (IBP mass, stickiness, transition concentration).
         hyperpriors: {"alpha"|"kappa"|"gamma": (shape, rate)}: sample those under Gamma hyperpriors.
         init_skills, init_window: the initial segmentation (see :class:`BPHMMKernel`).
@@ -492,15 +686,40 @@ def fit(mdp, demos: Demonstrations, config: Union[ModelConfig, dict, str, os.Pat
         resume: continue from ``checkpoint_path`` when it exists (without ``resume`` an existing
             checkpoint is refused, never overwritten; it must hold the same
             demonstrations and configuration); the result equals an uninterrupted run's.
+        mesh: run on several devices: a ``jax.sharding.Mesh`` with an axis "chains" (the
+            chains spread over its devices; its size must divide num_chains) and/or an axis
+            "trajectories" (each chain's demonstrations sharded over its devices, padded with
+            empty trajectories to a multiple of its size). The per-trajectory work (feature
+            Gibbs, forward filtering, backward sampling) runs where the trajectories live and
+            the per-skill count tables are summed across devices; the skills' parameters are
+            replicated. The draws are those of the one-device run with the same seed (every
+            discrete draw equal; sums over trajectories, such as the log joint, may differ in
+            the last digits with the order of their terms). On several hosts, call
+            ``jax.distributed.initialize()`` first and give a mesh over ``jax.devices()``.
+        devices: a shortcut for ``mesh``: a number of devices, a list of ``jax.Device`` or
+            "all" (``jax.devices()``); see :func:`device_mesh` (chains spread first, the
+            remaining devices shard the trajectories).
     Returns:
         a :class:`~npbrs.inference.results.FitResult`.
     Raises:
-        ValueError: bad demonstrations, configuration or checkpoint, before anything is compiled.
+        ValueError: bad demonstrations, configuration, devices or checkpoint, before anything is
+            compiled.
 
     The compiled sampler is kept in JAX's persistent compilation cache, in npbrs's folder
     (:func:`compilation_cache_dir`: ``~/.cache/npbrs/jax``), unless the process has a cache
     folder of its own already or ``NPBRS_CACHE_DIR=off`` (see :func:`use_compilation_cache`).
+
+    The run draws its random numbers with JAX's partitionable threefry
+    (``jax.threefry_partitionable(True)``, JAX's default, whatever the process set): each draw is
+    numbered by its position, so that it does not depend on the devices or the padding.
     """
+    with jax.threefry_partitionable(True):
+        return _fit(**locals())
+
+
+def _fit(mdp, demos, config, *, emission, emission_options, num_chains, num_samples, num_warmup, max_skills, seed,
+         chain_method, alpha, kappa, gamma, hyperpriors, init_skills, init_window, moves, bucket, init_segmentation,
+         progress_bar, checkpoint_path, checkpoint_every, resume, mesh, devices) -> FitResult:
     use_compilation_cache()
     cfg = resolve_config(config, emission=emission, emission_options=emission_options, num_chains=num_chains,
                          num_samples=num_samples, num_warmup=num_warmup, max_skills=max_skills, seed=seed,
@@ -533,26 +752,38 @@ def fit(mdp, demos: Demonstrations, config: Union[ModelConfig, dict, str, os.Pat
         # e.g. unsegmented IRL ("single"): one skill slot for every step
         cfg = cfg.replace(max_skills=int(fixed), sampler=dataclasses.replace(cfg.sampler, init_skills=None))
     cfg = default_moves(cfg, em)
-    compiled = _compiled(cfg, em, em_key, demos)
+    sampler = cfg.sampler
+    C, W, S = sampler.chains, sampler.warmup, sampler.samples
+    total = W + S
+    if isinstance(devices, str):
+        if devices != "all":
+            raise ValueError(f"devices must be a number, a list of jax.Device or 'all', got {devices!r}")
+        devices = jax.devices()
+    method, mesh = _chain_method(sampler.chain_method, C, mesh, devices)
+    compiled = _compiled(cfg, em, em_key, demos, _trajectory_devices(mesh))
     kernel = compiled.kernel
     z0 = None
     if init_segmentation is not None:
         z0 = kernel.check_segmentation(getattr(init_segmentation, "segmentation", init_segmentation))
-    sampler = cfg.sampler
-    C, W, S = sampler.chains, sampler.warmup, sampler.samples
-    total = W + S
-    method = _chain_method(sampler.chain_method, C)
     meta = {"config": cfg.to_dict(), "emission": em.describe(), "fingerprint": demos.fingerprint(),
             "seed": sampler.seed, "num_chains": C, "total_sweeps": total,
             "init": None if z0 is None else hashlib.sha256(z0.tobytes()).hexdigest()}
     keys = jax.random.split(jax.random.PRNGKey(sampler.seed), C)
 
     state, draws, done, wall = None, {}, 0, 0.0
+    num_real = demos.num_trajectories
     if resume and os.path.exists(checkpoint_path):
         leaves, draws, saved = _read_checkpoint(checkpoint_path, meta)
+        if "features" in draws:
+            draws["features"] = draws["features"][:, :, :num_real]
         from .runs import restore_state
 
         like = jax.eval_shape(lambda k: kernel.init(k, W, None, (), {}), keys)
+        if len(leaves) == len(jax.tree.leaves(like)) and any(
+                np.shape(a) != tuple(e.shape) for a, e in zip(leaves, jax.tree.leaves(like))):
+            # written on other devices (another padding of the trajectories): the real
+            # trajectories' rows are the same, padding rows come from a fresh start
+            leaves = _resize_trajectories(leaves, like, compiled.init(keys, W, z0, mesh))
         state = restore_state(leaves, like, checkpoint_path)
         done, wall = int(saved["sweeps_done"]), float(saved["wall_time"])
 
@@ -561,8 +792,8 @@ def fit(mdp, demos: Demonstrations, config: Union[ModelConfig, dict, str, os.Pat
                     progress_bar)
     try:
         if state is None:
-            state = compiled.init(keys, W, z0)
-        chains = _Chains(compiled, method, state)
+            state = compiled.init(keys, W, z0, mesh)
+        chains = _Chains(compiled, method, state, mesh)
     except BaseException:
         bar.close()
         raise
@@ -574,6 +805,8 @@ def fit(mdp, demos: Demonstrations, config: Union[ModelConfig, dict, str, os.Pat
         for records, prefix, names in ((pending, "", None), (warm, "warmup_", LABEL_INVARIANT)):
             if records:
                 new = chains.stack(records)
+                if "features" in new:  # the demonstrations' trajectories, without padding
+                    new["features"] = new["features"][:, :, :num_real]
                 for k, v in new.items():
                     if names is None or k in names:
                         key = prefix + k
@@ -585,7 +818,9 @@ def fit(mdp, demos: Demonstrations, config: Union[ModelConfig, dict, str, os.Pat
         write = dict(meta, sweeps_done=done_now, wall_time=wall + time.perf_counter() - start)
         from .runs import write_checkpoint
 
-        write_checkpoint(checkpoint_path, state=chains.state(), draws=draws, meta=write)
+        host_state = chains.state()  # (on several hosts every process takes part in the gather)
+        if jax.process_index() == 0:  # one writer of the file
+            write_checkpoint(checkpoint_path, state=host_state, draws=draws, meta=write)
 
     try:
         with _Interrupt() as interrupt:

@@ -165,7 +165,6 @@ def greedy_split_at(key, anchors, emission, data, hyper, features, z, params, lo
     (i_b, t_b) of the same skill going to the new slot, if that raises :func:`merge_score`
     (see the module notes): returns (features, z, params, log_lik, info). ``key`` orders the
     allocation's trajectories after the anchors'."""
-    N = data.mask.shape[0]
     mask = data.mask
     ia, ta, ib, tb = anchors
     k1 = z[ia, ta]

@@ -294,8 +294,8 @@ class BPHMMKernel(MCMCKernel, Pytree):
         return self._sample_eta_omega(key, z, features, hyper)[0]
 
     def _sample_eta_omega(self, key, z, features, hyper):
-        """eta | z, F and omega | F, from two batches of Gamma draws (two Gamma samplers in
-        the compiled sweep instead of five).
+        """eta | z, F and omega | F, from a single batch of Gamma draws (one Gamma sampler
+        in the compiled sweep instead of five).
 
         eta: Dirichlet(conc + counts) proportions over the active skills times a
         Gamma(sum conc) total (the Gamma-Dirichlet decomposition); inactive entries keep
@@ -303,11 +303,12 @@ class BPHMMKernel(MCMCKernel, Pytree):
         N and m_k counting the trajectories with steps (padding trajectories are left out of
         the model: their features are drawn, but nothing depends on them).
 
-        omega's Gammas and the trajectories' are two draws, the latter laid out trajectory by
-        trajectory (N, K^2 + K): JAX's partitionable threefry numbers each draw by its position,
-        so a trajectory's draws do not depend on how many trajectories follow it (padding the
-        data with empty trajectories, for shape buckets or devices, leaves the real ones' draws
-        alone) nor on the devices the trajectories are sharded over (each draws its own).
+        The draws are laid out omega's first, then trajectory by trajectory (K^2 + K each):
+        JAX's partitionable threefry numbers each draw by its position, so a trajectory's draws
+        do not depend on how many trajectories follow it (padding the data with empty
+        trajectories, for shape buckets or devices, leaves the real ones' draws alone). (Under
+        a mesh that shards the trajectories the batch is gathered: JAX's Gamma sampler flattens
+        it; it is small next to the filtering.)
         """
         N, K = features.shape
         shape_g, shape_total, active = eta_gamma_shapes(transition_counts(z, self.data.mask, K), features, hyper)
@@ -316,10 +317,10 @@ class BPHMMKernel(MCMCKernel, Pytree):
         n = jnp.sum(valid).astype(m.dtype)
         shape_omega = jnp.concatenate([hyper.alpha / K + m, 1.0 + n - m])  # (2K,)
         per_trajectory = jnp.concatenate([shape_g.reshape(N, K * K), shape_total], axis=1)  # (N, K^2 + K)
-        k_omega, k_rows = jax.random.split(key)
-        gamma = lambda k, shape: jnp.maximum(jax.random.gamma(k, jnp.maximum(shape, 1e-300)), 1e-300)  # noqa: E731
-        a, b = gamma(k_omega, shape_omega).reshape(2, K)
-        rows = gamma(k_rows, per_trajectory)
+        shapes = jnp.concatenate([shape_omega, per_trajectory.ravel()])
+        draws = jnp.maximum(jax.random.gamma(key, jnp.maximum(shapes, 1e-300)), 1e-300)
+        a, b = draws[:2 * K].reshape(2, K)
+        rows = draws[2 * K:].reshape(N, K * K + K)
         g = rows[:, :K * K].reshape(N, K, K)
         total = rows[:, K * K:].reshape(N, K, 1)
         eta = eta_from_gammas(g, total, active)
