@@ -6,7 +6,7 @@ share its cores (on a 2-core machine they can only take turns: expect no speed-u
 says what the partitioning costs, collectives included). In each: highway, N = 1024 trajectories
 of ``--length`` steps, 1 chain, the reward emission (``fit``'s default) with the greedy moves off
 (plain Gibbs sweeps), ``fit`` twice in the process: the first compiles, the second (the same
-shapes: nothing compiles) is timed, ``sweep_s`` = its wall time / its sweeps. The 4-device run is
+shapes: nothing compiles) is timed, ``sweep_s`` = its wall time (its start included) / its sweeps. The 4-device run is
 ``fit(..., devices=4)``: 1 chain, so the 4 devices shard the trajectories (256 each).
 
     python benchmarks/bench_devices.py [--length 100] [--sweeps 8] [--json benchmarks/results/bench_devices.json]
