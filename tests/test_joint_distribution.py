@@ -8,9 +8,9 @@ from the model given the sweep's parameters (:func:`regenerate`) has the model's
 distribution as its stationary law when every move leaves the posterior invariant; then its
 parameters are distributed as the prior. The chains' means of label-invariant statistics (skills
 used, slots in use, slots used by one trajectory only, features on, switches per trajectory, a
-coordinate of the parameters of the skill at the first step and its square, alpha, kappa, gamma) are compared
-with their means under direct NumPy draws of the prior (:func:`prior_statistics`, written
-independently of the model's code).
+coordinate of the parameters of the skill at the first step and its square, alpha, kappa,
+gamma) are compared with their means under direct NumPy draws of the prior
+(:func:`prior_statistics`, written independently of the model's code).
 
 The prior is the model's conditioned on every trajectory having at least one skill (the
 sampler's rule: its feature moves never take a trajectory's last skill); the direct draws apply
@@ -22,10 +22,11 @@ t-test with C - 1 degrees of freedom per statistic (no autocorrelation estimate 
 standard error includes the Monte Carlo error of the prior means), Bonferroni over the
 statistics: a false-alarm rate of at most ``FALSE_ALARM`` for a correct sampler, up to the
 normality of a chain's mean of ``sweeps`` draws. The statistics' integrated autocorrelation
-times are about 4 (the policy coordinate), 6-11 (skills, features, switches), 16 (alpha) and
-60-75 sweeps (kappa, gamma: each is tied to the 108 transition weights), so the hyperparameters'
-chain means are mostly those of their exact starting draws: this test has little power against
-a wrong kappa or gamma move (``test_kernel.py`` checks those moves alone).
+times (32 chains x 1500 sweeps, from the variance of the chain means) are about 3 (the policy
+coordinate, unique slots), 10-30 (skills, features, switches), 20 (alpha), 80 (kappa) and 250
+sweeps (gamma; kappa and gamma are tied to the 108 transition weights), so the kappa and gamma
+chain means are mostly those of their exact starting draws: this test has little power against a
+wrong kappa or gamma move (``test_kernel.py`` checks those moves alone).
 
 Power: ``MUTATIONS`` lists terms of the moves' acceptance ratios and what this test (default
 size, seed 0) gave with each one removed (the module's source edited and re-executed in a fresh
