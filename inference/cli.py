@@ -19,7 +19,7 @@ from typing import Optional
 from .cli_generate import at_least
 from npbrs.domains.precision import float64_all
 
-__all__ = ["build_parser", "main", "compilation_cache_dir", "DEMO_CONFIG", "QUICK_DEMO_CONFIG"]
+__all__ = ["build_parser", "main", "compilation_cache_dir", "command_error", "DEMO_CONFIG", "QUICK_DEMO_CONFIG"]
 
 #: The demo's model: the reward emission on 8 highway trajectories of 200 steps, sized to
 #: finish in a few minutes on two cores (about 2.5 CPU-minutes, 45 s of them compiling; a
@@ -46,7 +46,8 @@ def use_compilation_cache() -> Optional[str]:
     return use()
 
 
-def _error(command: str, message) -> int:
+def command_error(command: str, message) -> int:
+    """Print ``npbrs COMMAND: error: MESSAGE`` to stderr; the exit status of a usage error (2)."""
     print(f"npbrs {command}: error: {message}", file=sys.stderr)
     return 2
 
@@ -119,7 +120,7 @@ def fit_command(args) -> int:
 
             init = load(args.init_from).segmentation
     except (OSError, ValueError) as e:
-        return _error("fit", e)
+        return command_error("fit", e)
     checkpoint = checkpoint_path_for(args.output) if args.checkpoint_every > 0 or args.resume else None
     if args.resume and checkpoint and os.path.exists(checkpoint):
         print(f"resuming from {checkpoint}")
@@ -132,7 +133,7 @@ def fit_command(args) -> int:
         message = str(e)
         if args.config and message.startswith("emission.options") and os.fspath(args.config) not in message:
             message = f"{args.config}: {message}"  # an emission option of the config file
-        return _error("fit", message)
+        return command_error("fit", message)
     except KeyboardInterrupt:
         where = (f"; the checkpoint {checkpoint} is kept: run the same command with --resume to continue"
                  if checkpoint else "")
@@ -170,7 +171,7 @@ def report_command(args) -> int:
     try:
         result = load_run(args.run)
     except (OSError, ValueError) as e:
-        return _error("report", e)
+        return command_error("report", e)
     print(result.summary())
     print("\nconvergence of the label-invariant scalars:")
     with pd.option_context("display.width", 120, "display.max_columns", 20):
@@ -270,7 +271,7 @@ def demo_command(args) -> int:
     try:
         result = fit(domain.mdp, demos, config, progress_bar=not args.no_progress)
     except ValueError as e:
-        return _error("demo", e)
+        return command_error("demo", e)
     result.save(run_path)
     print(f"\n{result.summary()}")
     print(f"\nsegmentation vs the true skills: {result.num_skills} skills found (true: {domain.num_skills}); "

@@ -72,13 +72,13 @@ def _run_and_demos(args):
 
 
 def score_command(args) -> int:
-    from .cli import _error
+    from .cli import command_error
 
     try:
         mdp, run, demos, options = _run_and_demos(args)
         out = run.log_predictive(mdp, demos, **options)
     except (OSError, ValueError) as e:
-        return _error("score", e)
+        return command_error("score", e)
     print(f"held-out log-likelihood: {out.per_step:.4f} ± {out.per_step_se:.4f} nats per step "
           f"({len(out.per_trajectory)} trajectories, {out.num_steps} steps, {out.num_draws} posterior draws)")
     print("per trajectory: " + ", ".join(f"{v:.2f} ± {s:.2f}" for v, s in zip(out.per_trajectory,
@@ -91,7 +91,7 @@ def segment_command(args) -> int:
 
     from npbrs.domains.files import atomic_write
 
-    from .cli import _error
+    from .cli import command_error
 
     try:
         mdp, run, demos, options = _run_and_demos(args)
@@ -112,7 +112,7 @@ def segment_command(args) -> int:
             plot_skill_probabilities(out.probs, args.plot, title=f"{os.path.basename(args.demos)}: skills of "
                                                                 f"{os.path.basename(args.run)}")
     except (OSError, ValueError) as e:
-        return _error("segment", e)
+        return command_error("segment", e)
     switches = [int(np.count_nonzero(np.diff(z))) for z in out.labels]
     used = np.bincount(np.concatenate(out.labels), minlength=K)
     print(f"segmented {N} trajectories ({int(lengths.sum())} steps) into the run's {K} skills: steps per skill "
@@ -128,11 +128,11 @@ def segment_command(args) -> int:
 def compare_command(args) -> int:
     import arviz as az
 
-    from .cli import _error, load_world_mdp
+    from .cli import command_error, load_world_mdp
     from .runs import load
 
     if len(args.runs) < 2:
-        return _error("compare", "compare needs at least two runs")
+        return command_error("compare", "compare needs at least two runs")
     try:
         mdp = load_world_mdp(args)
         runs = {}
@@ -150,6 +150,6 @@ def compare_command(args) -> int:
             raise ValueError("the runs were fitted to different demonstrations; compare needs the same ones")
         table = az.compare({name: run.to_arviz() for name, run in runs.items()})
     except (OSError, ValueError) as e:
-        return _error("compare", e)
+        return command_error("compare", e)
     print(table.to_string())
     return 0

@@ -35,7 +35,7 @@ A greedy split is the converse, for a start that lumps two true skills into one 
 seed 2 from the default start: 2 true skills in one slot of 5389 steps, Hungarian accuracy
 0.663). It picks a used skill k1 and two of its steps (see :func:`greedy_split`), allocates k1's steps
 between k1 and a free slot k2 by the split-merge move's deterministic sequential allocation
-(:func:`npbrs.inference.split_merge._allocate`, point fits refitted as the allocation grows),
+(:func:`npbrs.inference.split_merge.allocate`, point fits refitted as the allocation grows),
 gives k2 the features of the trajectories that use it, and keeps the split when the same score
 rises:
 
@@ -56,7 +56,7 @@ import jax.numpy as jnp
 from npbrs.models.mcmc import select
 from npbrs.models.bphmm import collapsed_feature_log_prob, collapsed_sequence_log_prob
 
-from .split_merge import _allocate, _skill_counts, _visiting_order
+from .split_merge import allocate, skill_counts, visiting_order
 from npbrs.domains.precision import float64_all
 
 __all__ = ["GreedyInfo", "greedy_merge", "greedy_merge_at", "greedy_split", "greedy_split_at", "merge_score"]
@@ -103,7 +103,7 @@ def greedy_merge(key, emission, data, hyper, features, z, params, log_lik):
     log_lik, info) (see :func:`greedy_merge_at`)."""
     K = features.shape[1]
     k_pick, k_move = jax.random.split(key)
-    used = _skill_counts(z, data.mask, K) > 0
+    used = skill_counts(z, data.mask, K) > 0
     j = jax.random.categorical(k_pick, jnp.where(used, 0.0, -jnp.inf))
     return greedy_merge_at(k_move, j, emission, data, hyper, features, z, params, log_lik)
 
@@ -172,9 +172,9 @@ def greedy_split_at(key, anchors, emission, data, hyper, features, z, params, lo
     free = jnp.sum(jnp.where(real[:, None], features, 0.0), axis=0) == 0  # no trajectory may use the slot
     k2 = jnp.argmax(free)
     possible = jnp.any(free) & (z[ib, tb] == k1) & ~((ia == ib) & (ta == tb)) & mask[ia, ta] & mask[ib, tb]
-    order = _visiting_order(key, mask, ia, ib)
+    order = visiting_order(key, mask, ia, ib)
     theta_k1 = jax.tree.map(lambda p: p[k1], params)
-    z_new, alloc_fits = _allocate(emission, data, z, features, k1, k2, anchors, order, theta_k1, num_blocks)
+    z_new, alloc_fits = allocate(emission, data, z, features, k1, k2, anchors, order, theta_k1, num_blocks)
     z_new = z_new.astype(z.dtype)
     used_a = jnp.any((z_new == k1) & mask, axis=1)
     used_b = jnp.any((z_new == k2) & mask, axis=1)

@@ -103,7 +103,7 @@ from npbrs.models.bphmm import collapsed_feature_log_prob, eta_from_gammas, eta_
 from npbrs.models.hmm import NEG_LOG, batch_backward_sample, batch_forward_filter, transition_counts, viterbi
 from npbrs.domains.precision import float64_all
 
-__all__ = ["SplitMergeInfo", "split_merge", "split_merge_at"]
+__all__ = ["SplitMergeInfo", "split_merge", "split_merge_at", "allocate", "skill_counts", "visiting_order"]
 
 # probability of each feature pair other than the one that matches the allocation
 PAIR_EPS = 0.1
@@ -136,7 +136,7 @@ def _run_around(z_row, mask_row, t):
     return (run == run[t]) & mask_row
 
 
-def _visiting_order(key, mask, ia, ib):
+def visiting_order(key, mask, ia, ib):
     """(N,) a random order of the trajectories, anchor a's first and b's second, the
     trajectories without steps (padding) last: the real ones' order does not depend on how many
     padding trajectories there are (their uniform keys are numbered by position)."""
@@ -164,9 +164,9 @@ def _blocks(order, num_real, num_blocks):
     return jnp.where(take, order[jnp.clip(pos, 0, N - 1)], -1), jnp.arange(num_blocks) < used_blocks
 
 
-def _allocate(emission, data, z_m, f_m, k1, k2, anchors, order, init_one, num_blocks):
+def allocate(emission, data, z_m, f_m, k1, k2, anchors, order, init_one, num_blocks):
     """Deterministic sequential allocation of the k1-steps of (z_m, f_m) between k1 and k2,
-    trajectories in ``order`` (:func:`_visiting_order`: padding last) in ``num_blocks`` blocks,
+    trajectories in ``order`` (:func:`visiting_order`: padding last) in ``num_blocks`` blocks,
     the point fits refitted after each block.
 
     Returns (z (N, T) allocated, point fits (2, ...) of the final allocation)."""
@@ -310,7 +310,7 @@ def split_merge_at(key, emission, data, hyper, features, eta, z, params, log_lik
     free = _users(features, real) == 0
     k2_free = jax.random.categorical(k_slot, jnp.where(free, 0.0, -jnp.inf))
     k2 = jnp.where(is_split, jnp.where(jnp.any(free), k2_free, (k1 + 1) % K), l2)
-    order = _visiting_order(k_order, mask, ia, ib)  # auxiliary visiting order, anchors first
+    order = visiting_order(k_order, mask, ia, ib)  # auxiliary visiting order, anchors first
     current = _two(params, k1, k2)
     log_p0 = lambda one: emission.log_prior(jax.tree.map(lambda x: x[None], one))[0]  # noqa: E731
     rows = jnp.arange(N)
@@ -325,7 +325,7 @@ def split_merge_at(key, emission, data, hyper, features, eta, z, params, log_lik
     def split_proposal(z_m, f_m, theta_m_k1, f_s, two_s, key):
         """log q(S | M) of the split state's features f_s and parameters two_s (given), and,
         when key is not None, a draw of them: returns (f_s, two_s, log q, allocation)."""
-        z_alloc, fits = _allocate(emission, data, z_m, f_m, k1, k2, anchors, order, theta_m_k1, num_blocks)
+        z_alloc, fits = allocate(emission, data, z_m, f_m, k1, k2, anchors, order, theta_m_k1, num_blocks)
         used_a = jnp.any((z_alloc == k1) & mask, axis=1)
         used_b = jnp.any((z_alloc == k2) & mask, axis=1)
         table = _pair_table(used_a, used_b, N, ia, ib)
@@ -423,7 +423,8 @@ def _users(features, real):
     return jnp.sum(jnp.where(real[:, None], features, 0.0), axis=0)
 
 
-def _skill_counts(z, mask, K):
+def skill_counts(z, mask, K):
+    """(K,) the number of real steps each skill labels in z (N, T)."""
     return jnp.sum(jax.nn.one_hot(z, K, dtype=jnp.float64) * mask[..., None], axis=(0, 1))
 
 
@@ -434,7 +435,7 @@ def _choose_anchors(key, z, mask, K):
 
     Returns (anchors, possible, log-probability of the choice)."""
     N, T = mask.shape
-    counts = _skill_counts(z, mask, K)
+    counts = skill_counts(z, mask, K)
     used = counts > 0
     n_used = jnp.sum(used)
     k_mode, k_first, k_second, k_a, k_b = jax.random.split(key, 5)
@@ -473,7 +474,7 @@ def split_merge(key, emission, data, hyper, features, eta, z, params, log_lik, n
     k1 = z[ia, ta]
     k2 = jnp.where(is_split, z2[ib, tb], z[ib, tb])
     # the reverse: a merge of (k1, k2) after a split, a split of k1 after a merge, in z2
-    log_p_rev = _choice_log_prob(~is_split, _skill_counts(z2, mask, K), k1, jnp.where(is_split, k2, k1))
+    log_p_rev = _choice_log_prob(~is_split, skill_counts(z2, mask, K), k1, jnp.where(is_split, k2, k1))
     log_ratio = log_ratio + log_p_rev - log_p_fwd
     possible = possible & can
     accept, _ = metropolis_accept(k_acc, log_ratio, possible)
