@@ -20,7 +20,7 @@ def _chains(x, num_chains):
     return x if num_chains > 1 else x[None]
 
 
-def _rows(z, lengths) -> Optional[List[np.ndarray]]:
+def trajectory_rows(z, lengths) -> Optional[List[np.ndarray]]:
     """Per-trajectory int64 rows of a padded (N, T) array (None stays None)."""
     if z is None:
         return None
@@ -116,7 +116,7 @@ class FitResult:
         # (a fit padded to a shape bucket has more trajectories and steps than the demonstrations)
         N, T = len(demos.lengths), int(np.max(demos.lengths))
         chain_best_z = np.asarray(last_state.best_z).astype(np.int64)[:, :N, :T]
-        rows = _rows(chain_best_z[chain], demos.lengths)
+        rows = trajectory_rows(chain_best_z[chain], demos.lengths)
         segmentation, slots = _compact(rows)
         best_params = {k: np.asarray(v)[chain][slots] for k, v in last_state.best_params.items()}
         draws = {k: np.asarray(v) for k, v in draws.items()}
@@ -129,7 +129,7 @@ class FitResult:
                    config=dict(config or {}), fingerprint=demos.fingerprint(), wall_time=float(wall_time),
                    emission=dict(emission or {}), feature_names=tuple(feature_names), chain_best_z=chain_best_z,
                    demos=demos, init_segmentation=None if init_segmentation is None else
-                   _rows(np.asarray(init_segmentation)[:N, :T], demos.lengths),
+                   trajectory_rows(np.asarray(init_segmentation)[:N, :T], demos.lengths),
                    mdp_fingerprint=str(mdp_fingerprint or ""),
                    warmup_stats=None if not warmup_stats else {k: np.asarray(v) for k, v in warmup_stats.items()})
 

@@ -136,7 +136,7 @@ def from_inference_data(idata):
     :func:`to_inference_data`."""
     from npbrs.domains.demos import Demonstrations
 
-    from .results import LABEL_INVARIANT, FitResult, _rows
+    from .results import LABEL_INVARIANT, FitResult, trajectory_rows
 
     if "constant_data" not in idata.groups() or idata.constant_data.attrs.get("npbrs_format") != RUN_FORMAT:
         raise ValueError("not an npbrs run (no constant_data group with npbrs_format = 'npbrs-run')")
@@ -146,7 +146,7 @@ def from_inference_data(idata):
         raise ValueError(f"run format version {attrs['npbrs_version']} is newer than this npbrs reads ({RUN_VERSION})")
     lengths = np.asarray(const["lengths"].values)
     seg = np.asarray(const["segmentation"].values)
-    segmentation = _rows(seg, lengths)
+    segmentation = trajectory_rows(seg, lengths)
     skill_params = {name[5:]: np.asarray(const[name].values) for name in const.data_vars if name.startswith("best_")}
     samples = {name: np.asarray(v.values) for name, v in idata.posterior.data_vars.items()
                if name not in LABEL_INVARIANT}
@@ -165,7 +165,7 @@ def from_inference_data(idata):
                      wall_time=float(attrs["wall_time"]), emission=json.loads(attrs["emission"]),
                      feature_names=tuple(json.loads(attrs["feature_names"])),
                      chain_best_z=(np.asarray(const["chain_best_z"].values) if "chain_best_z" in const else None),
-                     demos=demos, init_segmentation=(_rows(const["init_segmentation"].values, lengths)
+                     demos=demos, init_segmentation=(trajectory_rows(const["init_segmentation"].values, lengths)
                                                      if "init_segmentation" in const else None),
                      log_likelihood=(np.asarray(idata.log_likelihood["demonstrations"].values)
                                      if "log_likelihood" in idata.groups() else None),
