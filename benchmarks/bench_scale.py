@@ -1,8 +1,17 @@
 """How npbrs scales: the soft Bellman solve in the number of states S (``--part states``), and
-(room left for it) the sampler in the number of trajectories N (``--part trajectories``).
+the sampler in the number of trajectories N (``--part trajectories``).
 
     python benchmarks/bench_scale.py [--json PATH] [--part states|trajectories|all]
                                      [--sizes 1e4 1e5 1e6] [--skills 4] [--repeats 3] [--note TEXT]
+                                     [--ns 16 128 1024] [--lengths 500 20] [--chains 2] [--sweeps 3]
+
+Trajectories. Highway demonstrations of N trajectories x T steps, ``fit``'s defaults (the reward
+emission, every move, 8 slots; the greedy moves run in the last quarter of warmup) with 2
+chains, each (N, T) in a fresh process: ``first_fit_s`` a fit of 1 + 1 sweeps (compiling, no
+persistent cache), ``sweep_s`` a second fit's time over its 2 x ``--sweeps`` sweeps,
+``peak_rss_mb``; ``exponent_n`` the slope of log(sweep_s) in log(N) at the longest T, and
+``fit_n1024_peak_mb`` the N = 1024 run's peak memory there (a short fit: a default fit's 400
+sweeps add only their recorded draws).
 
 States. The world is :func:`npbrs.domains.gridworld.open_gridworld` with side L = round(sqrt(S))
 (S = 10^4, 99856, 10^6), 5 actions, 3 successor slots, 4 goal-nearness features, discount 0.95.
@@ -167,12 +176,65 @@ def print_states(result: dict) -> None:
 
 
 # ------------------------------------------------------------------------ trajectories part
+DEFAULT_NS = (16, 128, 1024)
+DEFAULT_LENGTHS = (500, 20)
+
+
+def measure_trajectories(N: int, T: int, chains: int, sweeps: int) -> dict:
+    """One fresh process: highway demonstrations N x T, ``fit``'s defaults (reward emission,
+    every move, 8 slots) with ``chains`` chains: a first fit of 1 + 1 sweeps (compiling), then
+    the same shapes again with ``sweeps`` warmup and ``sweeps`` sampling sweeps (compiled)."""
+    os.environ.setdefault("NPBRS_CACHE_DIR", "off")  # what a new machine pays
+    from npbrs.domains import generate_demonstrations, get_domain
+    from npbrs.inference import fit
+
+    dom = get_domain("highway")
+    demos = generate_demonstrations(dom, num_trajectories=N, length=T, seed=0)
+    kw = dict(num_chains=chains, progress_bar=False, seed=0)
+    start = time.perf_counter()
+    fit(dom.mdp, demos, num_warmup=1, num_samples=1, **kw)
+    first = time.perf_counter() - start
+    start = time.perf_counter()
+    result = fit(dom.mdp, demos, num_warmup=sweeps, num_samples=sweeps, **kw)
+    timed = time.perf_counter() - start
+    return {"N": N, "T": T, "chains": chains, "first_fit_s": round(first, 2), "timed_fit_s": round(timed, 2),
+            "sweep_s": round(timed / (2 * sweeps), 4), "skills": int(result.num_skills),
+            "peak_rss_mb": round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024)}
+
+
 def part_trajectories(args) -> dict:
-    """The sampler's sweep time in the number of trajectories N (not written yet)."""
-    raise NotImplementedError("--part trajectories is not written yet")
+    """The sampler's cost in the number of trajectories N: for each length T and N, one fresh
+    process (:func:`measure_trajectories`); ``exponent_n`` is the least-squares slope of
+    log(sweep_s) against log(N) over the N at the longest T (``exponent_n_by_length`` per T);
+    ``fit_n1024_peak_mb`` the peak memory of the N = 1024 run at the longest T. A sweep's time
+    includes the sweep's share of fit's per-sweep host work (recording draws)."""
+    rows = []
+    for T in args.lengths:
+        for N in args.ns:
+            before = machine_state()
+            out = subprocess.run([sys.executable, __file__, "--_trajectories-child", f"{N},{T}", "--chains",
+                                  str(args.chains), "--sweeps", str(args.sweeps)], capture_output=True, text=True)
+            if out.returncode:
+                raise RuntimeError(f"N = {N}, T = {T} failed:\n{out.stderr[-3000:]}")
+            row = json.loads(out.stdout.strip().splitlines()[-1])
+            row.update(load_before=before["loadavg"], load_after=machine_state()["loadavg"])
+            print(f"  N {N:5d} T {T:4d}: first fit {row['first_fit_s']:7.1f} s, sweep {row['sweep_s']:.3f} s, "
+                  f"peak {row['peak_rss_mb']} MB, {row['skills']} skills", flush=True)
+            rows.append(row)
+
+    def slope(rs):
+        x = np.log([r["N"] for r in rs])
+        y = np.log([r["sweep_s"] for r in rs])
+        return round(float(np.polyfit(x, y, 1)[0]), 3) if len(rs) > 1 else None
+
+    longest = max(args.lengths)
+    by_length = {str(T): slope([r for r in rows if r["T"] == T]) for T in args.lengths}
+    big = [r for r in rows if r["T"] == longest and r["N"] == max(args.ns)]
+    return {"rows": rows, "exponent_n": by_length[str(longest)], "exponent_n_by_length": by_length,
+            "fit_n1024_peak_mb": big[0]["peak_rss_mb"] if big and max(args.ns) == 1024 else None,
+            "chains": args.chains, "sweeps": args.sweeps}
 
 
-# ------------------------------------------------------------------------------------ main
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--json", help="write the results here")
@@ -181,8 +243,17 @@ def main(argv=None) -> int:
     parser.add_argument("--skills", type=int, default=4, help="reward tables solved together")
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--note", default="", help="free text saved in the JSON (what else the machine was doing)")
+    parser.add_argument("--ns", nargs="+", type=int, default=DEFAULT_NS, help="numbers of trajectories")
+    parser.add_argument("--lengths", nargs="+", type=int, default=DEFAULT_LENGTHS, help="trajectory lengths")
+    parser.add_argument("--chains", type=int, default=2, help="chains of the trajectories part's fits")
+    parser.add_argument("--sweeps", type=int, default=3, help="timed warmup (and sampling) sweeps")
     parser.add_argument("--_states-child", type=float, help=argparse.SUPPRESS)
+    parser.add_argument("--_trajectories-child", help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
+    if args._trajectories_child:
+        N, T = (int(v) for v in args._trajectories_child.split(","))
+        print(json.dumps(measure_trajectories(N, T, args.chains, args.sweeps)))
+        return 0
     if args._states_child:
         print(json.dumps(measure_states(int(args._states_child), args.skills, args.repeats)))
         return 0
@@ -199,7 +270,9 @@ def main(argv=None) -> int:
         report.update({k: v for k, v in report["states"].items() if k != "rows"})
         print_states(report["states"])
     if args.part in ("trajectories", "all"):
+        print(f"trajectories: N {list(args.ns)}, T {list(args.lengths)}, {args.chains} chains", flush=True)
         report["trajectories"] = part_trajectories(args)
+        report.update({k: v for k, v in report["trajectories"].items() if k != "rows"})
     report["machine_at_end"] = machine_state()
     if args.json:
         os.makedirs(os.path.dirname(os.path.abspath(args.json)), exist_ok=True)
