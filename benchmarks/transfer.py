@@ -135,7 +135,7 @@ def summarise(per_run, worlds):
 
 
 def markdown(results) -> str:
-    lines = [f"# Transfer: inferred rewards re-solved in changed worlds", "",
+    lines = ["# Transfer: inferred rewards re-solved in changed worlds", "",
              results["description"], ""]
     for name, dom in results["domains"].items():
         lines += [f"## {name}", "", "Mean control reward per trajectory over runs (share of the re-planned "

@@ -9,7 +9,7 @@ Rewards are linear in features: ``r(s, a) = features[s, a] . theta``.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Callable, Optional, Sequence
+from typing import Callable, Optional
 
 import numpy as np
 

@@ -22,7 +22,7 @@ Conventions shared by every function here:
 
 from __future__ import annotations
 
-from typing import Optional, Tuple
+from typing import Tuple
 
 import jax
 import jax.numpy as jnp

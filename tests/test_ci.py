@@ -44,3 +44,14 @@ def test_clearing_jax_caches_releases_the_memory_mappings_of_compiled_programs()
     jax.clear_caches()
     assert grown - before > 150, (before, grown)
     assert map_count() < before + 0.3 * (grown - before), (before, grown, map_count())
+
+
+def test_the_code_passes_the_linter():
+    """ruff with the project's rule set (pyproject.toml: pyflakes and syntax errors) finds
+    nothing in the library, the tests and the benchmarks."""
+    import shutil
+
+    ruff = shutil.which("ruff") or os.path.join(os.path.dirname(sys.executable), "ruff")
+    assert os.path.exists(ruff), "ruff is missing: it is in the test extras (pip install -e '.[test]')"
+    proc = subprocess.run([ruff, "check", "--no-cache", "."], cwd=ROOT, capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-2000:]

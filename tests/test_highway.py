@@ -9,8 +9,8 @@ import pytest
 from gymnasium.utils.env_checker import check_env
 from scipy import stats
 
-from npbrs.domains import HighwayEnv, greedy_policy, highway, next_value_operator
-from npbrs.domains.highway import (APPEAR, CLOSING, ENV_ID, LANE_CHANGE_SLOWDOWN, decode, encode,
+from npbrs.domains import HighwayEnv, highway, next_value_operator
+from npbrs.domains.highway import (CLOSING, ENV_ID, LANE_CHANGE_SLOWDOWN, decode, encode,
                                    sample_step)
 
 

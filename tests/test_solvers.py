@@ -5,7 +5,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from npbrs.domains import (TabularMDP, greedy_policy, make_hard_solver, make_soft_solver, next_value_operator,
+from npbrs.domains import (TabularMDP, greedy_policy, make_soft_solver, next_value_operator,
                            soft_value_iteration, value_iteration)
 
 
