@@ -173,8 +173,7 @@ class RewardEmission(Emission):
 
     def log_prior(self, params):
         scale = self._scales(params)
-        lp = jnp.sum(dist.Normal(0.0, jnp.asarray(scale)[..., None] if self.scale_prior else scale).log_prob(
-            params["theta"]), axis=-1)
+        lp = log_prior(params["theta"], jnp.asarray(scale)[..., None] if self.scale_prior else scale)
         if self.scale_prior:
             lp = lp + self._variance_prior().log_prob(params["sigma2"])
         return lp
