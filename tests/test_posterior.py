@@ -119,7 +119,7 @@ def test_split_merge_trial_leaves_the_exact_posterior_invariant():
     states = list(exact_joint_states())
     lps = np.array([lp for _, _, lp in states])
     rng = np.random.default_rng(0)
-    M = 100000
+    M = 50000
     pick = rng.choice(len(states), size=M, p=np.exp(lps - np.logaddexp.reduce(lps)))
     F = jnp.asarray(np.stack([states[j][0] for j in pick]), jnp.float64)
     Z = jnp.asarray(np.stack([states[j][1] for j in pick]), jnp.int32)
@@ -144,6 +144,6 @@ def test_split_merge_trial_leaves_the_exact_posterior_invariant():
                                                                                     accepted[~is_split].mean())
     index = {k: j for j, k in enumerate(keys)}
     counts = np.bincount([index[partition_key(z)] for z in np.asarray(z2)], minlength=len(keys))
-    # independent draws: Pearson's chi-square over the segmentations (all expected counts > 100)
+    # independent draws: Pearson's chi-square over the segmentations (all expected counts > 50)
     stat = np.sum((counts - M * exact) ** 2 / (M * exact))
     assert chi2.sf(stat, len(keys) - 1) > 1e-4, (stat, len(keys) - 1)
