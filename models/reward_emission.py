@@ -224,7 +224,8 @@ class RewardEmission(Emission):
             k_move, k_rescale = jax.random.split(k_move) if self.scale_prior else (k_move, None)
             new, cache, accept, log_density = self._mala(k_move, theta, counts, cache, adapt, scale)
             if self.scale_prior:
-                new, sigma2, cache = self._rescale(k_rescale, new, params["sigma2"], log_density, counts, cache, adapt)
+                # (its sigma^2 is not kept: the exact conditional below redraws it from theta alone)
+                new, cache = self._rescale(k_rescale, new, params["sigma2"], log_density, counts, cache, adapt)
         info = {"accept": jnp.sum(jnp.where(has_steps, accept, 0.0)) / jnp.maximum(jnp.sum(has_steps), 1)}
         if not self.scale_prior:
             prior_draw = self.prior_scale * jax.random.normal(k_prior, (K, D))
@@ -288,9 +289,9 @@ class RewardEmission(Emission):
         prior = self._variance_prior()
         log_ratio = post.log_lik - ll_old + prior.log_prob(s2_prop) - prior.log_prob(sigma2) + 2.0 * log_c
         accept, rate = metropolis_accept(k_acc, log_ratio, post.ok)
-        theta, sigma2, V = select(accept, (prop, s2_prop, post.V), (theta, sigma2, cache["V"]))
+        theta, V = select(accept, (prop, post.V), (theta, cache["V"]))
         log_rescale = jnp.where(adapt, cache["log_rescale"] + 0.3 * (rate - 0.4), cache["log_rescale"])
-        return theta, sigma2, {**cache, "V": V, "log_rescale": log_rescale}
+        return theta, {**cache, "V": V, "log_rescale": log_rescale}
 
     # ------------------------------------------------------------------ data-driven proposal
     def fit_point(self, data, weights, init=None):
