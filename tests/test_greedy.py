@@ -16,6 +16,17 @@ def _tree_equal(a, b):
     return all(np.array_equal(np.asarray(x), np.asarray(y)) for x, y in zip(jax.tree.leaves(a), jax.tree.leaves(b)))
 
 
+def _tree_close(a, b):
+    """The same discrete state, and floats equal up to rounding."""
+    def same(x, y):
+        x, y = np.asarray(x), np.asarray(y)
+        if np.issubdtype(x.dtype, np.floating):
+            return np.allclose(x, y, rtol=1e-9, atol=1e-12, equal_nan=True)
+        return np.array_equal(x, y)
+
+    return all(same(x, y) for x, y in zip(jax.tree.leaves(a), jax.tree.leaves(b)))
+
+
 def _copy_start(moves=None, num_warmup=0, seed=1):
     """Planted data of 3 skills, started at the true segmentation except that skill 0's steps
     in the first trajectories that use it are labelled 3: a copy of skill 0."""
@@ -97,17 +108,18 @@ def test_greedy_merges_run_only_in_warmup_and_remove_a_copy_gibbs_keeps():
         a, b = run_gibbs(a), run_greedy(b)
         skills_gibbs.append(np.asarray(a.num_skills).tolist())
         skills_greedy.append(np.asarray(b.num_skills).tolist())
-        if step < 1:  # before greedy_from * warmup = sweep 1: the same sweeps
-            assert _tree_equal(a, b), step
+        if step < 1:  # before greedy_from * warmup = sweep 1: the same sweeps (two programs, so
+            # the floats may differ in rounding)
+            assert _tree_close(a, b), step
     assert skills_gibbs[3] == [4, 4], skills_gibbs  # Gibbs keeps the copy through warmup
     assert skills_greedy[3] == [3, 3] and skills_greedy[-1] == [3, 3], skills_greedy
     # the state counts the moves kept (warmup's totals): a merge per chain, no splits (off)
     assert np.all(np.asarray(b.greedy_merges) >= 1) and not np.any(np.asarray(b.greedy_splits))
     assert not np.any(np.asarray(a.greedy_merges)) and not np.any(np.asarray(a.greedy_splits))
-    # after warmup the greedy kernel's sweep is the Gibbs sweep, even from the copy
+    # after warmup the greedy kernel's sweep is the Gibbs sweep, even from the copy (up to rounding)
     for seed in range(3):
         late = stack._replace(step=jnp.full(2, 4, jnp.int32), rng_key=jax.random.split(jax.random.PRNGKey(seed), 2))
-        assert _tree_equal(run_greedy(late), run_gibbs(late)), seed
+        assert _tree_close(run_greedy(late), run_gibbs(late)), seed
 
 
 def test_policy_evidence_is_the_prior_expectation_of_the_likelihood():

@@ -4,8 +4,9 @@
 Both notebooks run at once, each in its own kernel: nearly all of their time is the sampler's
 compilation, which uses one core, so two kernels take the time of one. XLA's backend
 optimisation is turned off in the kernels for the same reason (it cuts the compile time by a
-third and only slows the few sweeps a tiny run makes), and the kernels share the test session's
-persistent compilation cache (``conftest.py``), so a second run compiles nothing.
+third and only slows the few sweeps a tiny run makes), and each kernel compiles into a folder
+of its own in the test session's persistent compilation cache (``conftest.py``), so a second
+run compiles nothing.
 """
 
 import asyncio
@@ -22,13 +23,15 @@ FOLDER = Path(__file__).resolve().parent.parent / "notebooks"
 TIMEOUT = 300  # seconds for a whole notebook (and for any one cell)
 
 
-def _kernel_env(tmp: Path) -> dict:
+def _kernel_env(tmp: Path, name: str) -> dict:
     env = dict(os.environ, NPBRS_NOTEBOOK_QUICK="1", TMPDIR=str(tmp), MPLBACKEND="Agg")
     env["XLA_FLAGS"] = (env.get("XLA_FLAGS", "") + " --xla_backend_optimization_level=0").strip()
     cache = jax.config.jax_compilation_cache_dir
     if cache:
-        env.update(JAX_COMPILATION_CACHE_DIR=cache, JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS="0.5",
-                   JAX_PERSISTENT_CACHE_MIN_ENTRY_SIZE_BYTES="0")
+        # a folder per notebook: the kernels run at once, and JAX writes an entry in place, so
+        # one kernel could read the other's half-written program (a kernel died so, once)
+        env.update(JAX_COMPILATION_CACHE_DIR=os.path.join(cache, name.removesuffix(".ipynb")),
+                   JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS="0.5", JAX_PERSISTENT_CACHE_MIN_ENTRY_SIZE_BYTES="0")
     return env
 
 
@@ -39,7 +42,7 @@ async def _execute(name: str, tmp: Path):
     nb = nbformat.read(FOLDER / name, as_version=4)
     client = NotebookClient(nb, timeout=TIMEOUT, kernel_name="python3", resources={"metadata": {"path": str(work)}})
     try:
-        await asyncio.wait_for(client.async_execute(env=_kernel_env(work)), TIMEOUT)
+        await asyncio.wait_for(client.async_execute(env=_kernel_env(work, name)), TIMEOUT)
     except asyncio.TimeoutError:
         return TimeoutError(f"{name} did not finish in {TIMEOUT} s")
     except Exception as e:  # a cell's error (CellExecutionError) or a kernel that died
