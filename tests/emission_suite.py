@@ -13,7 +13,7 @@ import numpy as np
 from numpyro import handlers
 from numpyro.infer.util import log_density
 
-from npbrs.inference.kernel import BPHMMKernel
+from npbrs.inference.sampler.kernel import BPHMMKernel
 from npbrs.models.emissions import Emission, HMMData
 
 

@@ -6,8 +6,8 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from npbrs.inference.greedy import greedy_merge, greedy_merge_at, merge_score
-from npbrs.inference.kernel import BPHMMKernel
+from npbrs.inference.sampler.greedy import greedy_merge, greedy_merge_at, merge_score
+from npbrs.inference.sampler.kernel import BPHMMKernel
 from npbrs.models.emissions import Emission, PolicyEmission
 from test_kernel import planted_policy_data
 
@@ -130,7 +130,7 @@ def test_reward_laplace_evidence_is_close_to_importance_sampling():
     from gridworld import gridworld
 
     from npbrs.domains.demos import generate_demonstrations
-    from npbrs.inference.fit import make_emission
+    from npbrs.inference import make_emission
     from npbrs.models.emissions import HMMData
 
     dom = gridworld(size=3)
@@ -162,7 +162,7 @@ def test_reward_laplace_evidence_is_close_to_importance_sampling():
 
 
 def test_a_lumped_pair_is_split_and_a_true_skill_is_not():
-    from npbrs.inference.greedy import greedy_split_at
+    from npbrs.inference.sampler.greedy import greedy_split_at
 
     data, z_true = planted_policy_data(seed=1, N=6, T=40)
     mask = np.asarray(data.mask)
@@ -194,7 +194,7 @@ def test_a_lumped_pair_is_split_and_a_true_skill_is_not():
     assert bool(out[-1].possible) and not bool(out[-1].accepted), float(out[-1].gain)
     assert _tree_equal(out[:4], (s.features, s.z, s.params, s.log_lik))
     # the random trial (anchors drawn towards badly explained steps) finds the split, reproducibly
-    from npbrs.inference.greedy import greedy_split
+    from npbrs.inference.sampler.greedy import greedy_split
 
     split = jax.jit(greedy_split, static_argnums=1)
     outs = [split(jax.random.PRNGKey(r), *args) for r in range(4)]
@@ -211,7 +211,7 @@ def test_fit_runs_greedy_merges_by_default_where_the_emission_supports_them():
     from npbrs.inference import ModelConfig, fit
     from npbrs.models.autoregressive import AutoregressiveEmission
 
-    fit_module = importlib.import_module("npbrs.inference.fit")
+    fit_module = importlib.import_module("npbrs.inference.driver.fit")
     dom = gridworld(size=3)
     demos = generate_demonstrations(dom, num_trajectories=2, length=12, seed=0)
     result = fit(dom.mdp, demos, emission="policy", num_chains=1, num_warmup=2, num_samples=1, max_skills=3,

@@ -4,8 +4,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from npbrs.inference.kernel import BPHMMKernel
-from npbrs.inference.moves import birth_death_log_ratio, window_weights
+from npbrs.inference.sampler.kernel import BPHMMKernel
+from npbrs.inference.sampler.birth_death import birth_death_log_ratio, window_weights
 from npbrs.models.bphmm import collapsed_feature_log_prob
 from npbrs.models.emissions import PolicyEmission
 from test_kernel import planted_policy_data

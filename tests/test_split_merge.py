@@ -8,8 +8,8 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from npbrs.inference.kernel import BPHMMKernel
-from npbrs.inference.split_merge import split_merge, split_merge_at
+from npbrs.inference.sampler.kernel import BPHMMKernel
+from npbrs.inference.sampler.split_merge import split_merge, split_merge_at
 from npbrs.models.bphmm import collapsed_sequence_log_prob
 from npbrs.models.emissions import HMMData, PolicyEmission
 from npbrs.models.hmm import backward_sample, forward_filter, path_log_prob
@@ -193,8 +193,8 @@ def test_split_merge_recovers_planted_reward_skills_in_fewer_sweeps():
     from gridworld import gridworld
 
     from npbrs.domains.demos import generate_demonstrations
-    from npbrs.inference.fit import make_emission
-    from npbrs.inference.metrics import hungarian_accuracy
+    from npbrs.inference import make_emission
+    from npbrs.inference import hungarian_accuracy
 
     dom = gridworld()
     demos = generate_demonstrations(dom, num_trajectories=6, length=60, switch_prob=0.05, seed=0)

@@ -31,13 +31,12 @@ changes is where the sampling sweeps start. A trial:
 A kept merge gives k the fit to the union and slot j a prior draw (an unused slot's
 conditional).
 
-A greedy split is the converse, for a start that lumps two true skills into one slot (highway
-seed 2 from the default start: 2 true skills in one slot of 5389 steps, Hungarian accuracy
-0.663). It picks a used skill k1 and two of its steps (see :func:`greedy_split`), allocates k1's steps
-between k1 and a free slot k2 by the split-merge move's deterministic sequential allocation
-(:func:`npbrs.inference.split_merge.allocate`, point fits refitted as the allocation grows),
-gives k2 the features of the trajectories that use it, and keeps the split when the same score
-rises:
+A greedy split is the converse, for a start that lumps two true skills into one slot (seen on
+the highway: ``benchmarks/NOTES.md``). It picks a used skill k1 and two of its steps (see
+:func:`greedy_split`), allocates k1's steps between k1 and a free slot k2 by the split-merge
+move's deterministic sequential allocation (:func:`npbrs.inference.sampler.split_merge.allocate`,
+point fits refitted as the allocation grows), gives k2 the features of the trajectories that
+use it, and keeps the split when the same score rises:
 
     gain = log ev(steps of k1') + log ev(steps of k2) - log ev(steps of k1)
            + log p(z' | F') - log p(z | F) + log p(F') - log p(F).

@@ -5,7 +5,7 @@ One sweep (jitted whole, static shapes: K = ``max_skills`` slots with an active 
 1. features f_ik, one skill at a time for all trajectories at once, from their conditional
    with the skill sequences summed out (forward filter with f_ik = 0 and f_ik = 1);
 2. skill sequences z_i by forward filtering, backward sampling (then, when on, split-merge
-   trials, and in warmup only greedy merges and splits, ``npbrs.inference.greedy``);
+   trials, and in warmup only greedy merges and splits, ``npbrs.inference.sampler.greedy``);
 3. transition weights eta_i from their conjugate (Gamma-Dirichlet) conditional given z_i, and
    skill popularities omega_k | F ~ Beta(alpha/K + m_k, 1 + N - m_k) (independent given z, F);
 4. emission parameters with the emission's own move given the steps assigned to each skill;
@@ -32,12 +32,14 @@ from npbrs.models.mcmc import metropolis_accept
 from npbrs.models.emissions import Emission, HMMData
 from npbrs.models.hmm import batch_backward_sample, batch_forward_filter, transition_counts
 
-from .greedy import greedy_merge, greedy_split
-from .moves import birth_death
-from .split_merge import split_merge
 from npbrs.domains.precision import float64_all
 
-__all__ = ["BPHMMState", "BPHMMKernel"]
+from .birth_death import birth_death
+from .greedy import greedy_merge, greedy_split
+from .options import check_moves
+from .split_merge import split_merge
+
+__all__ = ["BPHMMState", "BPHMMKernel", "skill_weights"]
 
 
 class BPHMMState(NamedTuple):
@@ -80,13 +82,14 @@ class BPHMMState(NamedTuple):
     best_features: jax.Array
 
 
-def _skill_weights(z, mask, K):
+def skill_weights(z, mask, K):
+    """(N, T, K) one-hot skill of every real step of z (N, T); zero on padding."""
     return jax.nn.one_hot(z, K, dtype=jnp.float64) * mask[..., None]
 
 
 def _label_invariant(z, mask, K):
     """(skills used, mean switches per trajectory), trajectories without steps (padding) left out."""
-    used = jnp.any(_skill_weights(z, mask, K) > 0, axis=(0, 1))
+    used = jnp.any(skill_weights(z, mask, K) > 0, axis=(0, 1))
     switches = jnp.sum((z[:, 1:] != z[:, :-1]) & mask[:, 1:], axis=1)
     real = jnp.sum(jnp.any(mask, axis=1))
     mean = jnp.sum(switches.astype(jnp.float64)) / jnp.maximum(real, 1).astype(jnp.float64)
@@ -113,10 +116,11 @@ class BPHMMKernel(MCMCKernel, Pytree):
             sequential allocation, "start": the sweep (counted from 0, warmup included) from
             which the moves run; before it a sweep is plain Gibbs, "greedy_merge": greedy
             merge trials per sweep in the warmup sweeps from ``greedy_from`` x warmup on (0:
-            off; the emission needs ``fit_evidence``; see ``npbrs.inference.greedy``:
+            off; the emission needs ``fit_evidence``; see ``npbrs.inference.sampler.greedy``:
             not an MCMC move, so it never runs in the sampling sweeps), "greedy_split": greedy
             split trials per sweep there (the emission also needs ``fit_point``),
-            "greedy_from": that fraction of warmup, in [0, 1)}.
+            "greedy_from": that fraction of warmup, in [0, 1)}; the defaults (every move off):
+            :data:`npbrs.inference.sampler.options.MOVE_DEFAULTS`.
     """
 
     sample_field = "params"
@@ -132,7 +136,7 @@ class BPHMMKernel(MCMCKernel, Pytree):
         self.init_skills = int(init_skills if init_skills is not None else max(1, (self.max_skills + 1) // 2))
         self.init_window = int(init_window)
         self.sample_features = bool(sample_features)
-        self.moves = self.check_moves(moves)
+        self.moves = check_moves(moves)
         if self.moves["split_merge"] and not emission.supports_split_merge():
             raise ValueError(f"moves.split_merge: the {emission.name!r} emission has no fit_point, which "
                              "split-merge moves need; use birth_death moves or implement Emission.fit_point")
@@ -143,33 +147,6 @@ class BPHMMKernel(MCMCKernel, Pytree):
         if self.moves["greedy_split"] and not emission.supports_split_merge():
             raise ValueError(f"moves.greedy_split: the {emission.name!r} emission has no fit_point, which greedy "
                              "splits need; implement Emission.fit_point")
-
-    _MOVE_DEFAULTS = {"birth_death": 0, "window": (10, 50), "split_merge": 0, "blocks": 2, "start": 0,
-                      "greedy_merge": 0, "greedy_split": 0, "greedy_from": 0.5}
-
-    @classmethod
-    def check_moves(cls, moves):
-        """Validated move options with defaults filled in; ValueError naming a bad option."""
-        out = dict(cls._MOVE_DEFAULTS)
-        for name, value in (moves or {}).items():
-            if name not in out:
-                raise ValueError(f"unknown move option {name!r}; expected one of {sorted(out)}")
-            out[name] = value
-        for name in ("birth_death", "split_merge", "greedy_merge", "greedy_split"):
-            if not isinstance(out[name], int) or isinstance(out[name], bool) or out[name] < 0:
-                raise ValueError(f"moves.{name} must be a number of trials >= 0, got {out[name]!r}")
-        if not isinstance(out["blocks"], int) or isinstance(out["blocks"], bool) or out["blocks"] < 1:
-            raise ValueError(f"moves.blocks must be an integer >= 1, got {out['blocks']!r}")
-        if not isinstance(out["start"], int) or isinstance(out["start"], bool) or out["start"] < 0:
-            raise ValueError(f"moves.start must be a sweep number >= 0, got {out['start']!r}")
-        g = out["greedy_from"]
-        if isinstance(g, bool) or not isinstance(g, (int, float)) or not 0.0 <= g < 1.0:
-            raise ValueError(f"moves.greedy_from must be a fraction of warmup in [0, 1), got {g!r}")
-        lo, hi = out["window"]
-        if not (1 <= int(lo) <= int(hi)):
-            raise ValueError(f"moves.window must be (min, max) with 1 <= min <= max, got {out['window']!r}")
-        out["window"] = (int(lo), int(hi))
-        return out
 
     # ------------------------------------------------------------------ numpyro hooks
     @property
@@ -270,7 +247,7 @@ class BPHMMKernel(MCMCKernel, Pytree):
         else:
             z = z0
         z = jnp.where(self.data.mask, z, -1).astype(jnp.int32)
-        weights = _skill_weights(z, self.data.mask, K)
+        weights = skill_weights(z, self.data.mask, K)
         params = self.emission.init_params(keys[1], self.data, weights)
         if z0 is None:
             features = jnp.zeros((N, K)).at[:, :K0].set(1.0)
@@ -452,7 +429,7 @@ class BPHMMKernel(MCMCKernel, Pytree):
             greedy_kept = {}
         # eta | z, F and omega | F are conditionally independent: one block
         eta, omega = self._sample_eta_omega(k_eta, z, features, state.hyper)
-        weights = _skill_weights(z, mask, K)
+        weights = skill_weights(z, mask, K)
         # the clock, not the state's step: under vectorised chains a batched flag would make
         # the emission's warmup-only work (e.g. the reward's Fisher preconditioner) run always
         cache = state.cache

@@ -9,10 +9,10 @@ choosing the same anchors for the reverse move in the proposed state, enter the 
 
 The move acts on the features F, the emission parameters, the transition weights eta of the
 trajectories that use either skill, and the skill sequences z jointly; the popularities omega
-are integrated out (the sweep redraws them right after). Given two anchor steps (see above): if their skills are
-equal (k1) the move proposes a *split* of k1 into k1 and a free slot k2 (drawn uniformly
-among the slots no trajectory uses); otherwise a *merge* of the anchors' skills k1 and k2
-into k1.
+are integrated out (the sweep redraws them right after). Given two anchor steps (see above):
+if their skills are equal (k1) the move proposes a *split* of k1 into k1 and a free slot k2
+(drawn uniformly among the slots no trajectory uses); otherwise a *merge* of the anchors'
+skills k1 and k2 into k1.
 
 Split of the merged state M into S:
 
@@ -34,12 +34,11 @@ the prior.
 
 Transition weights, both directions: every trajectory that uses k1 or k2 gets a new eta_i
 from its exact conditional given the move's allocation (the split's, or the merged labels
-k2 -> k1), or with probability ``ETA_PRIOR_WEIGHT`` from its prior: per row, Dirichlet(conc + counts) proportions over the active skills times a
-Gamma(sum conc) total, inactive entries from their Gamma prior. Prior and proposal share the
-total, its Jacobian and the inactive entries, so per row log p(eta) - log q(eta) is
-log Dir(D; conc) - log Dir(D; conc + counts) of the proportions D. Keeping eta instead (the
-first version) left a merged or split trajectory with transition weights fitted to the old
-skills, which cost hundreds of nats of likelihood per proposal on the paper's domains.
+k2 -> k1), or with probability ``ETA_PRIOR_WEIGHT`` from its prior: per row,
+Dirichlet(conc + counts) proportions over the active skills times a Gamma(sum conc) total,
+inactive entries from their Gamma prior. Prior and proposal share the total, its Jacobian and
+the inactive entries, so per row log p(eta) - log q(eta) is log Dir(D; conc) -
+log Dir(D; conc + counts) of the proportions D.
 
 Both directions then redraw z from its conditional given the proposed state *with the two
 anchors clamped* to their skills (k1, k2 after a split; k1, k1 after a merge), by forward
@@ -55,40 +54,14 @@ marginal likelihood with the anchors' skills fixed, p(.) the prior of the featur
 integrated out) and of the parameters, and q the proposal densities above. Nothing in it
 counts allocations.
 
-Observed on the paper's domains (16 x 500 steps): the extra skills the Gibbs sweeps leave are
-mostly lower-scale copies of a true skill's reward (the same direction; the copy explains a few
-hundred steps about as well as the main skill does: the experts are deterministic, with ties
-broken towards the lowest action, which no Boltzmann policy reproduces). A merge of such a copy
-is proposed well, but the reverse split of the merged state must reallocate the union, and its
-deterministic allocation lands far from the current labelling of an ambiguous copy: the current
-rewards and eta then have tiny density under single-Gaussian and single-conditional reverse
-proposals (a quadcopter state with two copies of one skill: merge log ratios of -400 to -9000,
-although the merge gains 270 nats of likelihood). Both proposals are therefore defensive
-mixtures (eta: ``ETA_PRIOR_WEIGHT``; the reward emission: ``proposal_broad_weight``), which
-bounds those reverse densities; the same merges then have log ratios of +3 to +125 and are
-accepted. Splits are accepted too: on quadcopter seeds 0-4 one chain of 40 sweeps with one
-trial per sweep ends with 6, 5, 5, 4, 6 skills (Gibbs alone 5, 5, 5, 3, 3), although it reaches
-higher log joints (seed 3: -6044 against -7661). One trial costs about three Gibbs sweeps (IRL
-refits; under vectorised chains ``lax.cond`` runs both branches). The move is exact (tested
-against enumeration, by posterior invariance, and by split-merge reciprocity) and off by
-default.
-
-Later measurements (1 chain, 20 + 20 sweeps, 16 x 500 steps): the extra skills are a mixing
-failure, not the posterior's choice. Started from the true segmentation, Gibbs keeps 3 skills
-at a higher log joint (quadcopter seeds 0 and 1: mean -5799 and -5864, against -5843 and -6007
-with 5 and 4 skills from the default start; ``benchmarks/bench_oversplit.py``). Merging a small
-copy (70 to 420 steps; the accepted merges above were of a 630-step copy) is rejected, at log
-ratios of -66 to -750: the reverse split's density of the current rewards (-45 to -59) and the
-eta terms (-30 to -70 net) both pay for the reverse allocation not re-creating the copy, and
-the merged reward's draw costs -684 to +19 nats of likelihood. A prior component in the reward
-proposal's mixture did not change that (tried, not kept). With ``moves={"start": 20}`` (the
-moves only after 20 Gibbs sweeps) no trial was accepted on quadcopter seeds 0-4, so the fits
-equal Gibbs alone at 2-3x the wall time. From one initial skill with one trial per sweep the
-moves split merged skills (highway seed 2: 3 skills, accuracy 0.978, against 0.663 without) but
-also true ones (highway seeds 0-4: 4, 7, 3, 5, 5 skills). What removed the copies in the end
-is not an MCMC move: the warmup's greedy merges and splits (``npbrs.inference.greedy``), which
-compare states by the evidence with the parameters integrated out instead of by proposal
-densities.
+The reverse move's densities of the current rewards and transition weights can be tiny when
+the deterministic allocation lands far from the current labelling, so both proposals are
+defensive mixtures (eta: ``ETA_PRIOR_WEIGHT``; the reward emission: ``proposal_broad_weight``),
+which bounds those densities from below. The move is exact (tested against enumeration, by
+posterior invariance, and by split-merge reciprocity) and off by default; the copies of a skill
+that the Gibbs sweeps leave are removed by the warmup's greedy moves
+(:mod:`npbrs.inference.sampler.greedy`) instead. What was measured on the paper's domains, and
+why eta is redrawn rather than kept: ``benchmarks/NOTES.md``.
 """
 
 from __future__ import annotations
