@@ -29,7 +29,7 @@ from npbrs.domains.pytree import Pytree
 from npbrs.models.bphmm import (Hyper, bphmm_model, eta_from_gammas, eta_gamma_shapes, hmm_parameters, log_joint_terms,
                                 log_marginal_likelihoods)
 from npbrs.models.mcmc import metropolis_accept
-from npbrs.models.emissions import Emission, HMMData
+from npbrs.models.emissions import Emission, EmissionInfo, HMMData
 from npbrs.models.hmm import batch_backward_sample, batch_forward_filter, transition_counts
 
 from npbrs.domains.precision import float64_all
@@ -38,6 +38,7 @@ from .birth_death import birth_death
 from .greedy import greedy_merge, greedy_split
 from .options import check_moves
 from .split_merge import split_merge
+from .state import MoveState
 
 __all__ = ["BPHMMState", "BPHMMKernel", "skill_weights"]
 
@@ -357,7 +358,8 @@ class BPHMMKernel(MCMCKernel, Pytree):
         key, k_feat, k_bd, k_z, k_eta, k_em, k_hyp, k_sm = jax.random.split(state.rng_key, 8)
         k_gm = jax.random.fold_in(k_sm, 1)
         features = self._sample_features(k_feat, state) if self.sample_features else state.features
-        params, log_lik = state.params, state.log_lik
+        # the moves' state (``npbrs.inference.sampler.state``): each move maps it to a new one
+        moved = MoveState.of(state)._replace(features=features)
         blocks = min(self.moves["blocks"], N)  # refits of a split's allocation (split-merge, greedy splits)
         step, num_warmup = (state.step, state.num_warmup) if clock is None else clock
         if self.moves["start"]:
@@ -369,64 +371,59 @@ class BPHMMKernel(MCMCKernel, Pytree):
         else:
             def gated(run, operands, skipped):
                 return run(operands)
+
+        def trials(move, key, count):
+            """``count`` trials of ``move`` from ``moved``: (state, each trial's accepted (count,))."""
+            def one(carry, key):
+                carry, info = move(key, carry, self.emission, self.data, state.hyper)
+                return carry, info.accepted
+
+            return lambda ops: jax.lax.scan(one, ops, jax.random.split(key, count))
+
         births = jnp.zeros(())
         if self.moves["birth_death"]:
             lo, hi = self.moves["window"]
-
-            def trial(carry, key):
-                f, p, ll = carry
-                f, p, ll, info = birth_death(key, self.emission, self.data, state.hyper, f, state.eta, p, ll, lo, hi)
-                return (f, p, ll), info.accepted
+            run = trials(partial(birth_death, min_len=lo, max_len=hi), k_bd, self.moves["birth_death"])
 
             def births_run(ops):
-                ops, accepted = jax.lax.scan(trial, ops, jax.random.split(k_bd, self.moves["birth_death"]))
+                ops, accepted = run(ops)
                 return ops, jnp.mean(accepted.astype(jnp.float64))
 
-            (features, params, log_lik), births = gated(births_run, (features, params, log_lik), births)
-        log_init, log_trans, active = hmm_parameters(features, state.eta)
-        _, log_alpha = batch_forward_filter(log_init, log_trans, log_lik, mask, active)
-        z = batch_backward_sample(k_z, log_trans, log_alpha, mask, active)
+            moved, births = gated(births_run, moved, births)
+        log_init, log_trans, active = hmm_parameters(moved.features, state.eta)
+        _, log_alpha = batch_forward_filter(log_init, log_trans, moved.log_lik, mask, active)
+        moved = moved._replace(z=batch_backward_sample(k_z, log_trans, log_alpha, mask, active))
         splits = jnp.zeros(())
         if self.moves["split_merge"]:
-            def sm_trial(carry, key):
-                f, e, zz, p, ll = carry
-                f, e, zz, p, ll, info = split_merge(key, self.emission, self.data, state.hyper, f, e, zz, p, ll,
-                                                    blocks)
-                return (f, e, zz, p, ll), info.accepted
+            run = trials(partial(split_merge, num_blocks=blocks), k_sm, self.moves["split_merge"])
 
             def splits_run(ops):
-                ops, accepted = jax.lax.scan(sm_trial, ops, jax.random.split(k_sm, self.moves["split_merge"]))
+                ops, accepted = run(ops)
                 return ops, jnp.mean(accepted.astype(jnp.float64))
 
-            # eta changes here only for trajectories a move touched; the next line redraws it all
-            (features, _, z, params, log_lik), splits = gated(
-                splits_run, (features, state.eta, z, params, log_lik), splits)
+            # eta changes here only for trajectories a move touched; eta is redrawn after the moves
+            moved, splits = gated(splits_run, moved, splits)
         if self.moves["greedy_merge"] or self.moves["greedy_split"]:
             greedy_on = (step < num_warmup) & (step >= jnp.floor(self.moves["greedy_from"] * num_warmup))
 
             def greedy_run(ops):
-                def trial(move):
-                    def one(carry, key):
-                        f, zz, p, ll, info = move(key, self.emission, self.data, state.hyper, *carry)
-                        return (f, zz, p, ll), info.accepted
-                    return one
-
                 k_merge, k_split = jax.random.split(k_gm)
                 kept = []
                 for name, move, k in (("greedy_merge", greedy_merge, k_merge),
                                       ("greedy_split", partial(greedy_split, num_blocks=blocks), k_split)):
                     if self.moves[name]:
-                        ops, accepted = jax.lax.scan(trial(move), ops, jax.random.split(k, self.moves[name]))
+                        ops, accepted = trials(move, k, self.moves[name])(ops)
                         kept.append(jnp.sum(accepted, dtype=jnp.int32))
                     else:
                         kept.append(jnp.int32(0))
                 return ops, tuple(kept)
 
-            (features, z, params, log_lik), (merged, split) = jax.lax.cond(
-                greedy_on, greedy_run, lambda ops: (ops, (jnp.int32(0), jnp.int32(0))), (features, z, params, log_lik))
+            moved, (merged, split) = jax.lax.cond(
+                greedy_on, greedy_run, lambda ops: (ops, (jnp.int32(0), jnp.int32(0))), moved)
             greedy_kept = dict(greedy_merges=state.greedy_merges + merged, greedy_splits=state.greedy_splits + split)
         else:
             greedy_kept = {}
+        features, z, params = moved.features, moved.z, moved.params
         # eta | z, F and omega | F are conditionally independent: one block
         eta, omega = self._sample_eta_omega(k_eta, z, features, state.hyper)
         weights = skill_weights(z, mask, K)
@@ -439,7 +436,10 @@ class BPHMMKernel(MCMCKernel, Pytree):
             cache = jax.lax.cond((step < num_warmup) & (step % every == 0),
                                  lambda c: tune(params, c, self.data, weights), lambda c: c, cache)
         params, cache, info = self.emission.update(k_em, params, cache, self.data, weights, step < num_warmup)
-        accept = jnp.asarray(info.get("accept", 1.0) if isinstance(info, dict) else 1.0, jnp.float64)
+        if not isinstance(info, EmissionInfo):
+            raise TypeError(f"the {self.emission.name!r} emission's update returned {type(info).__name__} as its "
+                            "info; it must return (params, cache, npbrs.models.emissions.EmissionInfo(accept=...))")
+        accept = jnp.asarray(info.accept, jnp.float64)
         new = state._replace(rng_key=key, omega=omega, features=features, eta=eta, params=params, cache=cache,
                              z=z, accept=jnp.mean(accept), birth_accept=births, split_accept=splits,
                              **greedy_kept)
