@@ -28,9 +28,9 @@ sys.path.insert(0, os.path.join(os.path.dirname(__file__), "..", "tests"))
 from gridworld import gridworld  # noqa: E402
 
 from npbrs.domains.demos import generate_demonstrations  # noqa: E402
-from npbrs.inference.fit import make_emission  # noqa: E402
-from npbrs.inference.kernel import BPHMMKernel  # noqa: E402
-from npbrs.inference.metrics import hungarian_accuracy  # noqa: E402
+from npbrs.inference.driver.fit import make_emission  # noqa: E402
+from npbrs.inference.sampler.kernel import BPHMMKernel  # noqa: E402
+from npbrs.inference.analysis.metrics import hungarian_accuracy  # noqa: E402
 from npbrs.models.emissions import HMMData  # noqa: E402
 
 SETTINGS = {"gibbs only": {}, "birth/death 2": {"birth_death": 2}, "split-merge 1": {"split_merge": 1},

@@ -38,7 +38,7 @@ def main(argv=None):
 
     from npbrs.domains.demos import generate_demonstrations
     from npbrs.inference import fit
-    from npbrs.inference.metrics import hungarian_accuracy
+    from npbrs.inference.analysis.metrics import hungarian_accuracy
 
     if args.domain == "highway":
         from npbrs.domains.highway import highway as make

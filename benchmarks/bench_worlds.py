@@ -78,7 +78,7 @@ def run_world(name: str, seed: int, quick: bool) -> dict:
     """Generate one world, fit it with the defaults and with one reward, and measure."""
     from npbrs.domains.worlds import WORLDS
     from npbrs.inference import fit
-    from npbrs.inference.metrics import hungarian_accuracy, num_switches, paper_accuracy
+    from npbrs.inference.analysis.metrics import hungarian_accuracy, num_switches, paper_accuracy
 
     row = {"started": _now(), "load_before": os.getloadavg()[0]}
     world = WORLDS[name](seed=seed, **(QUICK_SIZES[name] if quick else {}))

@@ -33,8 +33,8 @@ def one_run(run, args):
 
     from npbrs.domains.demos import Demonstrations, generate_demonstrations
     from npbrs.domains.registry import get_domain
-    from npbrs.inference.fit import fit
-    from npbrs.inference.metrics import hungarian_accuracy
+    from npbrs.inference.driver.fit import fit
+    from npbrs.inference.analysis.metrics import hungarian_accuracy
     from npbrs.models.subgoal import SubgoalEmission, visited_states
 
     domain = get_domain("highway")

@@ -22,7 +22,7 @@ def main(argv=None):
         raise SystemExit(__doc__)
     from npbrs.domains.worlds import WORLDS
     from npbrs.inference import fit
-    from npbrs.inference.metrics import hungarian_accuracy, num_switches
+    from npbrs.inference.analysis.metrics import hungarian_accuracy, num_switches
 
     name, chains, overrides = argv[0], int(argv[1]), json.loads(argv[2])
     world = WORLDS[name](seed=0)

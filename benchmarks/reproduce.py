@@ -8,7 +8,7 @@ segmentation plots, writing them to ``benchmarks/results/``.
 By default it writes benchmarks/results/{domain}-{length}.json and .md (after every run, so a
 stopped reproduction keeps its finished runs; ``--resume`` continues it) and the per-run
 segmentation plots to benchmarks/results/{domain}-{length}/. The same as ``npbrs reproduce``,
-with those default outputs; see :mod:`npbrs.inference.reproduce` for what is measured.
+with those default outputs; see :mod:`npbrs.inference.cli.reproduce` for what is measured.
 """
 
 from __future__ import annotations
@@ -17,7 +17,7 @@ import argparse
 import os
 import sys
 
-from npbrs.inference.reproduce import configure_parser
+from npbrs.inference.cli.reproduce import configure_parser
 
 RESULTS = os.path.join(os.path.dirname(os.path.abspath(__file__)), "results")
 

@@ -57,7 +57,7 @@ def true_segmentation_rewards(domain, demos, prior_scale=None):
     """(K, D) MAP IRL weights of each true skill from its own steps (the reward emission's fit)."""
     import jax.numpy as jnp
 
-    from npbrs.inference.fit import make_emission
+    from npbrs.inference.driver.fit import make_emission
     from npbrs.models.emissions import HMMData
 
     options = {"refit_steps": 50, **({"prior_scale": prior_scale} if prior_scale else {})}
@@ -74,8 +74,8 @@ def one_run(name, run, args, worlds):
     from npbrs.domains.control import evaluate_control, expert_control
     from npbrs.domains.demos import Demonstrations, generate_demonstrations
     from npbrs.domains.registry import get_domain
-    from npbrs.inference.fit import fit
-    from npbrs.inference.reproduce import default_settings
+    from npbrs.inference.driver.fit import fit
+    from npbrs.inference.cli.reproduce import default_settings
 
     domain = get_domain(name)
     demos = generate_demonstrations(domain, num_trajectories=args.trajectories, length=args.length, seed=run)

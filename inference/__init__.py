@@ -1,11 +1,12 @@
-"""Inference: the BP-HMM MCMC kernel and its moves, fit, results, diagnostics, metrics, CLI."""
+"""Inference: ``sampler`` (the BP-HMM kernel and its moves), ``driver`` (fit, configuration, results and their
+files), ``analysis`` (metrics, diagnostics, prediction, skills, plots) and ``cli`` (the npbrs command)."""
 
-from .metrics import (confusion, hungarian_accuracy, hungarian_labelling, num_skills, num_switches,
-                      paper_accuracy, paper_labelling)
-from .fit import device_mesh, fit, make_emission
-from .results import FitResult
-from .config import EmissionConfig, Hyperparameter, ModelConfig, PriorConfig, SamplerConfig
-from .runs import load, load_mdp, save_mdp
-from .diagnostics import convergence, relabel, skill_summary
-from .predictive import HeldOut, SkillProbabilities, log_predictive
-from .plots import plot_segmentation, plot_skill_rewards, plot_trace, skill_styles
+from .analysis.metrics import (confusion, hungarian_accuracy, hungarian_labelling, num_skills, num_switches,
+                               paper_accuracy, paper_labelling)
+from .driver.fit import device_mesh, fit, make_emission
+from .driver.results import FitResult
+from .driver.config import EmissionConfig, Hyperparameter, ModelConfig, PriorConfig, SamplerConfig
+from .driver.runs import load, load_mdp, save_mdp
+from .analysis.diagnostics import convergence, relabel, skill_summary
+from .analysis.predictive import HeldOut, SkillProbabilities, log_predictive
+from .analysis.plots import plot_segmentation, plot_skill_rewards, plot_trace, skill_styles

@@ -35,7 +35,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .emissions import Emission, register_emission
+from .emissions import Emission, EmissionInfo, register_emission
 from npbrs.domains.precision import float64_all
 
 __all__ = ["AutoregressiveEmission", "MNIWPosterior"]
@@ -175,7 +175,7 @@ class AutoregressiveEmission(Emission):
         return jnp.where(has_next[..., None], ll, 0.0), cache
 
     def update(self, key, params, cache, data, weights, step):
-        return self.posterior(data, weights).sample(key), cache, {"accept": jnp.ones(())}
+        return self.posterior(data, weights).sample(key), cache, EmissionInfo(jnp.ones(()))
 
     def init_params(self, key, data, weights):
         return self.posterior(data, weights).sample(key)

@@ -14,6 +14,7 @@ An emission model supplies everything that depends on what a skill *is*:
   leaves the conditional posterior of every skill's parameters given its steps invariant
   (``weights`` (N, T, K) is the one-hot of the sampled skill sequence; ``adapt`` is True
   during warmup only, when the move may tune itself, e.g. step sizes kept in the cache);
+  ``info`` is an :class:`EmissionInfo` (diagnostics only);
 - ``propose(key, data, weights) -> (params_one, log_q)`` and
   ``log_proposal(params_one, data, weights) -> log_q``: a data-driven proposal of one new
   skill's parameters from weighted steps (a window of a trajectory, or one side of a split);
@@ -47,7 +48,15 @@ import numpy as np
 from npbrs.domains.pytree import Pytree
 from npbrs.domains.precision import float64_all
 
-__all__ = ["HMMData", "Emission", "register_emission", "get_emission_class", "EMISSIONS", "bucket_size"]
+__all__ = ["HMMData", "Emission", "EmissionInfo", "register_emission", "get_emission_class", "EMISSIONS",
+           "bucket_size"]
+
+
+class EmissionInfo(NamedTuple):
+    """Diagnostics of an emission's ``update``: ``accept`` (), the mean acceptance of its move
+    over the skills with steps (1 for an exact draw from the conditional)."""
+
+    accept: jax.Array
 
 
 class HMMData(NamedTuple):
@@ -255,7 +264,7 @@ class PolicyEmission(Emission):
     def update(self, key, params, cache, data, weights, adapt):
         counts = self._counts(data, weights)  # (K, S, A)
         policy = jax.random.dirichlet(key, self.concentration + counts)
-        return {"policy": jnp.maximum(policy, 1e-300)}, cache, {"accept": jnp.ones(())}
+        return {"policy": jnp.maximum(policy, 1e-300)}, cache, EmissionInfo(jnp.ones(()))
 
     def propose(self, key, data, weights):
         conc = self.concentration + self._counts(data, weights)

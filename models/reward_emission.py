@@ -45,7 +45,7 @@ import numpyro
 import numpyro.distributions as dist
 
 from ..domains.solvers import make_soft_solver
-from .emissions import Emission, register_emission
+from .emissions import Emission, EmissionInfo, register_emission
 from . import reward_mala
 from .mcmc import metropolis_accept, select
 from .reward import count_table, fisher_information, fit_reward, log_policy, log_posterior, log_prior, step_log_likelihoods
@@ -226,7 +226,7 @@ class RewardEmission(Emission):
             if self.scale_prior:
                 # (its sigma^2 is not kept: the exact conditional below redraws it from theta alone)
                 new, cache = self._rescale(k_rescale, new, params["sigma2"], log_density, counts, cache, adapt)
-        info = {"accept": jnp.sum(jnp.where(has_steps, accept, 0.0)) / jnp.maximum(jnp.sum(has_steps), 1)}
+        info = EmissionInfo(jnp.sum(jnp.where(has_steps, accept, 0.0)) / jnp.maximum(jnp.sum(has_steps), 1))
         if not self.scale_prior:
             prior_draw = self.prior_scale * jax.random.normal(k_prior, (K, D))
             return {"theta": jnp.where(has_steps[:, None], new, prior_draw)}, cache, info

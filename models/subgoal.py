@@ -51,7 +51,7 @@ import numpy as np
 
 from npbrs.domains.solvers import make_soft_solver
 
-from .emissions import Emission, HMMData, register_emission
+from .emissions import Emission, EmissionInfo, HMMData, register_emission
 from npbrs.domains.precision import float64_all
 
 __all__ = ["SubgoalEmission", "visited_states"]
@@ -266,7 +266,7 @@ class SubgoalEmission(Emission):
 
     def update(self, key, params, cache, data, weights, step):
         goals, _ = self._draw(key, data, weights)
-        return {"goal": goals}, cache, {"accept": jnp.ones(())}
+        return {"goal": goals}, cache, EmissionInfo(jnp.ones(()))
 
     def init_params(self, key, data, weights):
         return {"goal": self._draw(key, data, weights)[0]}

@@ -133,7 +133,7 @@ def _release_compiled_programs(request):
     use, or when they are not released: the crash would otherwise come back silently."""
     yield
     held = map_count()
-    fit_module = sys.modules.get("npbrs.inference.fit")  # (the package's ``fit`` is the function)
+    fit_module = sys.modules.get("npbrs.inference.driver.fit")  # (the package's ``fit`` is the function)
     if fit_module is not None:
         fit_module._COMPILED.clear()
     jax.clear_caches()

@@ -13,8 +13,8 @@ import numpy as np
 from numpyro import handlers
 from numpyro.infer.util import log_density
 
-from npbrs.inference.kernel import BPHMMKernel
-from npbrs.models.emissions import Emission, HMMData
+from npbrs.inference.sampler.kernel import BPHMMKernel
+from npbrs.models.emissions import Emission, EmissionInfo, HMMData
 
 
 def _tree_close(a, b, **kw):
@@ -66,7 +66,7 @@ def check_emission(emission: Emission, data: HMMData, max_skills: int = 3, seed:
     assert jax.tree.structure(new) == jax.tree.structure(params)
     for a, b in zip(jax.tree.leaves(new), jax.tree.leaves(params)):
         assert a.shape == b.shape and bool(jnp.all(jnp.isfinite(a)))
-    assert isinstance(info, dict)
+    assert isinstance(info, EmissionInfo) and info.accept.shape == ()
 
     # proposal: the returned log density is the one log_proposal gives
     w_one = weights[..., 0]

@@ -8,7 +8,7 @@ from scipy import stats
 
 from emission_suite import check_emission
 from npbrs.domains import TabularMDP
-from npbrs.inference.fit import make_emission
+from npbrs.inference import make_emission
 from npbrs.models.autoregressive import AutoregressiveEmission
 from npbrs.models.emissions import HMMData, get_emission_class
 

@@ -227,7 +227,7 @@ def test_segment_writes_the_skills_of_new_demonstrations(demo, tmp_path):
     assert "segmented 3 trajectories (75 steps)" in stdout
     with np.load(tmp_path / "labels.npz") as f:
         labels, probs, lengths = f["labels"], f["probs"], f["lengths"]
-    from npbrs.inference.runs import load
+    from npbrs.inference.driver.runs import load
 
     K = load(out / "run.nc").num_skills
     assert labels.shape == (3, 25) and probs.shape == (3, 25, K) and lengths.tolist() == [25, 25, 25]

@@ -10,10 +10,10 @@ import pytest
 from npbrs.domains.demos import Demonstrations
 from npbrs.domains.mdp import TabularMDP
 from npbrs.inference import EmissionConfig, Hyperparameter, ModelConfig, PriorConfig, SamplerConfig, fit, load
-from npbrs.inference.metrics import hungarian_accuracy
+from npbrs.inference import hungarian_accuracy
 from npbrs.models.emissions import EMISSIONS, PolicyEmission, register_emission
 
-fit_module = importlib.import_module("npbrs.inference.fit")  # the module, not the function it exports
+fit_module = importlib.import_module("npbrs.inference.driver.fit")  # the module, not the function it exports
 
 VARIANT = """
 max_skills = 5
@@ -256,8 +256,8 @@ def test_progress_in_a_log_shows_compiling_then_sweeps_with_an_eta(capsys):
 
 def test_the_warmup_sweeps_scalars_are_kept_saved_and_drawn(tmp_path):
     from npbrs.inference import load
-    from npbrs.inference.plots import plot_trace
-    from npbrs.inference.results import LABEL_INVARIANT
+    from npbrs.inference.analysis.plots import plot_trace
+    from npbrs.inference.driver.results import LABEL_INVARIANT
 
     mdp, demos = small_problem()
     result = fit(mdp, demos, TOY, num_warmup=3, progress_bar=False)
@@ -280,7 +280,7 @@ def test_toml_is_read_on_python_3_10_too(monkeypatch):
     import tomllib
     import types
 
-    from npbrs.inference import config
+    from npbrs.inference.driver import config
 
     real_import = builtins.__import__
 

@@ -167,7 +167,7 @@ def test_unknown_domains_list_the_known_ones():
 def test_the_generate_command_writes_a_file(tmp_path, capsys, monkeypatch):
     import argparse
 
-    from npbrs.inference import cli_generate
+    from npbrs.inference.cli import generate as cli_generate
 
     monkeypatch.setitem(DOMAINS, "toy-test", toy_domain)  # as register_domain does, undone afterwards
     parser = argparse.ArgumentParser()

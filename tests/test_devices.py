@@ -48,7 +48,7 @@ CHILD = textwrap.dedent('''
     from npbrs.domains import Demonstrations, TabularMDP
     from npbrs.inference import fit
 
-    F = importlib.import_module("npbrs.inference.fit")
+    F = importlib.import_module("npbrs.inference.driver.fit")
     out_path = sys.argv[1]
     assert jax.device_count() == 4, jax.devices()
 
@@ -80,7 +80,7 @@ CHILD = textwrap.dedent('''
 
     F._sweep_batched = spy
     # the one-device run's checkpoint after its third sweep, kept to be resumed on 4 devices
-    runs = importlib.import_module("npbrs.inference.runs")
+    runs = importlib.import_module("npbrs.inference.driver.runs")
     write = runs.write_checkpoint
 
     def keep_third(path, *, state, draws, meta):

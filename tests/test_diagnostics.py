@@ -7,7 +7,7 @@ import pytest
 from npbrs.domains.demos import Demonstrations
 from npbrs.domains.mdp import TabularMDP
 from npbrs.inference import FitResult, convergence, fit, relabel, skill_summary
-from npbrs.inference.diagnostics import relabelled_draws
+from npbrs.inference.analysis.diagnostics import relabelled_draws
 
 MEANS = np.array([[0.0, 0.0], [5.0, 0.0], [0.0, 5.0]])  # three skills' reward weights
 
@@ -110,7 +110,7 @@ def test_a_real_run_relabels_its_best_chain_to_itself_and_summarises_every_skill
 
 
 def _stats_result(log_joint, num_skills, num_switches):
-    from npbrs.inference.results import FitResult
+    from npbrs.inference.driver.results import FitResult
 
     return FitResult(segmentation=[np.array([0, 0, 1])], num_skills=2, skill_params={}, skill_slots=np.arange(2),
                      best_chain=0, best_log_joint=0.0,

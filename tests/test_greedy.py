@@ -6,8 +6,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from npbrs.inference.greedy import greedy_merge, greedy_merge_at, merge_score
-from npbrs.inference.kernel import BPHMMKernel
+from npbrs.inference.sampler import BPHMMKernel, MoveState, greedy_merge, greedy_merge_at, merge_score
 from npbrs.models.emissions import Emission, PolicyEmission
 from test_kernel import planted_policy_data
 
@@ -45,9 +44,11 @@ def test_a_copy_is_merged_into_its_skill_and_distinct_skills_are_not():
     kernel, data, z_true, s = _copy_start()
     em, hyper = kernel.emission, kernel.hyper0
     assert int(s.num_skills) == 4
-    args = (em, data, hyper, s.features, s.z, s.params, s.log_lik)
+    state = MoveState.of(s)
+    args = (em, data, hyper)
     merge_at = jax.jit(greedy_merge_at, static_argnums=2)
-    f, z, params, log_lik, info = merge_at(jax.random.PRNGKey(0), 3, *args)
+    new, info = merge_at(jax.random.PRNGKey(0), state, *args, 3)
+    f, z, params, log_lik = new.features, new.z, new.params, new.log_lik
     assert bool(info.possible) and bool(info.accepted) and int(info.k) == 0
     np.testing.assert_array_equal(np.asarray(z), z_true)  # the copy's steps are skill 0's again
     f0 = np.asarray(s.features)
@@ -64,14 +65,14 @@ def test_a_copy_is_merged_into_its_skill_and_distinct_skills_are_not():
     assert gain > 0
     # merging a true skill into another lowers the score: the state is returned unchanged
     for j in (1, 2):
-        out = merge_at(jax.random.PRNGKey(0), j, *args)
-        assert bool(out[-1].possible) and not bool(out[-1].accepted) and float(out[-1].gain) < 0, j
-        assert _tree_equal(out[:4], (s.features, s.z, s.params, s.log_lik))
+        out, out_info = merge_at(jax.random.PRNGKey(0), state, *args, j)
+        assert bool(out_info.possible) and not bool(out_info.accepted) and float(out_info.gain) < 0, j
+        assert _tree_equal(out, state)
     # an unused slot cannot be merged
-    assert not bool(merge_at(jax.random.PRNGKey(0), 4, *args)[-1].possible)
+    assert not bool(merge_at(jax.random.PRNGKey(0), state, *args, 4)[1].possible)
     # the random trial is reproducible
-    merge = jax.jit(greedy_merge, static_argnums=1)
-    assert _tree_equal(merge(jax.random.PRNGKey(5), *args), merge(jax.random.PRNGKey(5), *args))
+    merge = jax.jit(greedy_merge, static_argnums=2)
+    assert _tree_equal(merge(jax.random.PRNGKey(5), state, *args), merge(jax.random.PRNGKey(5), state, *args))
 
 
 def test_greedy_merges_run_only_in_warmup_and_remove_a_copy_gibbs_keeps():
@@ -142,7 +143,7 @@ def test_reward_laplace_evidence_is_close_to_importance_sampling():
     from gridworld import gridworld
 
     from npbrs.domains.demos import generate_demonstrations
-    from npbrs.inference.fit import make_emission
+    from npbrs.inference import make_emission
     from npbrs.models.emissions import HMMData
 
     dom = gridworld(size=3)
@@ -174,7 +175,7 @@ def test_reward_laplace_evidence_is_close_to_importance_sampling():
 
 
 def test_a_lumped_pair_is_split_and_a_true_skill_is_not():
-    from npbrs.inference.greedy import greedy_split_at
+    from npbrs.inference.sampler import greedy_split_at
 
     data, z_true = planted_policy_data(seed=1, N=6, T=40)
     mask = np.asarray(data.mask)
@@ -182,11 +183,13 @@ def test_a_lumped_pair_is_split_and_a_true_skill_is_not():
     kernel = BPHMMKernel(PolicyEmission(4, 3), data, max_skills=5, moves={"greedy_split": 1})
     s = kernel.init(jax.random.PRNGKey(1), 0, {"z": jnp.asarray(z)}, (), {})
     assert int(s.num_skills) == 2
-    args = (kernel.emission, data, kernel.hyper0, s.features, s.z, s.params, s.log_lik)
+    state = MoveState.of(s)
+    args = (kernel.emission, data, kernel.hyper0)
     split_at = jax.jit(greedy_split_at, static_argnums=2)
     where = lambda k: [(i, t) for i in range(6) for t in range(40) if mask[i, t] and z_true[i, t] == k]  # noqa: E731
     a, b = where(1)[3], where(2)[5]
-    f, zz, params, log_lik, info = split_at(jax.random.PRNGKey(0), (*a, *b), *args)
+    new, info = split_at(jax.random.PRNGKey(0), state, *args, (*a, *b))
+    f, zz, params, log_lik = new.features, new.z, new.params, new.log_lik
     assert bool(info.possible) and bool(info.accepted) and float(info.gain) > 0
     k2 = int(info.k)
     assert k2 not in (0, 1)
@@ -202,16 +205,16 @@ def test_a_lumped_pair_is_split_and_a_true_skill_is_not():
     np.testing.assert_allclose(float(info.gain), gain, rtol=1e-8)
     # splitting true skill 0 at two of its steps lowers the score: nothing changes
     c, d = where(0)[2], where(0)[-3]
-    out = split_at(jax.random.PRNGKey(0), (*c, *d), *args)
-    assert bool(out[-1].possible) and not bool(out[-1].accepted), float(out[-1].gain)
-    assert _tree_equal(out[:4], (s.features, s.z, s.params, s.log_lik))
+    out, out_info = split_at(jax.random.PRNGKey(0), state, *args, (*c, *d))
+    assert bool(out_info.possible) and not bool(out_info.accepted), float(out_info.gain)
+    assert _tree_equal(out, state)
     # the random trial (anchors drawn towards badly explained steps) finds the split, reproducibly
-    from npbrs.inference.greedy import greedy_split
+    from npbrs.inference.sampler import greedy_split
 
-    split = jax.jit(greedy_split, static_argnums=1)
-    outs = [split(jax.random.PRNGKey(r), *args) for r in range(4)]
-    assert any(bool(o[-1].accepted) for o in outs), [float(o[-1].gain) for o in outs]
-    assert _tree_equal(split(jax.random.PRNGKey(0), *args), outs[0])
+    split = jax.jit(greedy_split, static_argnums=2)
+    outs = [split(jax.random.PRNGKey(r), state, *args) for r in range(4)]
+    assert any(bool(o[1].accepted) for o in outs), [float(o[1].gain) for o in outs]
+    assert _tree_equal(split(jax.random.PRNGKey(0), state, *args), outs[0])
 
 
 def test_fit_runs_greedy_merges_by_default_where_the_emission_supports_them():
@@ -223,7 +226,7 @@ def test_fit_runs_greedy_merges_by_default_where_the_emission_supports_them():
     from npbrs.inference import ModelConfig, fit
     from npbrs.models.autoregressive import AutoregressiveEmission
 
-    fit_module = importlib.import_module("npbrs.inference.fit")
+    fit_module = importlib.import_module("npbrs.inference.driver.fit")
     dom = gridworld(size=3)
     demos = generate_demonstrations(dom, num_trajectories=2, length=12, seed=0)
     result = fit(dom.mdp, demos, emission="policy", num_chains=1, num_warmup=2, num_samples=1, max_skills=3,

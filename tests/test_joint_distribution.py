@@ -48,7 +48,7 @@ import numpy as np
 import pytest
 from scipy import stats
 
-from npbrs.inference.kernel import BPHMMKernel
+from npbrs.inference.sampler.kernel import BPHMMKernel
 from npbrs.models.bphmm import Hyper
 from npbrs.models.emissions import HMMData, PolicyEmission
 
@@ -253,29 +253,29 @@ def joint_distribution_test(case=POLICY, chains=64, sweeps=100, seed=0, prior_dr
 # removed, at the default size (64 chains x 100 sweeps; passing needs p > 1.1e-4)
 MUTATIONS = {
     # birth/death: the proposal density log q(params | window) of the born (or dying) skill
-    "birth_death_log_q": ("npbrs.inference.moves", "birth = (log_p0 - log_q + ", "birth = (log_p0 + "),  # 3e-32
+    "birth_death_log_q": ("npbrs.inference.sampler.birth_death", "birth = (log_p0 - log_q + ", "birth = (log_p0 + "),  # 3e-32
     # split-merge: the reverse move's proposal density log q(current | proposed)
-    "split_merge_reverse_q": ("npbrs.inference.split_merge", "+ lq_rev - lq_fwd", "- lq_fwd"),  # 1e-22
-    "split_merge_forward_q": ("npbrs.inference.split_merge", "+ lq_rev - lq_fwd", "+ lq_rev"),  # 4e-8
+    "split_merge_reverse_q": ("npbrs.inference.sampler.split_merge", "+ lq_rev - lq_fwd", "- lq_fwd"),  # 1e-22
+    "split_merge_forward_q": ("npbrs.inference.sampler.split_merge", "+ lq_rev - lq_fwd", "+ lq_rev"),  # 4e-8
     # split-merge: the split's choice of a free slot, -log n_free
-    "split_merge_free_slot": ("npbrs.inference.split_merge",
+    "split_merge_free_slot": ("npbrs.inference.sampler.split_merge",
                               "-jnp.log(jnp.maximum(n_free, 1).astype(jnp.float64)) + lq_pairs", "lq_pairs"),  # 1e-18
     # split-merge: the split's feature pairs' probabilities
-    "split_merge_pairs": ("npbrs.inference.split_merge", "+ lq_pairs + lq_two, z_alloc", "+ lq_two, z_alloc"),  # 1e-29
+    "split_merge_pairs": ("npbrs.inference.sampler.split_merge", "+ lq_pairs + lq_two, z_alloc", "+ lq_two, z_alloc"),  # 1e-29
     # birth/death: the birth's choice of a free slot, log n_free
-    "birth_death_free_slot": ("npbrs.inference.moves", "jnp.log(n_free_before_birth)", "0.0"),  # 9e-20
+    "birth_death_free_slot": ("npbrs.inference.sampler.birth_death", "jnp.log(n_free_before_birth)", "0.0"),  # 9e-20
     # not detected at this size: the skill counts shift by 2-4 standard errors, not enough after
     # Bonferroni (each was detected, p < 1e-4, in an earlier run with other draws)
     # split-merge: the anchor choices' probabilities log p(reverse anchors) - log p(anchors)
-    "split_merge_anchors": ("npbrs.inference.split_merge", "log_ratio = log_ratio + log_p_rev - log_p_fwd",
+    "split_merge_anchors": ("npbrs.inference.sampler.split_merge", "log_ratio = log_ratio + log_p_rev - log_p_fwd",
                             "log_ratio = log_ratio"),  # 6e-4 ("unique" t -3.6)
     # birth/death: the death's choice among the trajectory's unique skills, -log n_unique
-    "birth_death_unique": ("npbrs.inference.moves", " - jnp.log(n_unique_after_birth))", ")"),  # 3e-3 (t +3.1)
+    "birth_death_unique": ("npbrs.inference.sampler.birth_death", " - jnp.log(n_unique_after_birth))", ")"),  # 3e-3 (t +3.1)
     # not detected in any run (too small an effect here):
     # birth/death: the born skill's prior density log p0
-    "birth_death_log_p0": ("npbrs.inference.moves", "birth = (log_p0 - log_q", "birth = (- log_q"),  # 0.11
+    "birth_death_log_p0": ("npbrs.inference.sampler.birth_death", "birth = (log_p0 - log_q", "birth = (- log_q"),  # 0.11
     # split-merge: the reverse move's transition weights, log p(eta) - log q(eta) (0.046)
-    "split_merge_reverse_eta": ("npbrs.inference.split_merge", "- _eta_log_p_over_q(eta, _eta_counts(alloc_rev, "
+    "split_merge_reverse_eta": ("npbrs.inference.sampler.split_merge", "- _eta_log_p_over_q(eta, _eta_counts(alloc_rev, "
                                 "features, mask), features, involved, hyper))", ")"),
 }
 
@@ -290,7 +290,7 @@ mod = importlib.import_module(module)
 source = inspect.getsource(mod)
 assert source.count(term) == 1, f"the term is not once in {{module}}: {{term!r}}"
 exec(compile(source.replace(term, replacement), mod.__file__, "exec"), mod.__dict__)
-kernel = importlib.import_module("npbrs.inference.kernel")
+kernel = importlib.import_module("npbrs.inference.sampler.kernel")
 for move in ("birth_death", "split_merge"):  # the kernel's own references to the moves
     if hasattr(mod, move):
         setattr(kernel, move, getattr(mod, move))

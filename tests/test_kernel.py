@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 from numpyro.infer.util import log_density
 
-from npbrs.inference.kernel import BPHMMKernel
+from npbrs.inference.sampler.kernel import BPHMMKernel
 from npbrs.models.emissions import HMMData, PolicyEmission
 
 

@@ -1,8 +1,8 @@
 import numpy as np
 import pytest
 
-from npbrs.inference.metrics import (confusion, hungarian_accuracy, hungarian_labelling, num_skills, num_switches,
-                                     paper_accuracy, paper_labelling)
+from npbrs.inference import (confusion, hungarian_accuracy, hungarian_labelling, num_skills, num_switches, paper_accuracy,
+                             paper_labelling)
 
 TRUE = [np.array([0, 0, 0, 0, 1, 1, 1, 1]), np.array([2, 2, 2, 2, 2, 0, 0, 0])]
 

@@ -4,8 +4,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from npbrs.inference.kernel import BPHMMKernel
-from npbrs.inference.moves import birth_death_log_ratio, window_weights
+from npbrs.inference.sampler import (BPHMMKernel, MoveState, birth_death_log_ratio, birth_death_proposal,
+                                     window_weights)
 from npbrs.models.bphmm import collapsed_feature_log_prob
 from npbrs.models.emissions import PolicyEmission
 from test_kernel import planted_policy_data
@@ -29,20 +29,30 @@ def test_birth_then_death_returns_the_state_with_reciprocal_ratios():
     data, _ = planted_policy_data(seed=2, N=4, T=30)
     em = PolicyEmission(4, 3)
     kernel = BPHMMKernel(em, data, max_skills=5, init_skills=2)
-    state = kernel.init(jax.random.PRNGKey(0), 0, None, (), {})
-    f, eta, params, ll = state.features, state.eta, state.params, state.log_lik
+    start = kernel.init(jax.random.PRNGKey(0), 0, None, (), {})
+    state, hyper = MoveState.of(start), start.hyper
+    f, params, ll = state.features, state.params, state.log_lik
     assert np.all(np.asarray(f[:, 2:]) == 0)
     i, k = 1, 3
     window = window_weights(jax.random.PRNGKey(5), data.mask, i, 5, 15)
     assert float(window[i].sum()) >= 5 and float(window.sum()) == float(window[i].sum())
     born, _ = em.propose(jax.random.PRNGKey(6), data, window)
-    lr_birth, f2, p2, ll2 = birth_death_log_ratio(em, data, state.hyper, f, eta, params, ll, i, k, born, window, True)
-    assert float(f2[i, k]) == 1.0
+    # the birth proposes f_ik on and slot k's parameters (and their likelihoods) from the window
+    birth = birth_death_proposal(state, em, data, i, k, born, True)
+    assert float(birth.features[i, k]) == 1.0
+    np.testing.assert_allclose(np.asarray(birth.log_lik), np.asarray(em.log_likelihoods(birth.params, data)[0]),
+                               rtol=1e-12)
+    lr_birth = birth_death_log_ratio(state, birth, em, data, hyper, i, k, window)
+    # the death of slot k in i, whose prior draw puts back slot k's old parameters: the start
     old = jax.tree.map(lambda x: x[k], params)
-    lr_death, f3, p3, ll3 = birth_death_log_ratio(em, data, state.hyper, f2, eta, p2, ll2, i, k, old, window, False)
-    np.testing.assert_allclose(float(lr_death), -float(lr_birth), rtol=1e-10)
-    np.testing.assert_array_equal(np.asarray(f3), np.asarray(f))
-    for a, b in zip(jax.tree.leaves(p3), jax.tree.leaves(params)):
+    death = birth_death_proposal(birth, em, data, i, k, old, False)
+    np.testing.assert_array_equal(np.asarray(death.features), np.asarray(f))
+    for a, b in zip(jax.tree.leaves(death.params), jax.tree.leaves(params)):
         np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
-    np.testing.assert_allclose(np.asarray(ll3), np.asarray(ll), rtol=1e-12)
+    np.testing.assert_allclose(np.asarray(death.log_lik), np.asarray(ll), rtol=1e-12)
+    lr_death = birth_death_log_ratio(birth, death, em, data, hyper, i, k, window)
+    np.testing.assert_allclose(float(lr_death), -float(lr_birth), rtol=1e-10)
+    # the ratio is a function of the two states: the death back to ``state`` itself gives the same
+    lr_back = birth_death_log_ratio(birth, state, em, data, hyper, i, k, window)
+    np.testing.assert_allclose(float(lr_back), -float(lr_birth), rtol=1e-10)
     assert np.isfinite(float(lr_birth))

@@ -3,9 +3,9 @@
 import numpy as np
 import pytest
 
-from npbrs.inference.plots import (UNMATCHED, plot_segmentation, plot_skill_rewards, plot_trace, skill_styles,
+from npbrs.inference.analysis.plots import (UNMATCHED, plot_segmentation, plot_skill_rewards, plot_trace, skill_styles,
                                    true_styles)
-from npbrs.inference.results import FitResult
+from npbrs.inference.driver.results import FitResult
 
 TRUE = [np.array([0, 0, 0, 0, 1, 1, 1, 1, 1, 1]), np.array([2, 2, 2, 2, 1, 1, 1, 1, 0, 0])]
 # inferred 7 is mostly true 0; 3 (7 steps) and 5 (2 steps) are mostly true 1; 4 has true 2 only;
@@ -78,9 +78,9 @@ def test_the_report_draws_rewards_as_posterior_means_in_the_segmentations_colour
     weights), each skill in the colour and name the segmentation plot gave it; true skills
     without names are called by their values, not invented letters."""
     from npbrs.domains.demos import Demonstrations
-    from npbrs.inference.cli import reward_plot_inputs
-    from npbrs.inference.config import ModelConfig
-    from npbrs.inference.diagnostics import skill_summary
+    from npbrs.inference.cli.main import reward_plot_inputs
+    from npbrs.inference.driver.config import ModelConfig
+    from npbrs.inference.analysis.diagnostics import skill_summary
 
     rng = np.random.default_rng(0)
     seg = [np.array([0, 0, 1, 1, 1, 2, 2]), np.array([2, 2, 2, 0, 0, 1, 1])]

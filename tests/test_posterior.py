@@ -10,7 +10,7 @@ import pytest
 from scipy.special import betaln, gammaln
 from scipy.stats import chi2
 
-from npbrs.inference.kernel import BPHMMKernel
+from npbrs.inference.sampler.kernel import BPHMMKernel
 from npbrs.models.emissions import HMMData, PolicyEmission
 
 ACTIONS = np.array([[0, 0, 1], [1, 1, 0]])
@@ -112,8 +112,8 @@ def test_split_merge_trial_leaves_the_exact_posterior_invariant():
     """Exact posterior draws of (F, z), with eta and the policies drawn from their exact
     conditionals, stay exact posterior draws after one split-merge trial: a check of the move
     alone (in the sampler test above the Gibbs sweeps would mask a small bias)."""
-    from npbrs.inference.kernel import _skill_weights
-    from npbrs.inference.split_merge import split_merge
+    from npbrs.inference.sampler import MoveState, skill_weights
+    from npbrs.inference.sampler.split_merge import split_merge
 
     keys, exact = exact_partition_posterior()
     states = list(exact_joint_states())
@@ -128,15 +128,15 @@ def test_split_merge_trial_leaves_the_exact_posterior_invariant():
     kernel = BPHMMKernel(em, data, max_skills=K, alpha=ALPHA, kappa=KAPPA, gamma=GAMMA, init_skills=1,
                          moves={"split_merge": 1, "blocks": 2})
     hyper = kernel.hyper0
-    params0 = em.init_params(jax.random.PRNGKey(0), data, _skill_weights(Z[0], data.mask, K))
+    params0 = em.init_params(jax.random.PRNGKey(0), data, skill_weights(Z[0], data.mask, K))
 
     def one(key, f, z):
         k_eta, k_par, k_move = jax.random.split(key, 3)
         eta = kernel._sample_eta(k_eta, z, f, hyper)
-        params, _, _ = em.update(k_par, params0, em.init_cache(K), data, _skill_weights(z, data.mask, K), False)
+        params, _, _ = em.update(k_par, params0, em.init_cache(K), data, skill_weights(z, data.mask, K), False)
         log_lik, _ = em.log_likelihoods(params, data)
-        out = split_merge(k_move, em, data, hyper, f, eta, z, params, log_lik, 2)
-        return out[2], out[5].accepted, out[5].is_split
+        new, info = split_merge(k_move, MoveState(f, eta, z, params, log_lik), em, data, hyper, 2)
+        return new.z, info.accepted, info.is_split
 
     z2, accepted, is_split = jax.jit(jax.vmap(one))(jax.random.split(jax.random.PRNGKey(1), M), F, Z)
     accepted, is_split = np.asarray(accepted), np.asarray(is_split)

@@ -10,8 +10,8 @@ import pytest
 from scipy.special import logsumexp
 
 from npbrs.domains import Demonstrations, TabularMDP
-from npbrs.inference.fit import resolve_config
-from npbrs.inference.results import FitResult
+from npbrs.inference.driver.fit import resolve_config
+from npbrs.inference.driver.results import FitResult
 from npbrs.models.bphmm import collapsed_sequence_log_prob
 
 S, A, K = 2, 2, 2

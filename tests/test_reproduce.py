@@ -17,8 +17,8 @@ import numpy as np
 import pytest
 
 from npbrs.domains.registry import get_domain
-from npbrs.inference import reproduce as rep
-from npbrs.inference.reproduce import (COLUMNS, METHODS, ROWS, format_markdown, load_json, reproduce,
+from npbrs.inference.cli import reproduce as rep
+from npbrs.inference.cli.reproduce import (COLUMNS, METHODS, ROWS, format_markdown, load_json, reproduce,
                                        save_json)
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
@@ -46,7 +46,7 @@ def oracle_fit(monkeypatch):
         return SimpleNamespace(segmentation=seg, num_skills=len(np.unique(np.concatenate(seg))),
                                skill_params=params, best_log_joint=0.0, wall_time=0.0)
 
-    monkeypatch.setattr(sys.modules["npbrs.inference.fit"], "fit", fake)
+    monkeypatch.setattr(sys.modules["npbrs.inference.driver.fit"], "fit", fake)
     return calls
 
 

@@ -11,8 +11,7 @@ import pytest
 
 from gridworld import gridworld
 from npbrs.domains import generate_demonstrations
-from npbrs.inference import fit
-from npbrs.inference.metrics import paper_accuracy
+from npbrs.inference import fit, paper_accuracy
 from npbrs.models.emissions import HMMData
 
 

@@ -16,9 +16,9 @@ import pytest
 from npbrs.domains.demos import Demonstrations
 from npbrs.domains.mdp import TabularMDP
 from npbrs.inference import ModelConfig, fit, load, load_mdp, save_mdp
-from npbrs.inference.runs import atomic_write, read_checkpoint
+from npbrs.inference.driver.runs import atomic_write, read_checkpoint
 
-fit_module = importlib.import_module("npbrs.inference.fit")
+fit_module = importlib.import_module("npbrs.inference.driver.fit")
 
 CONFIG = """
 max_skills = 3
@@ -39,7 +39,7 @@ CHILD = """
 import sys, time
 from npbrs.domains.demos import Demonstrations
 from npbrs.inference import fit, load, load_mdp
-import npbrs.inference.runs as runs
+import npbrs.inference.driver.runs as runs
 pause, whole, argv = float(sys.argv[1]), sys.argv[2] == "whole", sys.argv[3:]
 if whole:
     result = fit(load_mdp("mdp.npz"), Demonstrations.load("demos.npz"), "model.toml", progress_bar=False)

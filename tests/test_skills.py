@@ -10,8 +10,8 @@ from gymnasium import spaces
 from npbrs.domains import TabularMDP
 from npbrs.domains.demos import Demonstrations
 from npbrs.domains.options import estimate_options, run_option
-from npbrs.inference.config import ModelConfig
-from npbrs.inference.results import FitResult
+from npbrs.inference.driver.config import ModelConfig
+from npbrs.inference.driver.results import FitResult
 
 from gridworld import gridworld
 
@@ -152,7 +152,7 @@ def test_rewards_solved_in_a_changed_world_equal_soft_value_iteration(worlds):
 def test_transfer_to_the_same_world_reproduces_the_fitted_policy(worlds):
     """In a rebuilt copy of the fitted MDP the transferred policy is the emission's own, the one
     whose log-probabilities the fit's likelihood used, exactly."""
-    from npbrs.inference.fit import make_emission
+    from npbrs.inference import make_emission
     from npbrs.models.emissions import HMMData
 
     paper, _ = worlds
@@ -187,7 +187,7 @@ def test_posterior_mean_rewards_average_the_draws_that_hold_each_skill(worlds):
     """rewards="mean": each skill's weights averaged over the draws in which its (matched) slot
     has steps, chains matched to the run's skills by their segmentations; "best" is the best
     draw's; the policies are those of the chosen weights."""
-    from npbrs.inference.skills import skill_parameters
+    from npbrs.inference.analysis.skills import skill_parameters
 
     paper, _ = worlds
     rng = np.random.default_rng(3)

@@ -8,8 +8,8 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from npbrs.inference.kernel import BPHMMKernel
-from npbrs.inference.split_merge import split_merge, split_merge_at
+from npbrs.inference.sampler import BPHMMKernel, MoveState, propose_split_merge, split_merge_log_ratio
+from npbrs.inference.sampler.split_merge import split_merge
 from npbrs.models.bphmm import collapsed_sequence_log_prob
 from npbrs.models.emissions import HMMData, PolicyEmission
 from npbrs.models.hmm import backward_sample, forward_filter, path_log_prob
@@ -74,8 +74,9 @@ def _state(seed=2):
 
 @pytest.mark.parametrize("blocks", [1, 3])
 def test_split_then_merge_returns_the_state_with_reciprocal_ratios(blocks):
-    kernel, data, em, state = _state()
-    f, z, params, ll = state.features, state.z, state.params, state.log_lik
+    kernel, data, em, start = _state()
+    state, hyper = MoveState.of(start), start.hyper
+    f, z, eta = state.features, state.z, state.eta
     zz = np.asarray(z)
     k = int(zz[0, 3])
     other = np.argwhere(zz == k)
@@ -83,53 +84,58 @@ def test_split_then_merge_returns_the_state_with_reciprocal_ratios(blocks):
     ib, tb = [int(x) for x in other[len(other) // 2]]
     anchors = (ia, ta, ib, tb)
     key = jax.random.PRNGKey(11)
-    eta = state.eta
     # one compiled program per call rather than hundreds of one-operation ones run eagerly
-    at = jax.jit(split_merge_at, static_argnums=(9, 10))
-    lr_split, possible, is_split, f2, eta2, z2, p2, ll2 = at(key, em, data, state.hyper, f, eta, z, params, ll, anchors,
-                                                             blocks)
-    assert bool(is_split) and bool(possible) and np.isfinite(float(lr_split))
-    k2 = int(np.asarray(z2)[ib, tb])
-    assert k2 != k and int(np.asarray(z2)[ia, ta]) == k and np.asarray(f)[:, k2].sum() == 0
-    assert np.all(np.asarray(f2)[:, k2] <= np.asarray(f)[:, k])  # only trajectories that had k get k2
+    propose = jax.jit(propose_split_merge, static_argnums=(5, 6))
+    ratio = jax.jit(split_merge_log_ratio, static_argnums=(5, 7))
+    split = propose(key, state, em, data, hyper, anchors, blocks)
+    s2 = split.state
+    assert bool(split.is_split) and bool(split.possible) and np.isfinite(float(split.log_ratio))
+    k2 = int(np.asarray(s2.z)[ib, tb])
+    assert k2 == int(split.k2) and int(split.k1) == k
+    assert k2 != k and int(np.asarray(s2.z)[ia, ta]) == k and np.asarray(f)[:, k2].sum() == 0
+    assert np.all(np.asarray(s2.features)[:, k2] <= np.asarray(f)[:, k])  # only trajectories that had k get k2
     touched = np.asarray(f)[:, k] > 0  # eta is redrawn for these trajectories only
-    assert np.all(np.asarray(eta2)[~touched] == np.asarray(eta)[~touched])
-    assert np.all(np.asarray(eta2)[touched] != np.asarray(eta)[touched])
-    # the matching merge, proposing the original parameters of both slots and skill sequences
-    forced = jax.tree.map(lambda p: jnp.stack([p[k], p[k2]]), params)
-    lr_merge, possible_m, is_split_m, f3, eta3, z3, p3, ll3 = at(
-        key, em, data, state.hyper, f2, eta2, z2, p2, ll2, anchors, blocks, forced_params=forced, forced_z=z,
-        forced_eta=eta)
-    assert not bool(is_split_m) and bool(possible_m)
-    np.testing.assert_array_equal(np.asarray(z3), zz)
-    np.testing.assert_array_equal(np.asarray(f3), np.asarray(f))
-    np.testing.assert_array_equal(np.asarray(eta3), np.asarray(eta))
-    for a, b in zip(jax.tree.leaves(p3), jax.tree.leaves(params)):
-        np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-12)
-    np.testing.assert_allclose(np.asarray(ll3), np.asarray(ll), rtol=1e-10, atol=1e-10)
-    np.testing.assert_allclose(float(lr_merge), -float(lr_split), rtol=1e-9)
+    assert np.all(np.asarray(s2.eta)[~touched] == np.asarray(eta)[~touched])
+    assert np.all(np.asarray(s2.eta)[touched] != np.asarray(eta)[touched])
+    np.testing.assert_allclose(np.asarray(s2.log_lik), np.asarray(em.log_likelihoods(s2.params, data)[0]),
+                               rtol=1e-10, atol=1e-10)
+    # the ratio as a function of the two states is the one the proposal computed from its draws
+    lr_split = float(ratio(state, s2, em, data, hyper, anchors, split.order, blocks))
+    np.testing.assert_allclose(lr_split, float(split.log_ratio), rtol=1e-9)
+    # the matching merge, from the split state back to the original state (its parameters of both
+    # slots, transition weights and skill sequences), has the negative ratio
+    lr_merge = float(ratio(s2, state, em, data, hyper, anchors, split.order, blocks))
+    np.testing.assert_allclose(lr_merge, -lr_split, rtol=1e-9)
+    # and a merge proposed from the split state gives back the original features, its likelihoods
+    # those of its parameters
+    merge = propose(key, s2, em, data, hyper, anchors, blocks)
+    assert not bool(merge.is_split) and bool(merge.possible)
+    assert int(merge.k1) == k and int(merge.k2) == k2
+    np.testing.assert_array_equal(np.asarray(merge.state.features), np.asarray(f))
+    np.testing.assert_allclose(np.asarray(merge.state.log_lik),
+                               np.asarray(em.log_likelihoods(merge.state.params, data)[0]), rtol=1e-10, atol=1e-10)
 
 
 def test_split_merge_trials_are_reproducible_and_keep_a_valid_state():
-    kernel, data, em, state = _state()
-    run = jax.jit(lambda key: split_merge(key, em, data, state.hyper, state.features, state.eta, state.z,
-                                          state.params, state.log_lik))
+    kernel, data, em, start = _state()
+    state = MoveState.of(start)
+    run = jax.jit(lambda key: split_merge(key, state, em, data, start.hyper))
     seen_split = seen_merge = False
     for s in range(20):
-        f2, eta2, z2, p2, ll2, info = run(jax.random.PRNGKey(s))
-        again = run(jax.random.PRNGKey(s))
-        np.testing.assert_array_equal(np.asarray(again[2]), np.asarray(z2))
-        np.testing.assert_array_equal(np.asarray(again[1]), np.asarray(eta2))
-        assert np.all(np.isfinite(np.asarray(eta2))) and np.all(np.asarray(eta2) > 0)
+        new, info = run(jax.random.PRNGKey(s))
+        again, _ = run(jax.random.PRNGKey(s))
+        np.testing.assert_array_equal(np.asarray(again.z), np.asarray(new.z))
+        np.testing.assert_array_equal(np.asarray(again.eta), np.asarray(new.eta))
+        assert np.all(np.isfinite(np.asarray(new.eta))) and np.all(np.asarray(new.eta) > 0)
         seen_split |= bool(info.is_split & info.possible)
         seen_merge |= bool(~info.is_split & info.possible)
-        z2, f2 = np.asarray(z2), np.asarray(f2)
+        z2, f2 = np.asarray(new.z), np.asarray(new.features)
         used = np.zeros_like(f2, bool)
         for i in range(z2.shape[0]):
             used[i, np.unique(z2[i][np.asarray(data.mask[i])])] = True
         assert np.all(f2[used] == 1.0)
-        ref, _ = em.log_likelihoods(p2, data)
-        np.testing.assert_allclose(np.asarray(ll2), np.asarray(ref), rtol=1e-10, atol=1e-10)
+        ref, _ = em.log_likelihoods(new.params, data)
+        np.testing.assert_allclose(np.asarray(new.log_lik), np.asarray(ref), rtol=1e-10, atol=1e-10)
     assert seen_split and seen_merge
 
 
@@ -193,8 +199,8 @@ def test_split_merge_recovers_planted_reward_skills_in_fewer_sweeps():
     from gridworld import gridworld
 
     from npbrs.domains.demos import generate_demonstrations
-    from npbrs.inference.fit import make_emission
-    from npbrs.inference.metrics import hungarian_accuracy
+    from npbrs.inference import make_emission
+    from npbrs.inference import hungarian_accuracy
 
     dom = gridworld()
     demos = generate_demonstrations(dom, num_trajectories=6, length=60, switch_prob=0.05, seed=0)

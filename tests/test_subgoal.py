@@ -8,7 +8,7 @@ from scipy.special import logsumexp
 
 from emission_suite import check_emission
 from npbrs.domains import Demonstrations, TabularMDP
-from npbrs.inference.fit import make_emission
+from npbrs.inference import make_emission
 from npbrs.models.emissions import HMMData, get_emission_class
 from npbrs.models.subgoal import SubgoalEmission, visited_states
 

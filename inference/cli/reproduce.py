@@ -36,6 +36,8 @@ import numpy as np
 
 from npbrs.domains.files import atomic_write
 
+from .arguments import at_least
+
 __all__ = ["reproduce", "default_settings", "format_markdown", "save_json", "load_json", "add_parser",
            "reproduce_command", "METHODS", "EMISSIONS", "ROWS", "COLUMNS", "PAPER", "QUICK_DATA"]
 
@@ -118,7 +120,7 @@ def _merge_settings(domain_name: str, methods, settings, quick: bool) -> Dict[st
 # ------------------------------------------------------------------------------ one run
 def _fit_method(method: str, domain, demos, setting: dict, seed: int):
     """(FitResult, the emission for subgoal's reward tables or None, wall seconds)."""
-    from .fit import fit
+    from ..driver.fit import fit
 
     options = dict(setting.get("emission_options") or {})
     extra = {k: setting[k] for k in _SETTING_KEYS[5:] if k in setting}
@@ -152,7 +154,7 @@ def _run(domain, run: int, seed: int, length: int, num_trajectories: int, switch
     from npbrs.domains.control import evaluate_control, expert_control
     from npbrs.domains.demos import generate_demonstrations
 
-    from .metrics import hungarian_accuracy, num_skills, num_switches, paper_accuracy
+    from ..analysis.metrics import hungarian_accuracy, num_skills, num_switches, paper_accuracy
 
     demos = generate_demonstrations(domain, num_trajectories=num_trajectories, length=length,
                                     switch_prob=switch_prob, seed=seed)
@@ -180,7 +182,7 @@ def _run(domain, run: int, seed: int, length: int, num_trajectories: int, switch
                                          best_log_joint=float(result.best_log_joint))
         bar.update(1)
     if plots_dir is not None:
-        from .plots import plot_segmentation
+        from ..analysis.plots import plot_segmentation
 
         os.makedirs(plots_dir, exist_ok=True)
         path = os.path.join(os.fspath(plots_dir), f"{domain.name}-{length}-run{run}.png")
@@ -400,15 +402,6 @@ def load_json(path) -> dict:
 
 
 # ------------------------------------------------------------------------------ command line
-def _positive(text: str) -> int:
-    import argparse
-
-    value = int(text)
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"must be at least 1, got {value}")
-    return value
-
-
 def configure_parser(parser, default_output: Optional[str] = None):
     """The options of ``npbrs reproduce`` (and of ``benchmarks/reproduce.py``) on ``parser``.
 
@@ -419,8 +412,8 @@ def configure_parser(parser, default_output: Optional[str] = None):
     parser.add_argument("--domain", choices=("highway", "quadcopter"), default="highway", help="the domain (highway)")
     parser.add_argument("--length", type=int, choices=(128, 500), default=500,
                         help="steps per trajectory, as in the paper (500)")
-    parser.add_argument("--runs", type=_positive, default=10, help="runs, each with new demonstrations (10)")
-    parser.add_argument("--trajectories", type=_positive, default=16, help="trajectories per run (16)")
+    parser.add_argument("--runs", type=at_least(1), default=10, help="runs, each with new demonstrations (10)")
+    parser.add_argument("--trajectories", type=at_least(1), default=16, help="trajectories per run (16)")
     parser.add_argument("--seed", type=int, default=0, help="seed of the first run (0); run r uses seed + r")
     parser.add_argument("--methods", nargs="+", choices=METHODS, default=list(METHODS),
                         help="methods to compare (all: npbrs subgoal irl lds)")

@@ -11,7 +11,7 @@ matched. Hence:
 - :func:`skill_summary` — per skill and parameter entry (e.g. reward weight per feature): the
   posterior mean and a central credible interval, pooling every chain's draws after relabelling.
 
-Trace plots of the label-invariant scalars: :func:`npbrs.inference.plots.plot_trace`.
+Trace plots of the label-invariant scalars: :func:`npbrs.inference.analysis.plots.plot_trace`.
 
 A chain's slot is assumed to keep its meaning across that chain's draws (slots are persistent in
 the sampler; a slot that dies and is reborn may change meaning, which the per-skill summary
@@ -26,7 +26,7 @@ from typing import Optional
 import numpy as np
 from scipy.optimize import linear_sum_assignment
 
-from .results import LABEL_INVARIANT, FitResult
+from ..driver.results import LABEL_INVARIANT, FitResult
 
 __all__ = ["convergence", "relabel", "relabelled_draws", "skill_summary"]
 

@@ -21,7 +21,8 @@ unique skills of i after it, the birth's log acceptance ratio is
     [log p(x_i | f_i', params') - log p(x_i | f_i, params)] + log p0(params_k')
     + [log p(F') - log p(F)] - log q(params_k' | window) + log n_free - log n_unique'
 
-and the death's is exactly its negative at the reversed states.
+and the death's is exactly its negative at the reversed states (:func:`birth_death_log_ratio`
+of the current and the proposed state).
 """
 
 from __future__ import annotations
@@ -36,16 +37,21 @@ from npbrs.models.bphmm import collapsed_feature_log_prob, hmm_parameters
 from npbrs.models.hmm import forward_filter
 from npbrs.domains.precision import float64_all
 
-__all__ = ["BirthDeathInfo", "birth_death", "birth_death_log_ratio", "window_weights"]
+from .state import MoveState
+
+__all__ = ["BirthDeathInfo", "birth_death", "birth_death_proposal", "birth_death_log_ratio", "window_weights"]
 
 
 class BirthDeathInfo(NamedTuple):
-    """Diagnostics of one birth/death trial: which move, whether it was possible, accepted."""
+    """Diagnostics of one birth/death trial: which move, whether it was possible and accepted,
+    its log acceptance ratio (-inf when impossible), the trajectory i and the skill slot k."""
 
     is_birth: jax.Array
     possible: jax.Array
     accepted: jax.Array
     log_ratio: jax.Array
+    i: jax.Array
+    k: jax.Array
 
 
 def window_weights(key, mask, i, min_len: int, max_len: int):
@@ -92,24 +98,28 @@ def _one_log_lik(emission, data, one):
     return ll[..., 0]
 
 
-def birth_death_log_ratio(emission, data, hyper, features, eta, params, log_lik, i, k, new_one, window, is_birth,
-                          log_q=None):
-    """log acceptance ratio of a birth (``is_birth``) of slot k in trajectory i with parameters
-    ``new_one``, or of the death of slot k in trajectory i (``new_one``: the prior draw that
-    replaces its parameters); ``window`` (N, T) are the proposal's weights; ``log_q``: the
-    proposal's density of the born (or dying) skill's parameters, if already known.
+def birth_death_proposal(state: MoveState, emission, data, i, k, one, is_birth) -> MoveState:
+    """The state a birth (``is_birth``) or death of slot k in trajectory i proposes: f_ik on (or
+    off), slot k's parameters replaced by ``one`` (the born skill's, or the prior draw that
+    replaces a dying skill's) and their per-step log-likelihoods with them."""
+    features = state.features.at[i, k].set(jnp.where(is_birth, 1.0, 0.0))
+    log_lik = state.log_lik.at[:, :, k].set(_one_log_lik(emission, data, one))
+    return state._replace(features=features, params=_set_slot(state.params, k, one), log_lik=log_lik)
 
-    Returns (log_ratio, features', params', log_lik')."""
-    N, K = features.shape
-    old_one = _get_slot(params, k)
-    new_features = features.at[i, k].set(jnp.where(is_birth, 1.0, 0.0))
-    new_params = _set_slot(params, k, new_one)
-    new_col = _one_log_lik(emission, data, new_one)
-    new_log_lik = log_lik.at[:, :, k].set(new_col)
-    lm_old = _trajectory_log_marginal(features[i], eta[i], log_lik[i], data.mask[i])
-    lm_new = _trajectory_log_marginal(new_features[i], eta[i], new_log_lik[i], data.mask[i])
+
+def birth_death_log_ratio(current: MoveState, proposed: MoveState, emission, data, hyper, i, k, window, log_q=None):
+    """log acceptance ratio of the move from ``current`` to ``proposed`` that switches f_ik on (a
+    birth: ``proposed.features[i, k]`` is 1) or off (a death), slot k's parameters replaced
+    (:func:`birth_death_proposal`); the death from ``proposed`` back to ``current`` has its
+    negative. ``window`` (N, T): the proposal's weights; ``log_q``: the proposal's density of the
+    born (or dying) skill's parameters, if already known."""
+    features, new_features = current.features, proposed.features
+    is_birth = new_features[i, k] > 0
+    lm_old = _trajectory_log_marginal(features[i], current.eta[i], current.log_lik[i], data.mask[i])
+    lm_new = _trajectory_log_marginal(new_features[i], proposed.eta[i], proposed.log_lik[i], data.mask[i])
     # the skill that is (or becomes) used: its parameters, prior and proposal density
-    used = jax.tree.map(lambda n, o: jnp.where(is_birth, n, o), new_one, old_one)
+    used = jax.tree.map(lambda n, o: jnp.where(is_birth, n, o), _get_slot(proposed.params, k),
+                        _get_slot(current.params, k))
     log_p0 = emission.log_prior(jax.tree.map(lambda x: x[None], used))[0]
     if log_q is None:
         log_q = emission.log_proposal(used, data, window)
@@ -121,17 +131,16 @@ def birth_death_log_ratio(emission, data, hyper, features, eta, params, log_lik,
     n_unique_after_birth = jnp.where(is_birth, unique_i(new_features, m_new), unique_i(features, m))
     birth = (log_p0 - log_q + jnp.log(n_free_before_birth) - jnp.log(n_unique_after_birth))
     sign = jnp.where(is_birth, 1.0, -1.0)
-    log_ratio = (lm_new - lm_old) + (collapsed_feature_log_prob(new_features, hyper.alpha, real)
-                                     - collapsed_feature_log_prob(features, hyper.alpha, real)) + sign * birth
-    return log_ratio, new_features, new_params, new_log_lik
+    return (lm_new - lm_old) + (collapsed_feature_log_prob(new_features, hyper.alpha, real)
+                                - collapsed_feature_log_prob(features, hyper.alpha, real)) + sign * birth
 
 
-def birth_death(key, emission, data, hyper, features, eta, params, log_lik, min_len: int = 10, max_len: int = 50):
-    """One birth-or-death trial (each with probability 1/2) on a random trajectory.
-
-    Returns (features, params, log_lik, info). Impossible moves (no unused slot for a birth;
-    no unique skill, or only one skill, for a death) leave the state unchanged.
+def birth_death(key, state: MoveState, emission, data, hyper, min_len: int = 10, max_len: int = 50):
+    """One birth-or-death trial (each with probability 1/2) on a random trajectory: returns
+    (state, :class:`BirthDeathInfo`). Impossible moves (no unused slot for a birth; no unique
+    skill, or only one skill, for a death) leave the state unchanged.
     """
+    features = state.features
     N, K = features.shape
     k_type, k_i, k_win, k_slot, k_prop, k_prior, k_acc = jax.random.split(key, 7)
     is_birth = jax.random.bernoulli(k_type)
@@ -149,16 +158,16 @@ def birth_death(key, emission, data, hyper, features, eta, params, log_lik, min_
     possible = jnp.any(candidates) & (is_birth | (features[i].sum() >= 2)) & real[i]
     k = jax.random.categorical(k_slot, jnp.where(candidates, 0.0, -jnp.inf))
     k = jnp.where(possible, k, 0)
-    old_one = _get_slot(params, k)
+    old_one = _get_slot(state.params, k)
     proposed, log_q_new, log_q_old = emission.propose_and_score(k_prop, data, window, old_one)
     with_prior = emission.sample_prior_one(k_prior)
     new_one = jax.tree.map(lambda b, d: jnp.where(is_birth, b, d), proposed, with_prior)
-    log_ratio, f2, p2, ll2 = birth_death_log_ratio(emission, data, hyper, features, eta, params, log_lik, i, k,
-                                                   new_one, window, is_birth,
-                                                   log_q=jnp.where(is_birth, log_q_new, log_q_old))
+    new = birth_death_proposal(state, emission, data, i, k, new_one, is_birth)
+    log_ratio = birth_death_log_ratio(state, new, emission, data, hyper, i, k, window,
+                                      log_q=jnp.where(is_birth, log_q_new, log_q_old))
     accept, _ = metropolis_accept(k_acc, log_ratio, possible)
-    info = BirthDeathInfo(is_birth, possible, accept, jnp.where(possible, log_ratio, -jnp.inf))
-    return (*select(accept, (f2, p2, ll2), (features, params, log_lik)), info)
+    info = BirthDeathInfo(is_birth, possible, accept, jnp.where(possible, log_ratio, -jnp.inf), i, k)
+    return select(accept, new, state), info
 
 
 float64_all(globals())  # npbrs.domains.precision: float64 inside, the user's setting outside

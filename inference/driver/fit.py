@@ -1,10 +1,11 @@
 """``fit``: segment demonstrations into skills with the BP-HMM sampler, with checkpoints.
 
-``fit`` drives the kernel through the ``MCMCKernel`` protocol (``init``, then ``sample`` once
-per sweep), as numpyro's ``MCMC`` does, but sweep by sweep in Python so that a run can stop
-after any sweep, write a checkpoint and continue later with exactly the draws of an
-uninterrupted run: every sweep is the same compiled function applied to the same state,
-whatever the chunking. The collected fields are the kernel's ``sample_field`` and
+``fit`` drives the kernel itself, not through numpyro's ``MCMC``: it calls the kernel's
+``MCMCKernel`` methods (``init``, then ``sample`` once per sweep) as ``MCMC`` does, but in its
+own Python loop over one ``jax.jit``-compiled sweep (all chains at once, or one chain at a time),
+so that it can show progress, stop after any sweep, write a checkpoint and continue later with
+exactly the draws of an uninterrupted run: every sweep is the same compiled function applied to
+the same state, whatever the chunking. The collected fields are the kernel's ``sample_field`` and
 ``default_fields`` (as under ``MCMC``), plus ``skill_steps`` (steps assigned to each slot) and
 the sampled hyperparameters.
 """
@@ -33,13 +34,15 @@ from jax.sharding import Mesh, NamedSharding, PartitionSpec
 from npbrs.domains.demos import Demonstrations
 from npbrs.models.emissions import Emission, HMMData, get_emission_class
 
-from .config import EmissionConfig, ModelConfig, PriorConfig
-from .kernel import BPHMMKernel
-from .results import LABEL_INVARIANT, FitResult
 from npbrs.domains.precision import float64_all
 
-__all__ = ["fit", "make_emission", "resolve_config", "compilation_cache_dir", "use_compilation_cache", "device_mesh",
-           "CHAINS", "TRAJECTORIES"]
+from ..sampler.kernel import BPHMMKernel
+from ..sampler.options import MOVE_DEFAULTS
+from .config import EmissionConfig, ModelConfig, PriorConfig
+from .results import LABEL_INVARIANT, FitResult
+
+__all__ = ["fit", "make_emission", "resolve_config", "default_moves", "compilation_cache_dir", "use_compilation_cache",
+           "device_mesh", "CHAINS", "TRAJECTORIES", "DEFAULT_GREEDY_TRIALS"]
 
 
 def compilation_cache_dir(environ=None) -> Optional[str]:
@@ -385,14 +388,12 @@ def _resize_trajectories(leaves, like, fill):
 
 _COMPILED: "OrderedDict[str, _Compiled]" = OrderedDict()
 _COMPILED_MAX = 4
-# greedy merge and split trials per warmup sweep when the configuration does not say
-# (emissions with fit_evidence): from random windows the Gibbs sweeps keep copies of a skill,
-# or lump two skills, in some runs on the paper's domains (README, "Reproduction")
-# (one trial of each in the last quarter of warmup: with two merges from half-way, highway-500
-# fits took 70 s per chain; these took about 40 s with the same skills and accuracy)
-DEFAULT_GREEDY_MERGES = 1
-DEFAULT_GREEDY_SPLITS = 1
-DEFAULT_GREEDY_FROM = 0.75
+#: Greedy merge and split trials per warmup sweep that ``fit`` runs when the configuration does
+#: not say (emissions with ``fit_evidence``): from random windows the Gibbs sweeps keep copies of
+#: a skill, or lump two skills, in some runs on the paper's domains (README, "Reproduction"; the
+#: choice of one trial of each: ``benchmarks/NOTES.md``). They start at the kernel's default
+#: fraction of warmup, ``MOVE_DEFAULTS["greedy_from"]``.
+DEFAULT_GREEDY_TRIALS = {"greedy_merge": 1, "greedy_split": 1}
 
 
 def _compiled(cfg: ModelConfig, em: Emission, em_key: str, demos: Demonstrations, multiple: int = 1) -> _Compiled:
@@ -419,17 +420,17 @@ def _compiled(cfg: ModelConfig, em: Emission, em_key: str, demos: Demonstrations
 
 def default_moves(cfg: ModelConfig, emission: Emission) -> ModelConfig:
     """``cfg`` with the warmup's greedy moves on where the configuration does not set them and
-    there is more than one skill slot: ``DEFAULT_GREEDY_MERGES`` merge trials per sweep if the
-    emission has ``fit_evidence``, ``DEFAULT_GREEDY_SPLITS`` split trials if it also has
-    ``fit_point``, from ``DEFAULT_GREEDY_FROM`` x warmup on (unless ``greedy_from`` is set; see
-    ``npbrs.inference.greedy``). The run's configuration records them."""
+    there is more than one skill slot: ``DEFAULT_GREEDY_TRIALS`` merge trials per sweep if the
+    emission has ``fit_evidence``, split trials if it also has ``fit_point``, from the kernel's
+    ``MOVE_DEFAULTS["greedy_from"]`` x warmup on (unless ``greedy_from`` is set; see
+    ``npbrs.inference.sampler.greedy``). The run's configuration records them."""
     moves = dict(cfg.sampler.moves)
     if cfg.max_skills >= 2 and emission.supports_greedy_merge():
-        moves.setdefault("greedy_merge", DEFAULT_GREEDY_MERGES)
+        moves.setdefault("greedy_merge", DEFAULT_GREEDY_TRIALS["greedy_merge"])
         if emission.supports_split_merge():
-            moves.setdefault("greedy_split", DEFAULT_GREEDY_SPLITS)
+            moves.setdefault("greedy_split", DEFAULT_GREEDY_TRIALS["greedy_split"])
         if moves.get("greedy_merge", 0) or moves.get("greedy_split", 0):
-            moves.setdefault("greedy_from", DEFAULT_GREEDY_FROM)
+            moves.setdefault("greedy_from", MOVE_DEFAULTS["greedy_from"])
     if moves == cfg.sampler.moves:
         return cfg
     return cfg.replace(sampler=dataclasses.replace(cfg.sampler, moves=moves))
@@ -652,7 +653,7 @@ def fit(mdp, demos: Demonstrations, config: Union[ModelConfig, dict, str, os.Pat
     Args:
         mdp: the TabularMDP the demonstrations live in.
         demos: :class:`~npbrs.domains.Demonstrations`.
-        config: a :class:`~npbrs.inference.config.ModelConfig`, its dict, or a TOML file.
+        config: a :class:`~npbrs.inference.driver.config.ModelConfig`, its dict, or a TOML file.
         emission: a registered emission name ("reward", "policy", ...) or an Emission instance.
         emission_options: keyword options of the emission's ``from_mdp`` (e.g. prior_scale).
         num_chains, num_samples, num_warmup: MCMC sizes (sweeps per chain).
@@ -666,13 +667,14 @@ def fit(mdp, demos: Demonstrations, config: Union[ModelConfig, dict, str, os.Pat
         hyperpriors: {"alpha"|"kappa"|"gamma": (shape, rate)}: sample those under Gamma hyperpriors.
         init_skills, init_window: the initial segmentation (see :class:`BPHMMKernel`).
         moves: options of the kernel's trans-dimensional moves, e.g. {"birth_death": 2}. Unless
-            it says otherwise, greedy merges and splits run in the last quarter of warmup
-            (``{"greedy_merge": 1, "greedy_split": 1, "greedy_from": 0.75}``) for emissions
-            with ``fit_evidence`` and ``fit_point`` (the reward and policy emissions);
-            ``{"greedy_merge": 0, "greedy_split": 0}`` turns them off.
+            it says otherwise, greedy merges and splits run late in warmup
+            (:data:`DEFAULT_GREEDY_TRIALS` from ``MOVE_DEFAULTS["greedy_from"]`` x warmup on,
+            see :func:`default_moves`) for emissions with ``fit_evidence`` and ``fit_point``
+            (the reward and policy emissions); ``{"greedy_merge": 0, "greedy_split": 0}`` turns
+            them off. The other options' defaults: ``npbrs.inference.sampler.options.MOVE_DEFAULTS``.
         bucket: pad the demonstrations to shape buckets (a quarter at most more trajectories
             and steps), so that another data set of similar size reuses the compiled sampler
-            (see :class:`~npbrs.inference.config.SamplerConfig`; off by default).
+            (see :class:`~npbrs.inference.driver.config.SamplerConfig`; off by default).
         init_segmentation: start every chain from this segmentation instead of random windows:
             per trajectory an integer label per step (any integers, e.g. a previous result's
             ``segmentation`` or hand labels), or a FitResult. The skills' initial parameters are
@@ -700,7 +702,7 @@ def fit(mdp, demos: Demonstrations, config: Union[ModelConfig, dict, str, os.Pat
             "all" (``jax.devices()``); see :func:`device_mesh` (chains spread first, the
             remaining devices shard the trajectories).
     Returns:
-        a :class:`~npbrs.inference.results.FitResult`.
+        a :class:`~npbrs.inference.driver.results.FitResult`.
     Raises:
         ValueError: bad demonstrations, configuration, devices or checkpoint, before anything is
             compiled.

@@ -6,21 +6,11 @@ import argparse
 
 from npbrs.domains.demos import generate_demonstrations
 from npbrs.domains.registry import DOMAINS, get_domain
-from npbrs.inference.metrics import num_switches
 
-__all__ = ["add_parser", "generate_command", "at_least"]
+from ..analysis.metrics import num_switches
+from .arguments import at_least
 
-
-def at_least(minimum: int):
-    """An argparse type: an integer of at least ``minimum`` (the commands' counts and seeds)."""
-
-    def parse(text: str) -> int:
-        value = int(text)
-        if value < minimum:
-            raise argparse.ArgumentTypeError(f"must be at least {minimum}, got {value}")
-        return value
-
-    return parse
+__all__ = ["add_parser", "generate_command"]
 
 
 def _probability(text: str) -> float:

@@ -10,14 +10,12 @@ from __future__ import annotations
 
 import os
 
-from .cli_generate import at_least
+from .arguments import add_world_arguments, at_least, command_error, load_world_mdp
 
 __all__ = ["add_parsers"]
 
 
 def _world(p):
-    from .cli import add_world_arguments
-
     add_world_arguments(p, "the run was fitted in")
     p.add_argument("--samples", type=at_least(1), default=None,
                    help="Monte Carlo samples of a trajectory's skill set and transition weights per draw")
@@ -62,8 +60,7 @@ def _run_and_demos(args):
     """(mdp, run, demonstrations, predictive options) of ``segment`` and ``score``."""
     from npbrs.domains.demos import Demonstrations
 
-    from .cli import load_world_mdp
-    from .runs import load
+    from ..driver.runs import load
 
     options = {"num_draws": args.draws, "seed": args.seed}
     if args.samples is not None:
@@ -72,8 +69,6 @@ def _run_and_demos(args):
 
 
 def score_command(args) -> int:
-    from .cli import command_error
-
     try:
         mdp, run, demos, options = _run_and_demos(args)
         out = run.log_predictive(mdp, demos, **options)
@@ -91,8 +86,6 @@ def segment_command(args) -> int:
 
     from npbrs.domains.files import atomic_write
 
-    from .cli import command_error
-
     try:
         mdp, run, demos, options = _run_and_demos(args)
         out = run.segment(mdp, demos, **options)
@@ -107,7 +100,7 @@ def segment_command(args) -> int:
 
         atomic_write(args.output, write, suffix=".npz.tmp")
         if args.plot:
-            from .plots import plot_skill_probabilities
+            from ..analysis.plots import plot_skill_probabilities
 
             plot_skill_probabilities(out.probs, args.plot, title=f"{os.path.basename(args.demos)}: skills of "
                                                                 f"{os.path.basename(args.run)}")
@@ -128,8 +121,7 @@ def segment_command(args) -> int:
 def compare_command(args) -> int:
     import arviz as az
 
-    from .cli import command_error, load_world_mdp
-    from .runs import load
+    from ..driver.runs import load
 
     if len(args.runs) < 2:
         return command_error("compare", "compare needs at least two runs")

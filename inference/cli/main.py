@@ -16,15 +16,16 @@ import os
 import sys
 from typing import Optional
 
-from .cli_generate import at_least
 from npbrs.domains.precision import float64_all
 
-__all__ = ["build_parser", "main", "compilation_cache_dir", "command_error", "DEMO_CONFIG", "QUICK_DEMO_CONFIG"]
+from . import generate, reproduce, score
+from .arguments import add_world_arguments, at_least, command_error, load_world_mdp
+
+__all__ = ["build_parser", "main", "compilation_cache_dir", "DEMO_CONFIG", "QUICK_DEMO_CONFIG"]
 
 #: The demo's model: the reward emission on 8 highway trajectories of 200 steps, sized to
-#: finish in a few minutes on two cores (about 2.5 CPU-minutes, 45 s of them compiling; a
-#: sweep costs about linearly in max_skills). With seeds 0, 1 and 2 it finds 3, 3 and 4 skills
-#: with accuracy 0.98. ``--quick`` is a tiny run of the same pipeline (tests).
+#: finish in a few minutes on two cores (measurements: ``benchmarks/NOTES.md``). ``--quick`` is
+#: a tiny run of the same pipeline (tests).
 DEMO_CONFIG = {"emission": {"name": "reward"}, "max_skills": 6, "prior": {"alpha": 1.0, "kappa": 20.0, "gamma": 1.0},
                "sampler": {"chains": 2, "warmup": 60, "samples": 60, "seed": 0, "init_window": 25}}
 DEMO_DATA = {"num_trajectories": 8, "length": 200}
@@ -34,29 +35,23 @@ QUICK_DEMO_DATA = {"num_trajectories": 3, "length": 30}
 
 
 def compilation_cache_dir(environ=None) -> Optional[str]:
-    """npbrs's compilation cache folder (:func:`npbrs.inference.fit.compilation_cache_dir`)."""
-    from .fit import compilation_cache_dir as folder
+    """npbrs's compilation cache folder (:func:`npbrs.inference.driver.fit.compilation_cache_dir`)."""
+    from ..driver.fit import compilation_cache_dir as folder
 
     return folder(environ)
 
 
 def use_compilation_cache() -> Optional[str]:
-    from .fit import use_compilation_cache as use
+    from ..driver.fit import use_compilation_cache as use
 
     return use()
-
-
-def command_error(command: str, message) -> int:
-    """Print ``npbrs COMMAND: error: MESSAGE`` to stderr; the exit status of a usage error (2)."""
-    print(f"npbrs {command}: error: {message}", file=sys.stderr)
-    return 2
 
 
 # ------------------------------------------------------------------------------------ fit
 def _add_fit(sub):
     p = sub.add_parser("fit", help="segment demonstrations into skills (BP-HMM MCMC) and save the run",
                        description="Fit the BP-HMM to demonstrations and write the run (ArviZ netCDF). The model "
-                                   "comes from --config (TOML, see npbrs.inference.config); the options below "
+                                   "comes from --config (TOML, see npbrs.inference.driver.config); the options below "
                                    "override it. A checkpoint RUN.nc.checkpoint.npz is written every "
                                    "--checkpoint-every sweeps and on Ctrl-C; --resume continues from it.")
     p.add_argument("demos", help="demonstrations file (.npz: states, actions, lengths[, skills])")
@@ -83,25 +78,6 @@ def checkpoint_path_for(output) -> str:
     return os.fspath(output) + ".checkpoint.npz"
 
 
-def add_world_arguments(p, what: str = "the demonstrations live in"):
-    """The required choice of MDP: ``--domain NAME`` or ``--mdp FILE``."""
-    world = p.add_mutually_exclusive_group(required=True)
-    world.add_argument("--domain", help=f"a registered domain whose MDP {what}")
-    world.add_argument("--mdp", help=f"an MDP file {what} (.npz: successors, probs, features, feature_names, "
-                                     "discount[, initial, state_vectors, name])")
-
-
-def load_world_mdp(args):
-    """The MDP named by ``--domain`` or ``--mdp``."""
-    from .runs import load_mdp
-
-    if args.mdp is not None:
-        return load_mdp(args.mdp)
-    from npbrs.domains.registry import get_domain
-
-    return get_domain(args.domain).mdp
-
-
 def _load_world(args):
     from npbrs.domains.demos import Demonstrations
 
@@ -109,14 +85,14 @@ def _load_world(args):
 
 
 def fit_command(args) -> int:
-    from .fit import fit
+    from ..driver.fit import fit
 
     use_compilation_cache()
     try:
         mdp, demos = _load_world(args)
         init = None
         if args.init_from is not None:
-            from .runs import load
+            from ..driver.runs import load
 
             init = load(args.init_from).segmentation
     except (OSError, ValueError) as e:
@@ -165,8 +141,8 @@ def _add_report(sub):
 def report_command(args) -> int:
     import pandas as pd
 
-    from . import diagnostics
-    from .runs import load_run
+    from ..analysis import diagnostics
+    from ..driver.runs import load_run
 
     try:
         result = load_run(args.run)
@@ -189,7 +165,7 @@ def report_command(args) -> int:
 def save_plots(result, directory, skill_names=None) -> dict:
     """A run's trace, segmentation (against the true skills when known) and, for rewards,
     skill reward plots as PNG files in ``directory``; returns {plot: path}."""
-    from . import plots
+    from ..analysis import plots
 
     paths = {name: os.path.join(directory, f"{name.replace(' ', '_')}.png")
              for name in ("trace", "segmentation", "skill rewards")}
@@ -212,8 +188,8 @@ def reward_plot_inputs(result, styles, with_true: bool = True, prob: float = 0.9
     skill), and each skill's colour and name from the segmentation plot's ``styles``."""
     import numpy as np
 
-    from . import plots
-    from .diagnostics import skill_summary
+    from ..analysis import plots
+    from ..analysis.diagnostics import skill_summary
 
     K, D = np.shape(result.skill_params["theta"])
     names = list(result.feature_names) or [f"phi{d}" for d in range(D)]
@@ -246,9 +222,9 @@ def demo_command(args) -> int:
     from npbrs.domains.demos import generate_demonstrations
     from npbrs.domains.registry import get_domain
 
-    from .config import ModelConfig
-    from .fit import fit
-    from .metrics import hungarian_accuracy, num_switches, paper_accuracy
+    from ..analysis.metrics import hungarian_accuracy, num_switches, paper_accuracy
+    from ..driver.config import ModelConfig
+    from ..driver.fit import fit
 
     use_compilation_cache()
     data = QUICK_DEMO_DATA if args.quick else DEMO_DATA
@@ -279,7 +255,7 @@ def demo_command(args) -> int:
           f"{hungarian_accuracy(demos.skills, result.segmentation):.3f} (one-to-one); switches per trajectory "
           f"{num_switches(result.segmentation):.2f} (true {num_switches(demos.skills):.2f})")
     _control_table(domain, demos, result)
-    from . import plots
+    from ..analysis import plots
 
     path = os.path.join(args.out, "segmentation.png")
     plots.plot_segmentation(demos.skills, {"npbrs": result.segmentation}, path, labels=domain.skill_names)
@@ -312,16 +288,11 @@ def _control_table(domain, demos, result) -> None:
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="npbrs", description="Nonparametric Bayesian reward segmentation")
     sub = parser.add_subparsers(dest="command", required=True)
-    from . import cli_generate
-
-    cli_generate.add_parser(sub)
+    generate.add_parser(sub)
     _add_fit(sub)
     _add_report(sub)
     _add_demo(sub)
-    from . import cli_score, reproduce
-
-    cli_score.add_parsers(sub)
-
+    score.add_parsers(sub)
     reproduce.add_parser(sub)
     # no prefix matching: `--chain 2` is an error, not `--chains 2`
     for p in [parser, *sub.choices.values()]:

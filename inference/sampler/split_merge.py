@@ -9,10 +9,10 @@ choosing the same anchors for the reverse move in the proposed state, enter the 
 
 The move acts on the features F, the emission parameters, the transition weights eta of the
 trajectories that use either skill, and the skill sequences z jointly; the popularities omega
-are integrated out (the sweep redraws them right after). Given two anchor steps (see above): if their skills are
-equal (k1) the move proposes a *split* of k1 into k1 and a free slot k2 (drawn uniformly
-among the slots no trajectory uses); otherwise a *merge* of the anchors' skills k1 and k2
-into k1.
+are integrated out (the sweep redraws them right after). Given two anchor steps (see above):
+if their skills are equal (k1) the move proposes a *split* of k1 into k1 and a free slot k2
+(drawn uniformly among the slots no trajectory uses); otherwise a *merge* of the anchors'
+skills k1 and k2 into k1.
 
 Split of the merged state M into S:
 
@@ -34,12 +34,11 @@ the prior.
 
 Transition weights, both directions: every trajectory that uses k1 or k2 gets a new eta_i
 from its exact conditional given the move's allocation (the split's, or the merged labels
-k2 -> k1), or with probability ``ETA_PRIOR_WEIGHT`` from its prior: per row, Dirichlet(conc + counts) proportions over the active skills times a
-Gamma(sum conc) total, inactive entries from their Gamma prior. Prior and proposal share the
-total, its Jacobian and the inactive entries, so per row log p(eta) - log q(eta) is
-log Dir(D; conc) - log Dir(D; conc + counts) of the proportions D. Keeping eta instead (the
-first version) left a merged or split trajectory with transition weights fitted to the old
-skills, which cost hundreds of nats of likelihood per proposal on the paper's domains.
+k2 -> k1), or with probability ``ETA_PRIOR_WEIGHT`` from its prior: per row,
+Dirichlet(conc + counts) proportions over the active skills times a Gamma(sum conc) total,
+inactive entries from their Gamma prior. Prior and proposal share the total, its Jacobian and
+the inactive entries, so per row log p(eta) - log q(eta) is log Dir(D; conc) -
+log Dir(D; conc + counts) of the proportions D.
 
 Both directions then redraw z from its conditional given the proposed state *with the two
 anchors clamped* to their skills (k1, k2 after a split; k1, k1 after a merge), by forward
@@ -55,45 +54,19 @@ marginal likelihood with the anchors' skills fixed, p(.) the prior of the featur
 integrated out) and of the parameters, and q the proposal densities above. Nothing in it
 counts allocations.
 
-Observed on the paper's domains (16 x 500 steps): the extra skills the Gibbs sweeps leave are
-mostly lower-scale copies of a true skill's reward (the same direction; the copy explains a few
-hundred steps about as well as the main skill does: the experts are deterministic, with ties
-broken towards the lowest action, which no Boltzmann policy reproduces). A merge of such a copy
-is proposed well, but the reverse split of the merged state must reallocate the union, and its
-deterministic allocation lands far from the current labelling of an ambiguous copy: the current
-rewards and eta then have tiny density under single-Gaussian and single-conditional reverse
-proposals (a quadcopter state with two copies of one skill: merge log ratios of -400 to -9000,
-although the merge gains 270 nats of likelihood). Both proposals are therefore defensive
-mixtures (eta: ``ETA_PRIOR_WEIGHT``; the reward emission: ``proposal_broad_weight``), which
-bounds those reverse densities; the same merges then have log ratios of +3 to +125 and are
-accepted. Splits are accepted too: on quadcopter seeds 0-4 one chain of 40 sweeps with one
-trial per sweep ends with 6, 5, 5, 4, 6 skills (Gibbs alone 5, 5, 5, 3, 3), although it reaches
-higher log joints (seed 3: -6044 against -7661). One trial costs about three Gibbs sweeps (IRL
-refits; under vectorised chains ``lax.cond`` runs both branches). The move is exact (tested
-against enumeration, by posterior invariance, and by split-merge reciprocity) and off by
-default.
-
-Later measurements (1 chain, 20 + 20 sweeps, 16 x 500 steps): the extra skills are a mixing
-failure, not the posterior's choice. Started from the true segmentation, Gibbs keeps 3 skills
-at a higher log joint (quadcopter seeds 0 and 1: mean -5799 and -5864, against -5843 and -6007
-with 5 and 4 skills from the default start; ``benchmarks/bench_oversplit.py``). Merging a small
-copy (70 to 420 steps; the accepted merges above were of a 630-step copy) is rejected, at log
-ratios of -66 to -750: the reverse split's density of the current rewards (-45 to -59) and the
-eta terms (-30 to -70 net) both pay for the reverse allocation not re-creating the copy, and
-the merged reward's draw costs -684 to +19 nats of likelihood. A prior component in the reward
-proposal's mixture did not change that (tried, not kept). With ``moves={"start": 20}`` (the
-moves only after 20 Gibbs sweeps) no trial was accepted on quadcopter seeds 0-4, so the fits
-equal Gibbs alone at 2-3x the wall time. From one initial skill with one trial per sweep the
-moves split merged skills (highway seed 2: 3 skills, accuracy 0.978, against 0.663 without) but
-also true ones (highway seeds 0-4: 4, 7, 3, 5, 5 skills). What removed the copies in the end
-is not an MCMC move: the warmup's greedy merges and splits (``npbrs.inference.greedy``), which
-compare states by the evidence with the parameters integrated out instead of by proposal
-densities.
+The reverse move's densities of the current rewards and transition weights can be tiny when
+the deterministic allocation lands far from the current labelling, so both proposals are
+defensive mixtures (eta: ``ETA_PRIOR_WEIGHT``; the reward emission: ``proposal_broad_weight``),
+which bounds those densities from below. The move is exact (tested against enumeration, by
+posterior invariance, and by split-merge reciprocity) and off by default; the copies of a skill
+that the Gibbs sweeps leave are removed by the warmup's greedy moves
+(:mod:`npbrs.inference.sampler.greedy`) instead. What was measured on the paper's domains, and
+why eta is redrawn rather than kept: ``benchmarks/NOTES.md``.
 """
 
 from __future__ import annotations
 
-from typing import NamedTuple, Optional
+from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -103,7 +76,10 @@ from npbrs.models.bphmm import collapsed_feature_log_prob, eta_from_gammas, eta_
 from npbrs.models.hmm import NEG_LOG, batch_backward_sample, batch_forward_filter, transition_counts, viterbi
 from npbrs.domains.precision import float64_all
 
-__all__ = ["SplitMergeInfo", "split_merge", "split_merge_at", "allocate", "skill_counts", "visiting_order"]
+from .state import MoveState
+
+__all__ = ["SplitMergeInfo", "SplitMergeProposal", "split_merge", "propose_split_merge", "split_merge_log_ratio",
+           "allocate", "skill_counts", "visiting_order"]
 
 # probability of each feature pair other than the one that matches the allocation
 PAIR_EPS = 0.1
@@ -113,12 +89,31 @@ ETA_PRIOR_WEIGHT = 0.02
 
 
 class SplitMergeInfo(NamedTuple):
-    """Diagnostics of one split-merge trial."""
+    """Diagnostics of one split-merge trial: a split or a merge, whether it was possible and
+    accepted, its log acceptance ratio (-inf when impossible), and the skills: k1 (split, or
+    kept by the merge) and k2 (the split's free slot, or the skill merged into k1)."""
 
     is_split: jax.Array
     possible: jax.Array
     accepted: jax.Array
     log_ratio: jax.Array
+    k1: jax.Array
+    k2: jax.Array
+
+
+class SplitMergeProposal(NamedTuple):
+    """A split or merge proposed at given anchors (:func:`propose_split_merge`): the proposed
+    state, its log acceptance ratio given the anchors (:func:`split_merge_log_ratio`), whether
+    the move is possible, whether it is a split, its skills k1 and k2 (as in
+    :class:`SplitMergeInfo`), and the allocation's visiting order of the trajectories (N,)."""
+
+    state: MoveState
+    log_ratio: jax.Array
+    possible: jax.Array
+    is_split: jax.Array
+    k1: jax.Array
+    k2: jax.Array
+    order: jax.Array
 
 
 def _two(params, k1, k2):
@@ -285,35 +280,24 @@ def _clamp(log_lik, anchors, labels):
     return ll.at[ib, tb].set(jnp.where(cols == labels[1], ll[ib, tb], NEG_LOG))
 
 
-def split_merge_at(key, emission, data, hyper, features, eta, z, params, log_lik, anchors, num_blocks: int = 2,
-                   forced_params=None, forced_z=None, forced_eta=None):
-    """One split-merge proposal with given anchors ((i_a, t_a, i_b, t_b)): returns
-    (log acceptance ratio, possible, is_split, features', eta', z', params', log_lik').
+def _proposals(emission, data, anchors, order, k1, k2, num_blocks, k_prop, k_prior):
+    """The split's and the merge's proposals at ``anchors`` (k1 split into k1 and k2; k2 merged
+    into k1), each drawing when given a key and otherwise scoring given values:
 
-    ``forced_params`` (two skills' parameters stacked), ``forced_eta`` (N, K, K) and
-    ``forced_z`` (N, T) replace the proposal's draws of the two slots' parameters, of the
-    transition weights and of the redrawn skill sequences: a test hook that evaluates the
-    ratio of a given reverse move.
-    """
-    N, T = data.mask.shape
-    K = features.shape[1]
+    - ``split_proposal(z_m, f_m, theta_m_k1, f_s, two_s, key)``: log q(S | M) of the split
+      state's features f_s and parameters two_s of (k1, k2) (given), and, when key is not None,
+      a draw of them: returns (f_s, two_s, log q, allocation);
+    - ``merge_proposal(z_s, two_s, two_m, key)``: (two_m, log q(M | S)) of the merged
+      parameters two_m (given) or of a draw of them.
+
+    ``k_prop`` feeds the proposals' draws when scoring (their densities do not depend on it);
+    ``k_prior`` draws the prior parameters of the slot a merge frees."""
+    N = data.mask.shape[0]
     mask = data.mask
     ia, ta, ib, tb = anchors
-    k_slot, k_order, k_feat, k_prop, k_prior, k_z, k_eta = jax.random.split(key, 7)
-    k1 = z[ia, ta]
-    l2 = z[ib, tb]
-    same_step = (ia == ib) & (ta == tb)
-    is_split = k1 == l2
-    # trajectories without steps (padding to a shape bucket or to a multiple of the devices)
-    # are left out: their features count for no skill and the move does not touch them
     real = jnp.any(mask, axis=1)
-    free = _users(features, real) == 0
-    k2_free = jax.random.categorical(k_slot, jnp.where(free, 0.0, -jnp.inf))
-    k2 = jnp.where(is_split, jnp.where(jnp.any(free), k2_free, (k1 + 1) % K), l2)
-    order = visiting_order(k_order, mask, ia, ib)  # auxiliary visiting order, anchors first
-    current = _two(params, k1, k2)
-    log_p0 = lambda one: emission.log_prior(jax.tree.map(lambda x: x[None], one))[0]  # noqa: E731
     rows = jnp.arange(N)
+    log_p0 = lambda one: emission.log_prior(jax.tree.map(lambda x: x[None], one))[0]  # noqa: E731
 
     def steps(zz, k):
         return ((zz == k) & mask).astype(jnp.float64)
@@ -323,8 +307,6 @@ def split_merge_at(key, emission, data, hyper, features, eta, z, params, log_lik
         return jax.tree.map(lambda t: (n_a * t[0] + n_b * t[1]) / jnp.maximum(n_a + n_b, 1.0), two)
 
     def split_proposal(z_m, f_m, theta_m_k1, f_s, two_s, key):
-        """log q(S | M) of the split state's features f_s and parameters two_s (given), and,
-        when key is not None, a draw of them: returns (f_s, two_s, log q, allocation)."""
         z_alloc, fits = allocate(emission, data, z_m, f_m, k1, k2, anchors, order, theta_m_k1, num_blocks)
         used_a = jnp.any((z_alloc == k1) & mask, axis=1)
         used_b = jnp.any((z_alloc == k2) & mask, axis=1)
@@ -350,7 +332,6 @@ def split_merge_at(key, emission, data, hyper, features, eta, z, params, log_lik
         return f_s, two_s, -jnp.log(jnp.maximum(n_free, 1).astype(jnp.float64)) + lq_pairs + lq_two, z_alloc
 
     def merge_proposal(z_s, two_s, two_m, key):
-        """log q(M | S) of the merged parameters two_m (given) or a draw of them."""
         init = weighted_mean(two_s, z_s)
         w_union = steps(z_s, k1) + steps(z_s, k2)
         other = jax.tree.map(lambda t: t[0], two_m) if two_m is not None else init
@@ -362,60 +343,138 @@ def split_merge_at(key, emission, data, hyper, features, eta, z, params, log_lik
             return two_m, lq_new + log_p0(prior)
         return two_m, lq_other + log_p0(jax.tree.map(lambda t: t[1], two_m))
 
-    f_merged = features.at[:, k1].set(jnp.maximum(features[:, k1], features[:, k2])).at[:, k2].set(0.0)
+    return split_proposal, merge_proposal
 
-    current_k1 = jax.tree.map(lambda t: t[0], current)
+
+def _log_ratio(current: MoveState, proposed: MoveState, emission, data, hyper, anchors, k1, k2, is_split, proposals,
+               lq_fwd, counts_fwd, lm_new=None):
+    """The log acceptance ratio of a split (``is_split``) or merge at ``anchors`` from
+    ``current`` to ``proposed``, given the forward proposal's density ``lq_fwd`` and its
+    allocation's transition counts ``counts_fwd``; the reverse move's density is computed here,
+    from the proposed state and its skill sequences. ``lm_new``: the proposed state's clamped log
+    marginals (N,), when known."""
+    features, eta, z, params, log_lik = current
+    new_f, new_eta, new_z, new_params, new_log_lik = proposed
+    mask = data.mask
+    real = jnp.any(mask, axis=1)
+    split_proposal, merge_proposal = proposals
+    current_two, new_two = _two(params, k1, k2), _two(new_params, k1, k2)
+    old_labels = (k1, jnp.where(is_split, k1, k2))
+    new_labels = (k1, jnp.where(is_split, k2, k1))
+    # the trajectories whose transition weights the move redraws: those that use k1 or k2
+    involved = ((features[:, k1] > 0) | (features[:, k2] > 0)) & real
+    li_o, lt_o, act_o = hmm_parameters(features, eta)
+    lm_old, _ = batch_forward_filter(li_o, lt_o, _clamp(log_lik, anchors, old_labels), mask, act_o)
+    if lm_new is None:
+        li_n, lt_n, act_n = hmm_parameters(new_f, new_eta)
+        lm_new, _ = batch_forward_filter(li_n, lt_n, _clamp(new_log_lik, anchors, new_labels), mask, act_n)
+
+    # the reverse move, computed from the proposed state and its skill sequences
+    def reverse_of_split(_):  # a merge of the proposed split state
+        return merge_proposal(new_z, new_two, current_two, None)[1], jnp.where(new_z == k2, k1, new_z)
+
+    def reverse_of_merge(_):  # a split of the proposed merged state
+        out = split_proposal(new_z, new_f, jax.tree.map(lambda t: t[0], new_two), features, current_two, None)
+        return out[2], out[3]
+
+    lq_rev, alloc_rev = jax.lax.cond(is_split, reverse_of_split, reverse_of_merge, None)
+    return (jnp.sum(lm_new) - jnp.sum(lm_old)
+            + collapsed_feature_log_prob(new_f, hyper.alpha, real)
+            - collapsed_feature_log_prob(features, hyper.alpha, real)
+            + jnp.sum(emission.log_prior(new_two)) - jnp.sum(emission.log_prior(current_two))
+            + lq_rev - lq_fwd
+            + _eta_log_p_over_q(new_eta, counts_fwd, new_f, involved, hyper)
+            - _eta_log_p_over_q(eta, _eta_counts(alloc_rev, features, mask), features, involved, hyper))
+
+
+def propose_split_merge(key, state: MoveState, emission, data, hyper, anchors, num_blocks: int = 2):
+    """One split-merge proposal at given anchors ((i_a, t_a, i_b, t_b)): a split of their skill
+    when they share one, else a merge of theirs. Returns a :class:`SplitMergeProposal`; its log
+    ratio leaves out the anchors' choice (which :func:`split_merge` adds)."""
+    K = state.features.shape[1]
+    mask = data.mask
+    features, eta, z, params, log_lik = state
+    ia, ta, ib, tb = anchors
+    k_slot, k_order, k_feat, k_prop, k_prior, k_z, k_eta = jax.random.split(key, 7)
+    k1 = z[ia, ta]
+    l2 = z[ib, tb]
+    same_step = (ia == ib) & (ta == tb)
+    is_split = k1 == l2
+    # trajectories without steps (padding to a shape bucket or to a multiple of the devices)
+    # are left out: their features count for no skill and the move does not touch them
+    real = jnp.any(mask, axis=1)
+    free = _users(features, real) == 0
+    k2_free = jax.random.categorical(k_slot, jnp.where(free, 0.0, -jnp.inf))
+    k2 = jnp.where(is_split, jnp.where(jnp.any(free), k2_free, (k1 + 1) % K), l2)
+    order = visiting_order(k_order, mask, ia, ib)  # auxiliary visiting order, anchors first
+    proposals = _proposals(emission, data, anchors, order, k1, k2, num_blocks, k_prop, k_prior)
+    split_proposal, merge_proposal = proposals
+    current = _two(params, k1, k2)
+    f_merged = features.at[:, k1].set(jnp.maximum(features[:, k1], features[:, k2])).at[:, k2].set(0.0)
 
     # the proposal, forward
     def forward_split(_):
-        return split_proposal(z, features, current_k1, None, None, k_feat)
+        return split_proposal(z, features, jax.tree.map(lambda t: t[0], current), None, None, k_feat)
 
     def forward_merge(_):
         two_m, lq = merge_proposal(z, current, None, k_feat)
         return f_merged, two_m, lq, jnp.where(z == k2, k1, z)
 
     new_f, new_two, lq_fwd, alloc_fwd = jax.lax.cond(is_split, forward_split, forward_merge, None)
-    if forced_params is not None:
-        new_two = forced_params
-        lq_fwd = jax.lax.cond(is_split,
-                              lambda _: split_proposal(z, features, current_k1, new_f, new_two, None)[2],
-                              lambda _: merge_proposal(z, current, new_two, None)[1], None)
     new_params = _set_two(params, k1, k2, new_two)
     new_cols, _ = emission.log_likelihoods(new_two, data, emission.init_cache(2))  # (N, T, 2)
     new_log_lik = log_lik.at[:, :, k1].set(new_cols[..., 0]).at[:, :, k2].set(new_cols[..., 1])
 
-    # skill sequences: redrawn given the proposed state with the anchors clamped
-    old_labels = (k1, jnp.where(is_split, k1, k2))
-    new_labels = (k1, jnp.where(is_split, k2, k1))
     # transition weights of the trajectories that use k1 or k2: redrawn from their
     # conditional given the move's allocation (the merged labels, or the split's)
     involved = ((features[:, k1] > 0) | (features[:, k2] > 0)) & real
     counts_fwd = _eta_counts(alloc_fwd, new_f, mask)  # one count for the draw and its density
-    new_eta = _draw_eta(k_eta, eta, counts_fwd, new_f, involved, hyper) if forced_eta is None else forced_eta
-    li_o, lt_o, act_o = hmm_parameters(features, eta)
+    new_eta = _draw_eta(k_eta, eta, counts_fwd, new_f, involved, hyper)
+    # skill sequences: redrawn given the proposed state with the anchors clamped
+    new_labels = (k1, jnp.where(is_split, k2, k1))
     li_n, lt_n, act_n = hmm_parameters(new_f, new_eta)
-    lm_old, _ = batch_forward_filter(li_o, lt_o, _clamp(log_lik, anchors, old_labels), mask, act_o)
     lm_new, alpha_new = batch_forward_filter(li_n, lt_n, _clamp(new_log_lik, anchors, new_labels), mask, act_n)
-    new_z = batch_backward_sample(k_z, lt_n, alpha_new, mask, act_n) if forced_z is None else forced_z
+    new_z = batch_backward_sample(k_z, lt_n, alpha_new, mask, act_n)
+    proposed = MoveState(new_f, new_eta, new_z, new_params, new_log_lik)
 
-    # the reverse move, computed from the proposed state and its skill sequences
-    def reverse_of_split(_):  # a merge of the proposed split state
-        return merge_proposal(new_z, new_two, current, None)[1], jnp.where(new_z == k2, k1, new_z)
+    log_ratio = _log_ratio(state, proposed, emission, data, hyper, anchors, k1, k2, is_split, proposals, lq_fwd,
+                           counts_fwd, lm_new)
+    possible = ~same_step & (~is_split | jnp.any(free)) & jnp.isfinite(log_ratio) & (log_ratio > 0.5 * NEG_LOG)
+    return SplitMergeProposal(proposed, log_ratio, possible, is_split, k1, k2, order)
 
-    def reverse_of_merge(_):  # a split of the proposed merged state
-        out = split_proposal(new_z, new_f, jax.tree.map(lambda t: t[0], new_two), features, current, None)
+
+def split_merge_log_ratio(current: MoveState, proposed: MoveState, emission, data, hyper, anchors, order,
+                          num_blocks: int = 2):
+    """log acceptance ratio of the split or merge at ``anchors`` ((i_a, t_a, i_b, t_b)) from
+    ``current`` to ``proposed``, the allocation visiting the trajectories in ``order``
+    (:func:`visiting_order`; a proposal's ``order``): the ratio :func:`propose_split_merge`
+    computes from its draws, here from the two states (the move back from ``proposed`` to
+    ``current`` has its negative). A split when the anchors share a skill k1 in ``current``
+    (into k1 and the anchor b's skill in ``proposed``), else a merge of anchor b's skill into
+    anchor a's. The anchors' choice is left out (see :func:`split_merge`)."""
+    ia, ta, ib, tb = anchors
+    features, z, params = current.features, current.z, current.params
+    k1 = z[ia, ta]
+    l2 = z[ib, tb]
+    is_split = k1 == l2
+    k2 = jnp.where(is_split, proposed.z[ib, tb], l2)
+    key = jax.random.PRNGKey(0)  # the proposals' draws are discarded: only their densities count
+    proposals = _proposals(emission, data, anchors, order, k1, k2, num_blocks, key, key)
+    split_proposal, merge_proposal = proposals
+    current_two, new_two = _two(params, k1, k2), _two(proposed.params, k1, k2)
+
+    def forward_split(_):
+        out = split_proposal(z, features, jax.tree.map(lambda t: t[0], current_two), proposed.features, new_two,
+                             None)
         return out[2], out[3]
 
-    lq_rev, alloc_rev = jax.lax.cond(is_split, reverse_of_split, reverse_of_merge, None)
-    log_ratio = (jnp.sum(lm_new) - jnp.sum(lm_old)
-                 + collapsed_feature_log_prob(new_f, hyper.alpha, real)
-                 - collapsed_feature_log_prob(features, hyper.alpha, real)
-                 + jnp.sum(emission.log_prior(new_two)) - jnp.sum(emission.log_prior(current))
-                 + lq_rev - lq_fwd
-                 + _eta_log_p_over_q(new_eta, counts_fwd, new_f, involved, hyper)
-                 - _eta_log_p_over_q(eta, _eta_counts(alloc_rev, features, mask), features, involved, hyper))
-    possible = ~same_step & (~is_split | jnp.any(free)) & jnp.isfinite(log_ratio) & (log_ratio > 0.5 * NEG_LOG)
-    return log_ratio, possible, is_split, new_f, new_eta, new_z, new_params, new_log_lik
+    def forward_merge(_):
+        return merge_proposal(z, current_two, new_two, None)[1], jnp.where(z == k2, k1, z)
+
+    lq_fwd, alloc_fwd = jax.lax.cond(is_split, forward_split, forward_merge, None)
+    counts_fwd = _eta_counts(alloc_fwd, proposed.features, data.mask)
+    return _log_ratio(current, proposed, emission, data, hyper, anchors, k1, k2, is_split, proposals, lq_fwd,
+                      counts_fwd)
 
 
 def _users(features, real):
@@ -458,28 +517,29 @@ def _choice_log_prob(split, counts, first, second):
                                     -jnp.log(n_used) - jnp.log(jnp.maximum(n_used - 1.0, 1.0)) - jnp.log(n1) - jnp.log(n2))
 
 
-def split_merge(key, emission, data, hyper, features, eta, z, params, log_lik, num_blocks: int = 2,
-                forced_params: Optional[dict] = None):
-    """One split-merge trial: returns (features, eta, z, params, log_lik, info).
+def split_merge(key, state: MoveState, emission, data, hyper, num_blocks: int = 2):
+    """One split-merge trial: returns (state, :class:`SplitMergeInfo`).
 
     The anchors are chosen by skill (:func:`_choose_anchors`); the probability of choosing the
     same anchors for the reverse move in the proposed state enters the acceptance ratio."""
-    K = features.shape[1]
+    K = state.features.shape[1]
     mask = data.mask
+    z = state.z
     k_anchor, k_move, k_acc = jax.random.split(key, 3)
     anchors, can, log_p_fwd = _choose_anchors(k_anchor, z, mask, K)
-    log_ratio, possible, is_split, f2, eta2, z2, p2, ll2 = split_merge_at(
-        k_move, emission, data, hyper, features, eta, z, params, log_lik, anchors, num_blocks, forced_params)
+    proposal = propose_split_merge(k_move, state, emission, data, hyper, anchors, num_blocks)
+    is_split, z2 = proposal.is_split, proposal.state.z
     ia, ta, ib, tb = anchors
     k1 = z[ia, ta]
     k2 = jnp.where(is_split, z2[ib, tb], z[ib, tb])
     # the reverse: a merge of (k1, k2) after a split, a split of k1 after a merge, in z2
     log_p_rev = _choice_log_prob(~is_split, skill_counts(z2, mask, K), k1, jnp.where(is_split, k2, k1))
+    log_ratio = proposal.log_ratio
     log_ratio = log_ratio + log_p_rev - log_p_fwd
-    possible = possible & can
+    possible = proposal.possible & can
     accept, _ = metropolis_accept(k_acc, log_ratio, possible)
-    info = SplitMergeInfo(is_split, possible, accept, jnp.where(possible, log_ratio, -jnp.inf))
-    return (*select(accept, (f2, eta2, z2, p2, ll2), (features, eta, z, params, log_lik)), info)
+    info = SplitMergeInfo(is_split, possible, accept, jnp.where(possible, log_ratio, -jnp.inf), k1, k2)
+    return select(accept, proposal.state, state), info
 
 
 float64_all(globals())  # npbrs.domains.precision: float64 inside, the user's setting outside

@@ -32,15 +32,20 @@ A TOML variant (every key optional; these are the defaults)::
     init_window = 25
     # init_skills = 4             # default: (max_skills + 1) // 2
 
-    [sampler.moves]            # the kernel's trans-dimensional moves (BPHMMKernel's ``moves``)
-    # birth_death = 2          # e.g. birth/death trials per sweep
+    [sampler.moves]            # the kernel's trans-dimensional moves (BPHMMKernel's ``moves``), e.g.
+    # birth_death = 2          # birth/death trials per sweep
     # split_merge = 1          # split-merge trials per sweep (emissions with fit_point)
     # blocks = 4               # refits of a split's sequential allocation
-    # window = [10, 50]
+    # window = [5, 30]         # (min, max) steps of a birth's window
     # start = 20               # the sweep from which the moves run (plain Gibbs before it)
-    # greedy_merge = 1         # greedy merge and split trials per sweep late in warmup
-    # greedy_split = 1         # (fit's default for emissions with fit_evidence)
-    # greedy_from = 0.75       # ... from this fraction of warmup on
+    # greedy_merge = 0         # greedy merge and split trials per sweep late in warmup
+    # greedy_split = 0         # (0: off; fit turns them on for emissions with fit_evidence)
+    # greedy_from = 0.5        # ... from this fraction of warmup on
+
+The moves' defaults are in one table, ``npbrs.inference.sampler.options.MOVE_DEFAULTS`` (every
+move off), which the kernel reads too; ``fit`` turns the warmup's greedy moves on where the
+configuration does not set them (``npbrs.inference.driver.fit.default_moves``). This module is
+plain data: it imports that table and its check, never the kernel.
 """
 
 from __future__ import annotations
@@ -51,6 +56,8 @@ from dataclasses import dataclass, field
 from typing import Any, Dict, Optional, Union
 
 from npbrs.domains.files import atomic_write
+
+from ..sampler.options import check_moves
 
 __all__ = ["ModelConfig", "EmissionConfig", "PriorConfig", "SamplerConfig", "Hyperparameter", "CHAIN_METHODS"]
 
@@ -140,11 +147,9 @@ def _plain(key: str, value):
 
 
 def _check_moves(moves: dict) -> None:
-    """The kernel's own check of its move options, as a ValueError naming ``sampler.moves``."""
-    from .kernel import BPHMMKernel
-
+    """The move options' check (the table the kernel reads), as a ValueError naming ``sampler.moves``."""
     try:
-        BPHMMKernel.check_moves(moves)
+        check_moves(moves)
     except (ValueError, TypeError) as e:
         message = str(e)
         if message.startswith("moves."):
@@ -273,7 +278,8 @@ class SamplerConfig:
     sweep with the chains spread over the local devices, ``jax.sharding``; see ``fit``'s ``mesh``);
     init_skills, init_window: the initial segmentation (skills used; window length);
     moves: options of the kernel's trans-dimensional moves, passed to ``BPHMMKernel(moves=...)``
-    and checked by it.
+    and checked against :mod:`npbrs.inference.sampler.options`, the table the kernel reads
+    (defaults: ``MOVE_DEFAULTS`` there, every move off).
     bucket: pad the demonstrations to bucket sizes of trajectories and steps
     (:func:`npbrs.models.emissions.bucket_size`), so that a data set of similar size reuses the
     compiled sampler. The padding trajectories have no steps: the posterior of the real ones is

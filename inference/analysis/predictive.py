@@ -74,7 +74,7 @@ def log_predictive(result, mdp, demos, *, num_samples: int = 64, num_draws: int 
     """The posterior predictive log-likelihood of demonstrations that were not in the fit.
 
     Args:
-        result: a :class:`~npbrs.inference.results.FitResult`.
+        result: a :class:`~npbrs.inference.driver.results.FitResult`.
         mdp: the TabularMDP the run was fitted in.
         demos: the held-out :class:`~npbrs.domains.demos.Demonstrations`.
         num_samples: Monte Carlo samples of a new trajectory's skill set and transition
@@ -125,7 +125,7 @@ def segment(result, mdp, demos=None, *, num_samples: int = 32, num_draws: int = 
     (for new ones) the skill set are integrated by self-normalised importance sampling
     (``num_samples`` per draw, weighted by the trajectory's likelihood), and the skill sequence's
     marginals come from the forward filter and smoother. Every chain's skill slots are mapped
-    to the run's skills by :func:`npbrs.inference.diagnostics.relabel`.
+    to the run's skills by :func:`npbrs.inference.analysis.diagnostics.relabel`.
 
     Returns:
         :class:`SkillProbabilities`.
@@ -174,7 +174,7 @@ def _draw_moments(result, mdp, demos, idx, num_samples, seed, emission, leave_on
     of (chain, draw, log sum_m p_m (n,), log sum_m p_m p(z_t = k | ...)_m (n, T, K)) with p_m the
     trajectory's likelihood under sample m; ``own_features``: the draw's own skill sets (fitted
     trajectories) instead of the predictive."""
-    from .fit import make_emission
+    from ..driver.fit import make_emission
 
     result.check_mdp(mdp)
     demos.validate(mdp)

@@ -1,18 +1,57 @@
-"""Results of a fit: the best segmentation, its skills, the draws and label-invariant diagnostics."""
+"""Results of a fit: the best segmentation, its skills, the draws and label-invariant
+diagnostics, and their ArviZ form (what a saved run file holds).
+
+**ArviZ form** (:meth:`FitResult.to_arviz`; :meth:`FitResult.save` writes it to netCDF-4 with
+the h5netcdf engine, ``npbrs.inference.load`` reads it back): an ``InferenceData`` with groups
+
+- ``posterior``: the draws, dims (chain, draw, ...): every emission parameter site (e.g.
+  ``theta`` (chain, draw, skill, theta_dim_0)), ``features`` (chain, draw, trajectory, skill),
+  ``skill_steps`` (chain, draw, skill: steps assigned to each skill slot), sampled
+  hyperparameters, and the label-invariant scalars ``log_joint``, ``num_skills``, ``num_switches``;
+- ``sample_stats``: ``lp`` (the log joint) and every per-draw scalar of the kernel
+  (``log_joint``, ``num_skills``, ``num_switches``, ``accept``, ...);
+- ``constant_data``: the best segmentation ``segmentation`` (trajectory, step; -1 on padding)
+  with ``lengths`` (trajectory), its skills' parameters ``best_<site>`` (skill, ...), their
+  sampler slots ``skill_slots`` (skill), and each chain's best segmentation in slot labels
+  ``chain_best_z`` (chain, trajectory, step); its attributes hold the run's description:
+  ``npbrs_format`` ("npbrs-run"), ``npbrs_version`` (1), ``config`` (the
+  :class:`~npbrs.inference.driver.config.ModelConfig` as JSON), ``emission`` (the emission's
+  ``describe()`` as JSON), ``fingerprint`` (of the demonstrations), ``feature_names`` (JSON),
+  ``best_chain``, ``best_log_joint``, ``wall_time``, ``mdp_fingerprint`` (of the MDP fitted in;
+  ``observed_data``'s attribute ``mdp_fingerprint`` is the demonstrations' own, when recorded);
+- ``observed_data`` (when the result carries them): the demonstrations, ``states``, ``actions``
+  and, when known, ``skills`` (trajectory, step; -1 on padding) with ``lengths``;
+- ``warmup_sample_stats`` (when known): the label-invariant scalars of the warmup sweeps
+  (chain, draw);
+- ``log_likelihood`` (after ``FitResult.add_log_likelihood``): ``demonstrations`` (chain, draw,
+  trajectory), each trajectory's log-likelihood under each draw, its skill set and transition
+  weights integrated (what ``az.loo`` and ``az.compare`` read).
+
+The files of a run (reading saved runs, checkpoints, MDP files) are
+:mod:`npbrs.inference.driver.runs`, which imports this module (never the other way).
+"""
 
 from __future__ import annotations
 
+import json
 from dataclasses import dataclass, field
 from typing import Dict, List, Optional
 
 import numpy as np
+
+from npbrs.domains.files import atomic_write
 from npbrs.domains.precision import float64_all
 
-__all__ = ["FitResult", "LABEL_INVARIANT"]
+from .config import ModelConfig
+
+__all__ = ["FitResult", "LABEL_INVARIANT", "RUN_FORMAT", "RUN_VERSION", "NETCDF_ENGINE", "trajectory_rows"]
 
 #: Scalars whose meaning does not depend on how skills are labelled: safe for R-hat and ESS
 #: across chains (skill labels switch between chains).
 LABEL_INVARIANT = ("log_joint", "num_skills", "num_switches")
+#: The ArviZ form's format name and version (``constant_data`` attributes), and the netCDF engine.
+RUN_FORMAT, RUN_VERSION = "npbrs-run", 1
+NETCDF_ENGINE = "h5netcdf"
 
 
 def _chains(x, num_chains):
@@ -26,6 +65,24 @@ def trajectory_rows(z, lengths) -> Optional[List[np.ndarray]]:
         return None
     z = np.asarray(z)
     return [z[i, :n].astype(np.int64) for i, n in enumerate(lengths)]
+
+
+def _padded(rows, pad=-1) -> np.ndarray:
+    T = max(len(r) for r in rows)
+    out = np.full((len(rows), T), pad, dtype=np.int64)
+    for i, r in enumerate(rows):
+        out[i, :len(r)] = r
+    return out
+
+
+def _site_dims(name: str, shape, param_sites) -> list:
+    if name == "features":
+        return ["trajectory", "skill"]
+    if name == "skill_steps":
+        return ["skill"]
+    if name in param_sites and len(shape) >= 1:
+        return ["skill"] + [f"{name}_dim_{i}" for i in range(len(shape) - 1)]
+    return [f"{name}_dim_{i}" for i in range(len(shape))]
 
 
 def _compact(z_rows: List[np.ndarray]):
@@ -57,7 +114,7 @@ class FitResult:
         samples: posterior draws {site: (C, D, ...)}: the emission parameters (skill slots on
             axis 2), "features" (C, D, N, K), "skill_steps" (C, D, K) the steps assigned to
             each slot, and sampled hyperparameters.
-        config: the run's :class:`~npbrs.inference.config.ModelConfig` as plain data
+        config: the run's :class:`~npbrs.inference.driver.config.ModelConfig` as plain data
             (:attr:`model_config` parses it); fingerprint: the demonstrations' fingerprint.
         wall_time: seconds spent sampling, compilation included (summed over resumed pieces).
         emission: the emission's ``describe()``.
@@ -75,6 +132,10 @@ class FitResult:
         log_likelihood: (C, D, N) each fitted trajectory's log-likelihood under each draw, once
             :meth:`add_log_likelihood` has computed it (saved as the ArviZ ``log_likelihood``
             group, which ``az.loo`` and ``az.compare`` read); None before.
+
+    The methods :meth:`policies`, :meth:`options`, :meth:`segment`, :meth:`log_predictive` and
+    :meth:`add_log_likelihood` are shortcuts to the functions of :mod:`npbrs.inference.analysis`
+    (imported when called: the analysis imports this module, not the other way).
     """
 
     segmentation: List[np.ndarray]
@@ -134,10 +195,8 @@ class FitResult:
                    warmup_stats=None if not warmup_stats else {k: np.asarray(v) for k, v in warmup_stats.items()})
 
     @property
-    def model_config(self):
-        """The run's :class:`~npbrs.inference.config.ModelConfig`."""
-        from .config import ModelConfig
-
+    def model_config(self) -> ModelConfig:
+        """The run's :class:`~npbrs.inference.driver.config.ModelConfig`."""
         return ModelConfig.from_dict(self.config)
 
     @property
@@ -149,10 +208,10 @@ class FitResult:
         return int(np.shape(self.stats["log_joint"])[1])
 
     def save(self, path) -> None:
-        """Write this result to a netCDF file (atomically); read it back with ``npbrs.inference.load``."""
-        from .runs import save_run
-
-        save_run(self, path)
+        """Write this result's ArviZ form (:meth:`to_arviz`) to a netCDF file, atomically (a
+        temporary file, then a rename); read it back with ``npbrs.inference.load``."""
+        idata = self.to_arviz()
+        atomic_write(path, lambda tmp: idata.to_netcdf(tmp, engine=NETCDF_ENGINE), suffix=".nc.tmp")
 
     def equals(self, other: "FitResult", wall_time: bool = False) -> bool:
         """Whether two results hold the same segmentation, draws, parameters and description
@@ -268,7 +327,7 @@ class FitResult:
             ValueError: ``mdp`` has other reward features than the run (or, for an emission
                 without rewards, another number of states or actions).
         """
-        from .skills import skill_policies
+        from ..analysis.skills import skill_policies
 
         return skill_policies(self, mdp, greedy=greedy, rewards=rewards, emission=emission)
 
@@ -279,44 +338,133 @@ class FitResult:
         :mod:`npbrs.domains.options` for how; the policies are those of :meth:`policies` with
         ``rewards``. Returns a list of
         :class:`~npbrs.domains.options.Option`, one per skill, in the order of ``segmentation``."""
-        from .skills import skill_options
+        from ..analysis.skills import skill_options
 
         return skill_options(self, mdp, demos, prior_strength=prior_strength, rewards=rewards, emission=emission)
 
     def log_predictive(self, mdp, demos, **options):
         """The held-out log-likelihood of demonstrations that were not in the fit: per
         trajectory and per step, with Monte Carlo standard errors (a
-        :class:`~npbrs.inference.predictive.HeldOut`; options: ``num_samples``, ``num_draws``,
-        ``seed``, ``emission``; see :func:`npbrs.inference.predictive.log_predictive`)."""
-        from .predictive import log_predictive
+        :class:`~npbrs.inference.analysis.predictive.HeldOut`; options: ``num_samples``, ``num_draws``,
+        ``seed``, ``emission``; see :func:`npbrs.inference.analysis.predictive.log_predictive`)."""
+        from ..analysis.predictive import log_predictive
 
         return log_predictive(self, mdp, demos, **options)
 
     def segment(self, mdp, demos=None, **options):
         """Posterior probabilities of this run's skills at every step of new demonstrations (or,
         with ``demos=None``, of the fitted ones), averaged over the draws: a
-        :class:`~npbrs.inference.predictive.SkillProbabilities` (``probs`` per trajectory (T, L),
+        :class:`~npbrs.inference.analysis.predictive.SkillProbabilities` (``probs`` per trajectory (T, L),
         ``labels`` the most probable skill); options ``num_samples``, ``num_draws``, ``seed``,
-        ``emission`` (see :func:`npbrs.inference.predictive.segment`)."""
-        from .predictive import segment
+        ``emission`` (see :func:`npbrs.inference.analysis.predictive.segment`)."""
+        from ..analysis.predictive import segment
 
         return segment(self, mdp, demos, **options)
 
     def add_log_likelihood(self, mdp, **options) -> np.ndarray:
         """Compute and keep :attr:`log_likelihood` (C, D, N), so that ``az.loo(result.to_arviz())``
         and ``az.compare`` work (options: ``num_samples``, ``seed``, ``emission``; see
-        :func:`npbrs.inference.predictive.pointwise_log_likelihood`). Returns it."""
-        from .predictive import pointwise_log_likelihood
+        :func:`npbrs.inference.analysis.predictive.pointwise_log_likelihood`). Returns it."""
+        from ..analysis.predictive import pointwise_log_likelihood
 
         self.log_likelihood = pointwise_log_likelihood(self, mdp, **options)
         return self.log_likelihood
 
     def to_arviz(self):
         """ArviZ InferenceData: draws, label-invariant sample stats, the best segmentation and
-        the run's description (the layout of saved runs, see :mod:`npbrs.inference.runs`)."""
-        from .runs import to_inference_data
+        the run's description (the layout of saved runs: see the module docstring)."""
+        import arviz as az
+        import xarray as xr
 
-        return to_inference_data(self)
+        C, D = np.shape(self.stats["log_joint"])
+        chain_draw = {"chain": np.arange(C), "draw": np.arange(D)}
+        sites = set(self.skill_params)
+        posterior = {name: (["chain", "draw"] + _site_dims(name, v.shape[2:], sites), np.asarray(v))
+                     for name, v in self.samples.items()}
+        for name in LABEL_INVARIANT:
+            posterior[name] = (["chain", "draw"], np.asarray(self.stats[name]))
+        sample_stats = {"lp": (["chain", "draw"], np.asarray(self.stats["log_joint"]))}
+        sample_stats.update({k: (["chain", "draw"], np.asarray(v)) for k, v in self.stats.items()})
+        constant = {"segmentation": (["trajectory", "step"], _padded(self.segmentation)),
+                    "lengths": (["trajectory"], np.array([len(s) for s in self.segmentation], np.int64)),
+                    "skill_slots": (["skill"], np.asarray(self.skill_slots, np.int64))}
+        for name, v in self.skill_params.items():
+            v = np.asarray(v)
+            constant["best_" + name] = (["skill"] + [f"{name}_dim_{i}" for i in range(v.ndim - 1)], v)
+        if self.init_segmentation is not None:
+            constant["init_segmentation"] = (["trajectory", "step"], _padded(self.init_segmentation))
+        if self.chain_best_z is not None:
+            constant["chain_best_z"] = (["chain", "trajectory", "step"], np.asarray(self.chain_best_z, np.int64))
+        attrs = {"npbrs_format": RUN_FORMAT, "npbrs_version": RUN_VERSION,
+                 "config": json.dumps(self.config, sort_keys=True),
+                 "emission": json.dumps(self.emission, sort_keys=True),
+                 "fingerprint": self.fingerprint, "feature_names": json.dumps(list(self.feature_names)),
+                 "best_chain": int(self.best_chain), "best_log_joint": float(self.best_log_joint),
+                 "wall_time": float(self.wall_time), "mdp_fingerprint": str(self.mdp_fingerprint or "")}
+        groups = {"posterior": xr.Dataset(posterior, coords=chain_draw),
+                  "sample_stats": xr.Dataset(sample_stats, coords=chain_draw),
+                  "constant_data": xr.Dataset(constant, attrs=attrs)}
+        if self.demos is not None:
+            demos = self.demos
+            observed = {"states": (["trajectory", "step"], _padded(demos.states)),
+                        "actions": (["trajectory", "step"], _padded(demos.actions)),
+                        "lengths": (["trajectory"], demos.lengths)}
+            if demos.skills is not None:
+                observed["skills"] = (["trajectory", "step"], _padded(demos.skills))
+            groups["observed_data"] = xr.Dataset(observed, attrs={"mdp_fingerprint": demos.mdp_fingerprint or ""})
+        if self.warmup_stats:
+            W = next(iter(self.warmup_stats.values())).shape[1]
+            groups["warmup_sample_stats"] = xr.Dataset(
+                {k: (["chain", "draw"], np.asarray(v)) for k, v in self.warmup_stats.items()},
+                coords={"chain": chain_draw["chain"], "draw": np.arange(W)})
+        if self.log_likelihood is not None:
+            groups["log_likelihood"] = xr.Dataset(
+                {"demonstrations": (["chain", "draw", "trajectory"], np.asarray(self.log_likelihood))},
+                coords=chain_draw)
+        return az.InferenceData(**groups)
+
+    @classmethod
+    def from_arviz(cls, idata) -> "FitResult":
+        """The result stored in an ``InferenceData`` written by :meth:`to_arviz`; ValueError
+        when it is not one."""
+        from npbrs.domains.demos import Demonstrations
+
+        if "constant_data" not in idata.groups() or idata.constant_data.attrs.get("npbrs_format") != RUN_FORMAT:
+            raise ValueError("not an npbrs run (no constant_data group with npbrs_format = 'npbrs-run')")
+        const = idata.constant_data
+        attrs = const.attrs
+        if int(attrs["npbrs_version"]) > RUN_VERSION:
+            raise ValueError(f"run format version {attrs['npbrs_version']} is newer than this npbrs reads "
+                             f"({RUN_VERSION})")
+        lengths = np.asarray(const["lengths"].values)
+        seg = np.asarray(const["segmentation"].values)
+        segmentation = trajectory_rows(seg, lengths)
+        skill_params = {name[5:]: np.asarray(const[name].values) for name in const.data_vars
+                        if name.startswith("best_")}
+        samples = {name: np.asarray(v.values) for name, v in idata.posterior.data_vars.items()
+                   if name not in LABEL_INVARIANT}
+        stats = {name: np.asarray(v.values) for name, v in idata.sample_stats.data_vars.items() if name != "lp"}
+        demos = None
+        if "observed_data" in idata.groups():
+            obs = idata.observed_data
+            n = np.asarray(obs["lengths"].values)
+            cols = {k: [np.asarray(obs[k].values)[i, :m] for i, m in enumerate(n)]
+                    for k in ("states", "actions", "skills") if k in obs.data_vars}
+            demos = Demonstrations(**cols, mdp_fingerprint=str(obs.attrs.get("mdp_fingerprint", "")) or None)
+        return cls(segmentation=segmentation, num_skills=len(const["skill_slots"]), skill_params=skill_params,
+                   skill_slots=np.asarray(const["skill_slots"].values), best_chain=int(attrs["best_chain"]),
+                   best_log_joint=float(attrs["best_log_joint"]), stats=stats, samples=samples,
+                   config=json.loads(attrs["config"]), fingerprint=str(attrs["fingerprint"]),
+                   wall_time=float(attrs["wall_time"]), emission=json.loads(attrs["emission"]),
+                   feature_names=tuple(json.loads(attrs["feature_names"])),
+                   chain_best_z=(np.asarray(const["chain_best_z"].values) if "chain_best_z" in const else None),
+                   demos=demos, init_segmentation=(trajectory_rows(const["init_segmentation"].values, lengths)
+                                                   if "init_segmentation" in const else None),
+                   log_likelihood=(np.asarray(idata.log_likelihood["demonstrations"].values)
+                                   if "log_likelihood" in idata.groups() else None),
+                   mdp_fingerprint=str(attrs.get("mdp_fingerprint", "")),
+                   warmup_stats=({k: np.asarray(v.values) for k, v in idata.warmup_sample_stats.data_vars.items()}
+                                 if "warmup_sample_stats" in idata.groups() else None))
 
     def summary(self) -> str:
         """A short text summary: skills, segment lengths, diagnostics."""

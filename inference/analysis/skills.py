@@ -21,7 +21,7 @@ __all__ = ["skill_policies", "skill_options", "skill_parameters", "REWARDS"]
 
 
 def _emission_in(result, mdp, emission):
-    from .fit import make_emission
+    from ..driver.fit import make_emission
 
     if emission is not None:
         return emission
@@ -56,7 +56,7 @@ REWARDS = ("mean", "best")
 def skill_parameters(result, rewards: str = "mean") -> dict:
     """The found skills' parameters {site: (K, ...)}: the best draw's (``"best"``), or their
     posterior means over the draws, every chain's skills matched to the run's
-    (:func:`~npbrs.inference.diagnostics.relabelled_draws`; ``"mean"``; a skill that no draw
+    (:func:`~npbrs.inference.analysis.diagnostics.relabelled_draws`; ``"mean"``; a skill that no draw
     of a site holds keeps the best draw's value; integer sites such as subgoal states keep
     the best draw's)."""
     from .diagnostics import relabelled_draws
@@ -82,7 +82,7 @@ def skill_parameters(result, rewards: str = "mean") -> dict:
 
 def skill_policies(result, mdp, *, greedy: bool = False, rewards: str = "mean", emission=None) -> np.ndarray:
     """The found skills' policies in ``mdp``: (K, S, A) action probabilities, or with ``greedy``
-    (K, S) optimal actions (see :meth:`~npbrs.inference.results.FitResult.policies`)."""
+    (K, S) optimal actions (see :meth:`~npbrs.inference.driver.results.FitResult.policies`)."""
     import jax.numpy as jnp
 
     from npbrs.domains.control import skill_policies as greedy_actions
@@ -108,7 +108,7 @@ def skill_policies(result, mdp, *, greedy: bool = False, rewards: str = "mean", 
 
 def skill_options(result, mdp, demos=None, *, prior_strength: float = 2.0, rewards: str = "mean",
                   emission=None) -> List:
-    """The found skills as options (see :meth:`~npbrs.inference.results.FitResult.options`)."""
+    """The found skills as options (see :meth:`~npbrs.inference.driver.results.FitResult.options`)."""
     from npbrs.domains.options import estimate_options
 
     result.check_mdp(mdp)

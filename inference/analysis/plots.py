@@ -7,7 +7,7 @@ rename).
 
 Colours of a segmentation follow the paper's labelling (section IV-B): an inferred skill takes
 the label of the true skill that covers more than 50% of its steps
-(:func:`~npbrs.inference.metrics.paper_labelling`). When several inferred skills take the same
+(:func:`~npbrs.inference.analysis.metrics.paper_labelling`). When several inferred skills take the same
 label, the one with the most steps is named after the true skill ("B") and the others get
 numbered names ("B1", "B2", ...) in shades of the true skill's colour; inferred skills without a
 majority are grey ("unmatched").
@@ -266,14 +266,14 @@ def plot_trace(result, path) -> None:
     colour per chain.
 
     Args:
-        result: a :class:`~npbrs.inference.results.FitResult` (or an ArviZ InferenceData
+        result: a :class:`~npbrs.inference.driver.results.FitResult` (or an ArviZ InferenceData
             holding those variables in its posterior).
         path: the PNG file to write.
     """
     import arviz as az
     from matplotlib.figure import Figure
 
-    from .results import LABEL_INVARIANT
+    from ..driver.results import LABEL_INVARIANT
 
     data = result.to_arviz() if hasattr(result, "to_arviz") else result
     chains = int(data.posterior.sizes["chain"])

@@ -5,7 +5,7 @@ One sweep (jitted whole, static shapes: K = ``max_skills`` slots with an active 
 1. features f_ik, one skill at a time for all trajectories at once, from their conditional
    with the skill sequences summed out (forward filter with f_ik = 0 and f_ik = 1);
 2. skill sequences z_i by forward filtering, backward sampling (then, when on, split-merge
-   trials, and in warmup only greedy merges and splits, ``npbrs.inference.greedy``);
+   trials, and in warmup only greedy merges and splits, ``npbrs.inference.sampler.greedy``);
 3. transition weights eta_i from their conjugate (Gamma-Dirichlet) conditional given z_i, and
    skill popularities omega_k | F ~ Beta(alpha/K + m_k, 1 + N - m_k) (independent given z, F);
 4. emission parameters with the emission's own move given the steps assigned to each skill;
@@ -29,15 +29,18 @@ from npbrs.domains.pytree import Pytree
 from npbrs.models.bphmm import (Hyper, bphmm_model, eta_from_gammas, eta_gamma_shapes, hmm_parameters, log_joint_terms,
                                 log_marginal_likelihoods)
 from npbrs.models.mcmc import metropolis_accept
-from npbrs.models.emissions import Emission, HMMData
+from npbrs.models.emissions import Emission, EmissionInfo, HMMData
 from npbrs.models.hmm import batch_backward_sample, batch_forward_filter, transition_counts
 
-from .greedy import greedy_merge, greedy_split
-from .moves import birth_death
-from .split_merge import split_merge
 from npbrs.domains.precision import float64_all
 
-__all__ = ["BPHMMState", "BPHMMKernel"]
+from .birth_death import birth_death
+from .greedy import greedy_merge, greedy_split
+from .options import check_moves
+from .split_merge import split_merge
+from .state import MoveState
+
+__all__ = ["BPHMMState", "BPHMMKernel", "skill_weights"]
 
 
 class BPHMMState(NamedTuple):
@@ -80,13 +83,14 @@ class BPHMMState(NamedTuple):
     best_features: jax.Array
 
 
-def _skill_weights(z, mask, K):
+def skill_weights(z, mask, K):
+    """(N, T, K) one-hot skill of every real step of z (N, T); zero on padding."""
     return jax.nn.one_hot(z, K, dtype=jnp.float64) * mask[..., None]
 
 
 def _label_invariant(z, mask, K):
     """(skills used, mean switches per trajectory), trajectories without steps (padding) left out."""
-    used = jnp.any(_skill_weights(z, mask, K) > 0, axis=(0, 1))
+    used = jnp.any(skill_weights(z, mask, K) > 0, axis=(0, 1))
     switches = jnp.sum((z[:, 1:] != z[:, :-1]) & mask[:, 1:], axis=1)
     real = jnp.sum(jnp.any(mask, axis=1))
     mean = jnp.sum(switches.astype(jnp.float64)) / jnp.maximum(real, 1).astype(jnp.float64)
@@ -113,10 +117,11 @@ class BPHMMKernel(MCMCKernel, Pytree):
             sequential allocation, "start": the sweep (counted from 0, warmup included) from
             which the moves run; before it a sweep is plain Gibbs, "greedy_merge": greedy
             merge trials per sweep in the warmup sweeps from ``greedy_from`` x warmup on (0:
-            off; the emission needs ``fit_evidence``; see ``npbrs.inference.greedy``:
+            off; the emission needs ``fit_evidence``; see ``npbrs.inference.sampler.greedy``:
             not an MCMC move, so it never runs in the sampling sweeps), "greedy_split": greedy
             split trials per sweep there (the emission also needs ``fit_point``),
-            "greedy_from": that fraction of warmup, in [0, 1)}.
+            "greedy_from": that fraction of warmup, in [0, 1)}; the defaults (every move off):
+            :data:`npbrs.inference.sampler.options.MOVE_DEFAULTS`.
     """
 
     sample_field = "params"
@@ -132,7 +137,7 @@ class BPHMMKernel(MCMCKernel, Pytree):
         self.init_skills = int(init_skills if init_skills is not None else max(1, (self.max_skills + 1) // 2))
         self.init_window = int(init_window)
         self.sample_features = bool(sample_features)
-        self.moves = self.check_moves(moves)
+        self.moves = check_moves(moves)
         if self.moves["split_merge"] and not emission.supports_split_merge():
             raise ValueError(f"moves.split_merge: the {emission.name!r} emission has no fit_point, which "
                              "split-merge moves need; use birth_death moves or implement Emission.fit_point")
@@ -143,33 +148,6 @@ class BPHMMKernel(MCMCKernel, Pytree):
         if self.moves["greedy_split"] and not emission.supports_split_merge():
             raise ValueError(f"moves.greedy_split: the {emission.name!r} emission has no fit_point, which greedy "
                              "splits need; implement Emission.fit_point")
-
-    _MOVE_DEFAULTS = {"birth_death": 0, "window": (10, 50), "split_merge": 0, "blocks": 2, "start": 0,
-                      "greedy_merge": 0, "greedy_split": 0, "greedy_from": 0.5}
-
-    @classmethod
-    def check_moves(cls, moves):
-        """Validated move options with defaults filled in; ValueError naming a bad option."""
-        out = dict(cls._MOVE_DEFAULTS)
-        for name, value in (moves or {}).items():
-            if name not in out:
-                raise ValueError(f"unknown move option {name!r}; expected one of {sorted(out)}")
-            out[name] = value
-        for name in ("birth_death", "split_merge", "greedy_merge", "greedy_split"):
-            if not isinstance(out[name], int) or isinstance(out[name], bool) or out[name] < 0:
-                raise ValueError(f"moves.{name} must be a number of trials >= 0, got {out[name]!r}")
-        if not isinstance(out["blocks"], int) or isinstance(out["blocks"], bool) or out["blocks"] < 1:
-            raise ValueError(f"moves.blocks must be an integer >= 1, got {out['blocks']!r}")
-        if not isinstance(out["start"], int) or isinstance(out["start"], bool) or out["start"] < 0:
-            raise ValueError(f"moves.start must be a sweep number >= 0, got {out['start']!r}")
-        g = out["greedy_from"]
-        if isinstance(g, bool) or not isinstance(g, (int, float)) or not 0.0 <= g < 1.0:
-            raise ValueError(f"moves.greedy_from must be a fraction of warmup in [0, 1), got {g!r}")
-        lo, hi = out["window"]
-        if not (1 <= int(lo) <= int(hi)):
-            raise ValueError(f"moves.window must be (min, max) with 1 <= min <= max, got {out['window']!r}")
-        out["window"] = (int(lo), int(hi))
-        return out
 
     # ------------------------------------------------------------------ numpyro hooks
     @property
@@ -270,7 +248,7 @@ class BPHMMKernel(MCMCKernel, Pytree):
         else:
             z = z0
         z = jnp.where(self.data.mask, z, -1).astype(jnp.int32)
-        weights = _skill_weights(z, self.data.mask, K)
+        weights = skill_weights(z, self.data.mask, K)
         params = self.emission.init_params(keys[1], self.data, weights)
         if z0 is None:
             features = jnp.zeros((N, K)).at[:, :K0].set(1.0)
@@ -380,7 +358,8 @@ class BPHMMKernel(MCMCKernel, Pytree):
         key, k_feat, k_bd, k_z, k_eta, k_em, k_hyp, k_sm = jax.random.split(state.rng_key, 8)
         k_gm = jax.random.fold_in(k_sm, 1)
         features = self._sample_features(k_feat, state) if self.sample_features else state.features
-        params, log_lik = state.params, state.log_lik
+        # the moves' state (``npbrs.inference.sampler.state``): each move maps it to a new one
+        moved = MoveState.of(state)._replace(features=features)
         blocks = min(self.moves["blocks"], N)  # refits of a split's allocation (split-merge, greedy splits)
         step, num_warmup = (state.step, state.num_warmup) if clock is None else clock
         if self.moves["start"]:
@@ -392,67 +371,62 @@ class BPHMMKernel(MCMCKernel, Pytree):
         else:
             def gated(run, operands, skipped):
                 return run(operands)
+
+        def trials(move, key, count):
+            """``count`` trials of ``move`` from ``moved``: (state, each trial's accepted (count,))."""
+            def one(carry, key):
+                carry, info = move(key, carry, self.emission, self.data, state.hyper)
+                return carry, info.accepted
+
+            return lambda ops: jax.lax.scan(one, ops, jax.random.split(key, count))
+
         births = jnp.zeros(())
         if self.moves["birth_death"]:
             lo, hi = self.moves["window"]
-
-            def trial(carry, key):
-                f, p, ll = carry
-                f, p, ll, info = birth_death(key, self.emission, self.data, state.hyper, f, state.eta, p, ll, lo, hi)
-                return (f, p, ll), info.accepted
+            run = trials(partial(birth_death, min_len=lo, max_len=hi), k_bd, self.moves["birth_death"])
 
             def births_run(ops):
-                ops, accepted = jax.lax.scan(trial, ops, jax.random.split(k_bd, self.moves["birth_death"]))
+                ops, accepted = run(ops)
                 return ops, jnp.mean(accepted.astype(jnp.float64))
 
-            (features, params, log_lik), births = gated(births_run, (features, params, log_lik), births)
-        log_init, log_trans, active = hmm_parameters(features, state.eta)
-        _, log_alpha = batch_forward_filter(log_init, log_trans, log_lik, mask, active)
-        z = batch_backward_sample(k_z, log_trans, log_alpha, mask, active)
+            moved, births = gated(births_run, moved, births)
+        log_init, log_trans, active = hmm_parameters(moved.features, state.eta)
+        _, log_alpha = batch_forward_filter(log_init, log_trans, moved.log_lik, mask, active)
+        moved = moved._replace(z=batch_backward_sample(k_z, log_trans, log_alpha, mask, active))
         splits = jnp.zeros(())
         if self.moves["split_merge"]:
-            def sm_trial(carry, key):
-                f, e, zz, p, ll = carry
-                f, e, zz, p, ll, info = split_merge(key, self.emission, self.data, state.hyper, f, e, zz, p, ll,
-                                                    blocks)
-                return (f, e, zz, p, ll), info.accepted
+            run = trials(partial(split_merge, num_blocks=blocks), k_sm, self.moves["split_merge"])
 
             def splits_run(ops):
-                ops, accepted = jax.lax.scan(sm_trial, ops, jax.random.split(k_sm, self.moves["split_merge"]))
+                ops, accepted = run(ops)
                 return ops, jnp.mean(accepted.astype(jnp.float64))
 
-            # eta changes here only for trajectories a move touched; the next line redraws it all
-            (features, _, z, params, log_lik), splits = gated(
-                splits_run, (features, state.eta, z, params, log_lik), splits)
+            # eta changes here only for trajectories a move touched; eta is redrawn after the moves
+            moved, splits = gated(splits_run, moved, splits)
         if self.moves["greedy_merge"] or self.moves["greedy_split"]:
             greedy_on = (step < num_warmup) & (step >= jnp.floor(self.moves["greedy_from"] * num_warmup))
 
             def greedy_run(ops):
-                def trial(move):
-                    def one(carry, key):
-                        f, zz, p, ll, info = move(key, self.emission, self.data, state.hyper, *carry)
-                        return (f, zz, p, ll), info.accepted
-                    return one
-
                 k_merge, k_split = jax.random.split(k_gm)
                 kept = []
                 for name, move, k in (("greedy_merge", greedy_merge, k_merge),
                                       ("greedy_split", partial(greedy_split, num_blocks=blocks), k_split)):
                     if self.moves[name]:
-                        ops, accepted = jax.lax.scan(trial(move), ops, jax.random.split(k, self.moves[name]))
+                        ops, accepted = trials(move, k, self.moves[name])(ops)
                         kept.append(jnp.sum(accepted, dtype=jnp.int32))
                     else:
                         kept.append(jnp.int32(0))
                 return ops, tuple(kept)
 
-            (features, z, params, log_lik), (merged, split) = jax.lax.cond(
-                greedy_on, greedy_run, lambda ops: (ops, (jnp.int32(0), jnp.int32(0))), (features, z, params, log_lik))
+            moved, (merged, split) = jax.lax.cond(
+                greedy_on, greedy_run, lambda ops: (ops, (jnp.int32(0), jnp.int32(0))), moved)
             greedy_kept = dict(greedy_merges=state.greedy_merges + merged, greedy_splits=state.greedy_splits + split)
         else:
             greedy_kept = {}
+        features, z, params = moved.features, moved.z, moved.params
         # eta | z, F and omega | F are conditionally independent: one block
         eta, omega = self._sample_eta_omega(k_eta, z, features, state.hyper)
-        weights = _skill_weights(z, mask, K)
+        weights = skill_weights(z, mask, K)
         # the clock, not the state's step: under vectorised chains a batched flag would make
         # the emission's warmup-only work (e.g. the reward's Fisher preconditioner) run always
         cache = state.cache
@@ -462,7 +436,10 @@ class BPHMMKernel(MCMCKernel, Pytree):
             cache = jax.lax.cond((step < num_warmup) & (step % every == 0),
                                  lambda c: tune(params, c, self.data, weights), lambda c: c, cache)
         params, cache, info = self.emission.update(k_em, params, cache, self.data, weights, step < num_warmup)
-        accept = jnp.asarray(info.get("accept", 1.0) if isinstance(info, dict) else 1.0, jnp.float64)
+        if not isinstance(info, EmissionInfo):
+            raise TypeError(f"the {self.emission.name!r} emission's update returned {type(info).__name__} as its "
+                            "info; it must return (params, cache, npbrs.models.emissions.EmissionInfo(accept=...))")
+        accept = jnp.asarray(info.accept, jnp.float64)
         new = state._replace(rng_key=key, omega=omega, features=features, eta=eta, params=params, cache=cache,
                              z=z, accept=jnp.mean(accept), birth_accept=births, split_accept=splits,
                              **greedy_kept)

@@ -31,13 +31,12 @@ changes is where the sampling sweeps start. A trial:
 A kept merge gives k the fit to the union and slot j a prior draw (an unused slot's
 conditional).
 
-A greedy split is the converse, for a start that lumps two true skills into one slot (highway
-seed 2 from the default start: 2 true skills in one slot of 5389 steps, Hungarian accuracy
-0.663). It picks a used skill k1 and two of its steps (see :func:`greedy_split`), allocates k1's steps
-between k1 and a free slot k2 by the split-merge move's deterministic sequential allocation
-(:func:`npbrs.inference.split_merge.allocate`, point fits refitted as the allocation grows),
-gives k2 the features of the trajectories that use it, and keeps the split when the same score
-rises:
+A greedy split is the converse, for a start that lumps two true skills into one slot (seen on
+the highway: ``benchmarks/NOTES.md``). It picks a used skill k1 and two of its steps (see
+:func:`greedy_split`), allocates k1's steps between k1 and a free slot k2 by the split-merge
+move's deterministic sequential allocation (:func:`npbrs.inference.sampler.split_merge.allocate`,
+point fits refitted as the allocation grows), gives k2 the features of the trajectories that
+use it, and keeps the split when the same score rises:
 
     gain = log ev(steps of k1') + log ev(steps of k2) - log ev(steps of k1)
            + log p(z' | F') - log p(z | F) + log p(F') - log p(F).
@@ -56,15 +55,18 @@ import jax.numpy as jnp
 from npbrs.models.mcmc import select
 from npbrs.models.bphmm import collapsed_feature_log_prob, collapsed_sequence_log_prob
 
-from .split_merge import allocate, skill_counts, visiting_order
 from npbrs.domains.precision import float64_all
+
+from .split_merge import allocate, skill_counts, visiting_order
+from .state import MoveState
 
 __all__ = ["GreedyInfo", "greedy_merge", "greedy_merge_at", "greedy_split", "greedy_split_at", "merge_score"]
 
 
 class GreedyInfo(NamedTuple):
     """Diagnostics of one greedy trial: the skills (j merged into k, or j split into j and k),
-    whether it was possible and kept, and the change of the score."""
+    whether it was possible and kept, and the change of the score (:func:`merge_score`; -inf
+    when impossible)."""
 
     j: jax.Array
     k: jax.Array
@@ -93,27 +95,22 @@ def _structure_log_prob(hyper, mask, z, features):
             + collapsed_feature_log_prob(features, hyper.alpha, valid))
 
 
-def _keep(accept, info, new, old):
-    """The new (features, z, params, log_lik) where accepted, else the old, and the info."""
-    return (*select(accept, new, old), info)
-
-
-def greedy_merge(key, emission, data, hyper, features, z, params, log_lik):
-    """One greedy merge trial of a used skill chosen uniformly: returns (features, z, params,
-    log_lik, info) (see :func:`greedy_merge_at`)."""
-    K = features.shape[1]
+def greedy_merge(key, state: MoveState, emission, data, hyper):
+    """One greedy merge trial of a used skill chosen uniformly: returns (state,
+    :class:`GreedyInfo`) (see :func:`greedy_merge_at`)."""
+    K = state.features.shape[1]
     k_pick, k_move = jax.random.split(key)
-    used = skill_counts(z, data.mask, K) > 0
+    used = skill_counts(state.z, data.mask, K) > 0
     j = jax.random.categorical(k_pick, jnp.where(used, 0.0, -jnp.inf))
-    return greedy_merge_at(k_move, j, emission, data, hyper, features, z, params, log_lik)
+    return greedy_merge_at(k_move, state, emission, data, hyper, j)
 
 
-def greedy_merge_at(key, j, emission, data, hyper, features, z, params, log_lik):
+def greedy_merge_at(key, state: MoveState, emission, data, hyper, j):
     """Merge skill j into the used skill that explains its steps best, if that raises
-    :func:`merge_score`: returns (features, z, params, log_lik, info). ``log_lik`` (N, T, K)
-    must hold the likelihoods of ``params``; the returned one holds those of the returned
-    parameters. ``key`` draws slot j's new parameters from the prior. The emission needs
-    ``fit_evidence``."""
+    :func:`merge_score`: returns (state, :class:`GreedyInfo`). The state's ``log_lik`` holds
+    the likelihoods of its ``params``, before and after. ``key`` draws slot j's new parameters
+    from the prior. The emission needs ``fit_evidence``."""
+    features, _, z, params, log_lik = state
     K = features.shape[1]
     mask = data.mask
     onehot = jax.nn.one_hot(z, K, dtype=jnp.float64) * mask[..., None]
@@ -138,16 +135,18 @@ def greedy_merge_at(key, j, emission, data, hyper, features, z, params, log_lik)
     new_log_lik = log_lik.at[..., k].set(cols[..., 0]).at[..., j].set(cols[..., 1])
     accept = possible & jnp.isfinite(gain) & (gain > 0)
     info = GreedyInfo(j, k, possible, accept, jnp.where(possible, gain, -jnp.inf))
-    return _keep(accept, info, (f_new, z_new, new_params, new_log_lik), (features, z, params, log_lik))
+    new = state._replace(features=f_new, z=z_new, params=new_params, log_lik=new_log_lik)
+    return select(accept, new, state), info
 
 
-def greedy_split(key, emission, data, hyper, features, z, params, log_lik, num_blocks: int = 2):
-    """One greedy split trial: returns (features, z, params, log_lik, info) (see
-    :func:`greedy_split_at`). The skill is drawn in proportion to its steps (a lumped pair is
-    large), the first anchor uniformly among its steps, the second among its other steps in
-    proportion to exp(-log-likelihood) under the skill (steps it explains badly are likely the
-    other skill's). No reverse move is needed, so the choice may look at the state."""
+def greedy_split(key, state: MoveState, emission, data, hyper, num_blocks: int = 2):
+    """One greedy split trial: returns (state, :class:`GreedyInfo`) (see :func:`greedy_split_at`).
+    The skill is drawn in proportion to its steps (a lumped pair is large), the first anchor
+    uniformly among its steps, the second among its other steps in proportion to
+    exp(-log-likelihood) under the skill (steps it explains badly are likely the other skill's).
+    No reverse move is needed, so the choice may look at the state."""
     N, T = data.mask.shape
+    features, z, log_lik = state.features, state.z, state.log_lik
     K = features.shape[1]
     k_pick, k_a, k_b, k_move = jax.random.split(key, 4)
     flat = (jax.nn.one_hot(z, K, dtype=bool) & data.mask[..., None]).reshape(N * T, K)
@@ -156,15 +155,15 @@ def greedy_split(key, emission, data, hyper, features, z, params, log_lik, num_b
     a = jax.random.categorical(k_a, jnp.where(flat[:, k1], 0.0, -jnp.inf))
     badness = -log_lik.reshape(N * T, K)[:, k1]
     b = jax.random.categorical(k_b, jnp.where(flat[:, k1] & (jnp.arange(N * T) != a), badness, -jnp.inf))
-    return greedy_split_at(k_move, (a // T, a % T, b // T, b % T), emission, data, hyper, features, z, params,
-                           log_lik, num_blocks)
+    return greedy_split_at(k_move, state, emission, data, hyper, (a // T, a % T, b // T, b % T), num_blocks)
 
 
-def greedy_split_at(key, anchors, emission, data, hyper, features, z, params, log_lik, num_blocks: int = 2):
+def greedy_split_at(key, state: MoveState, emission, data, hyper, anchors, num_blocks: int = 2):
     """Split the skill of anchor step (i_a, t_a) between it and a free slot, the step
     (i_b, t_b) of the same skill going to the new slot, if that raises :func:`merge_score`
-    (see the module notes): returns (features, z, params, log_lik, info). ``key`` orders the
+    (see the module notes): returns (state, :class:`GreedyInfo`). ``key`` orders the
     allocation's trajectories after the anchors'."""
+    features, _, z, params, log_lik = state
     mask = data.mask
     ia, ta, ib, tb = anchors
     k1 = z[ia, ta]
@@ -195,7 +194,8 @@ def greedy_split_at(key, anchors, emission, data, hyper, features, z, params, lo
     new_log_lik = log_lik.at[..., k1].set(cols[..., 0]).at[..., k2].set(cols[..., 1])
     accept = possible & jnp.any(used_a) & jnp.any(used_b) & jnp.isfinite(gain) & (gain > 0)
     info = GreedyInfo(k1, k2, possible, accept, jnp.where(possible, gain, -jnp.inf))
-    return _keep(accept, info, (f_new, z_new, new_params, new_log_lik), (features, z, params, log_lik))
+    new = state._replace(features=f_new, z=z_new, params=new_params, log_lik=new_log_lik)
+    return select(accept, new, state), info
 
 
 float64_all(globals())  # npbrs.domains.precision: float64 inside, the user's setting outside

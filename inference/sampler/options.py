@@ -1,0 +1,43 @@
+"""The options of the sampler's moves as plain data: their defaults and their check.
+
+The kernel (``BPHMMKernel(moves=...)``) and the configuration (``SamplerConfig.moves``) read
+this one table; ``fit`` turns the warmup's greedy moves on where a configuration does not set
+them (``npbrs.inference.driver.fit.DEFAULT_GREEDY_TRIALS``). No JAX here: the configuration is
+plain data and imports this module, not the kernel.
+"""
+
+from __future__ import annotations
+
+__all__ = ["MOVE_DEFAULTS", "check_moves"]
+
+#: Every option of the kernel's trans-dimensional moves and its value when not given (every move
+#: off): trials per sweep of ``birth_death``, ``split_merge``, ``greedy_merge`` and
+#: ``greedy_split``; ``window``, the (min, max) steps of a birth's window; ``blocks``, refits of a
+#: split's sequential allocation; ``start``, the sweep from which the moves run;
+#: ``greedy_from``, the fraction of warmup from which the greedy moves run.
+MOVE_DEFAULTS = {"birth_death": 0, "window": (10, 50), "split_merge": 0, "blocks": 2, "start": 0,
+                 "greedy_merge": 0, "greedy_split": 0, "greedy_from": 0.75}
+
+
+def check_moves(moves) -> dict:
+    """Validated move options with defaults filled in; ValueError naming a bad option."""
+    out = dict(MOVE_DEFAULTS)
+    for name, value in (moves or {}).items():
+        if name not in out:
+            raise ValueError(f"unknown move option {name!r}; expected one of {sorted(out)}")
+        out[name] = value
+    for name in ("birth_death", "split_merge", "greedy_merge", "greedy_split"):
+        if not isinstance(out[name], int) or isinstance(out[name], bool) or out[name] < 0:
+            raise ValueError(f"moves.{name} must be a number of trials >= 0, got {out[name]!r}")
+    if not isinstance(out["blocks"], int) or isinstance(out["blocks"], bool) or out["blocks"] < 1:
+        raise ValueError(f"moves.blocks must be an integer >= 1, got {out['blocks']!r}")
+    if not isinstance(out["start"], int) or isinstance(out["start"], bool) or out["start"] < 0:
+        raise ValueError(f"moves.start must be a sweep number >= 0, got {out['start']!r}")
+    g = out["greedy_from"]
+    if isinstance(g, bool) or not isinstance(g, (int, float)) or not 0.0 <= g < 1.0:
+        raise ValueError(f"moves.greedy_from must be a fraction of warmup in [0, 1), got {g!r}")
+    lo, hi = out["window"]
+    if not (1 <= int(lo) <= int(hi)):
+        raise ValueError(f"moves.window must be (min, max) with 1 <= min <= max, got {out['window']!r}")
+    out["window"] = (int(lo), int(hi))
+    return out

@@ -1,0 +1,39 @@
+"""What the sampler's moves share: the part of a chain's state they read and change.
+
+Every move is ``move(key, state, emission, data, hyper, ...) -> (state, info)``: ``state`` a
+:class:`MoveState`, ``info`` a NamedTuple of the move's own, for diagnostics only (whether the
+trial was possible and accepted, its log acceptance ratio or gain, the skills it touched). A
+Metropolis-Hastings move decides with :func:`npbrs.models.mcmc.metropolis_accept` and keeps the
+proposed or the current state with :func:`npbrs.models.mcmc.select`; its log acceptance ratio is
+a public function of the current and the proposed state (``birth_death_log_ratio``,
+``split_merge_log_ratio``).
+"""
+
+from __future__ import annotations
+
+from typing import Dict, NamedTuple
+
+import jax
+
+__all__ = ["MoveState"]
+
+
+class MoveState(NamedTuple):
+    """The chain's state as the moves see it (a pytree; K skill slots, N trajectories, T steps).
+
+    features: (N, K) 0/1, which skills each trajectory may use. eta: (N, K, K) unnormalised
+    transition weights. z: (N, T) skill sequences (-1 on padding). params: the emission's
+    parameters {site: (K, ...)}. log_lik: (N, T, K) per-step log-likelihoods of ``params``
+    (every move keeps them equal).
+    """
+
+    features: jax.Array
+    eta: jax.Array
+    z: jax.Array
+    params: Dict[str, jax.Array]
+    log_lik: jax.Array
+
+    @classmethod
+    def of(cls, state) -> "MoveState":
+        """The moves' part of a state with these fields (e.g. the kernel's ``BPHMMState``)."""
+        return cls(*(getattr(state, name) for name in cls._fields))
