@@ -137,10 +137,12 @@ def test_fit_on_the_demos_files_reproduces_the_demos_run(demo):
     assert load(out / "again.nc").equals(load(out / "run.nc"))
     # options override the config
     code, _, stderr = run_main(["fit", out / "demos.npz", "--domain", "highway", "--config", out / "config.toml",
-                                "--samples", "2", "--seed", "5", "-o", out / "short.nc", "--no-progress"])
+                                "--samples", "2", "--seed", "5", "--devices", "1", "-o", out / "short.nc",
+                                "--no-progress"])
     assert code == 0, stderr
     short = load(out / "short.nc")
     assert short.num_draws == 2 and short.model_config.sampler.seed == 5
+    # (--devices passes fit's devices=; the runs on several devices are test_devices.py's)
     # --init-from starts from a saved run's segmentation, as fit(init_segmentation=...) does
     code, _, stderr = run_main(["fit", out / "demos.npz", "--domain", "highway", "--config", out / "config.toml",
                                 "--samples", "2", "--init-from", out / "run.nc", "-o", out / "init.nc", "--no-progress"])
@@ -187,6 +189,11 @@ def test_fit_errors_name_what_is_wrong(demo, tmp_path):
     code, _, err = run_main(["fit", out / "demos.npz", "--domain", "highway", "--init-from", tmp_path / "none.nc",
                              "-o", tmp_path / "x.nc"])
     assert code == 2 and "none.nc" in err
+    for devices, says in (("0", "at least 1 device"), ("two", "a number of devices or 'all'"),
+                          ("64", "devices=64: there are")):
+        code, _, err = run_main(["fit", out / "demos.npz", "--domain", "highway", "--devices", devices,
+                                 "-o", tmp_path / "x.nc"])
+        assert code == 2 and says in err, (devices, err)
     code, _, err = run_main(["report", tmp_path / "missing.nc"])
     assert code == 2 and "missing.nc" in err
     assert not (tmp_path / "x.nc").exists()

@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 import sys
 
-__all__ = ["at_least", "add_world_arguments", "load_world_mdp", "command_error"]
+__all__ = ["at_least", "device_count", "add_world_arguments", "load_world_mdp", "command_error"]
 
 
 def at_least(minimum: int):
@@ -18,6 +18,19 @@ def at_least(minimum: int):
         return value
 
     return parse
+
+
+def device_count(text: str):
+    """An argparse type: a number of devices (at least 1) or ``all``."""
+    if text == "all":
+        return text
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"must be a number of devices or 'all', got {text!r}") from None
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"must be at least 1 device, got {value}")
+    return value
 
 
 def add_world_arguments(p, what: str = "the demonstrations live in"):

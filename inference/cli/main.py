@@ -19,7 +19,7 @@ from typing import Optional
 from npbrs.domains.precision import float64_all
 
 from . import generate, reproduce, score
-from .arguments import add_world_arguments, at_least, command_error, load_world_mdp
+from .arguments import add_world_arguments, at_least, command_error, device_count, load_world_mdp
 
 __all__ = ["build_parser", "main", "compilation_cache_dir", "DEMO_CONFIG", "QUICK_DEMO_CONFIG"]
 
@@ -68,6 +68,9 @@ def _add_fit(sub):
     p.add_argument("--resume", action="store_true", help="continue from the output's checkpoint if there is one")
     p.add_argument("--checkpoint-every", type=at_least(0), default=100,
                    help="sweeps between checkpoints (100; 0: no checkpoints)")
+    p.add_argument("--devices", type=device_count, metavar="N|all",
+                   help="run on N of JAX's devices (or all): chains spread over them first, the rest shard the "
+                        "trajectories (see fit's devices=; on several hosts, after jax.distributed.initialize())")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.set_defaults(func=fit_command)
     return p
@@ -104,7 +107,8 @@ def fit_command(args) -> int:
         result = fit(mdp, demos, args.config, emission=args.emission, max_skills=args.max_skills,
                      num_chains=args.chains, num_samples=args.samples, num_warmup=args.warmup, seed=args.seed,
                      progress_bar=not args.no_progress, checkpoint_path=checkpoint,
-                     checkpoint_every=args.checkpoint_every or None, resume=args.resume, init_segmentation=init)
+                     checkpoint_every=args.checkpoint_every or None, resume=args.resume, init_segmentation=init,
+                     devices=args.devices)
     except (OSError, ValueError) as e:  # a missing or unreadable --config among them
         message = str(e)
         if args.config and message.startswith("emission.options") and os.fspath(args.config) not in message:
