@@ -108,6 +108,10 @@ def test_sampler_visits_segmentations_in_proportion_to_their_posterior(moves):
     assert 0.5 * np.sum(np.abs(freq - exact)) < 0.03
 
 
+# slow: 80 s of the default run's CPU; the whole-sampler joint-distribution test
+# (test_joint_distribution.py) covers split-merge's exactness in the default run, and detects a
+# dropped forward or reverse proposal density, free-slot choice or feature-pair term
+@pytest.mark.slow
 def test_split_merge_trial_leaves_the_exact_posterior_invariant():
     """Exact posterior draws of (F, z), with eta and the policies drawn from their exact
     conditionals, stay exact posterior draws after one split-merge trial: a check of the move
