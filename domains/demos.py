@@ -13,7 +13,7 @@ from typing import Optional, Sequence
 
 import numpy as np
 
-from .files import atomic_write
+from .files import atomic_savez
 from .precision import float64_all
 
 __all__ = ["Demonstrations", "generate_demonstrations"]
@@ -178,12 +178,7 @@ class Demonstrations:
         arrays = self._arrays()
         if self.mdp_fingerprint is not None:
             arrays["mdp_fingerprint"] = np.asarray(self.mdp_fingerprint)
-
-        def write(tmp):
-            with open(tmp, "wb") as f:
-                np.savez(f, **arrays)
-
-        atomic_write(path, write, suffix=".npz.tmp")
+        atomic_savez(path, arrays)
 
     @classmethod
     def load(cls, path) -> "Demonstrations":

@@ -3,7 +3,9 @@
 import os
 import tempfile
 
-__all__ = ["atomic_write"]
+import numpy as np
+
+__all__ = ["atomic_write", "atomic_savez"]
 
 
 def atomic_write(path, write, suffix: str = ".tmp") -> None:
@@ -25,3 +27,13 @@ def atomic_write(path, write, suffix: str = ".tmp") -> None:
         if os.path.exists(tmp):
             os.remove(tmp)
         raise
+
+
+def atomic_savez(path, arrays: dict) -> None:
+    """Write ``arrays`` as an ``.npz`` file at exactly ``path`` (no ``.npz`` appended), atomically."""
+
+    def write(tmp):
+        with open(tmp, "wb") as f:
+            np.savez(f, **arrays)
+
+    atomic_write(path, write, suffix=".npz.tmp")

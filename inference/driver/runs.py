@@ -27,7 +27,7 @@ import os
 
 import numpy as np
 
-from npbrs.domains.files import atomic_write
+from npbrs.domains.files import atomic_savez, atomic_write
 from npbrs.domains.precision import float64_all
 
 from .results import NETCDF_ENGINE, FitResult
@@ -68,12 +68,7 @@ def save_mdp(mdp, path) -> None:
               "name": np.asarray(str(mdp.name))}
     if mdp.state_vectors is not None:
         arrays["state_vectors"] = np.asarray(mdp.state_vectors)
-
-    def write(tmp):
-        with open(tmp, "wb") as f:
-            np.savez(f, **arrays)
-
-    atomic_write(path, write, suffix=".npz.tmp")
+    atomic_savez(path, arrays)
 
 
 def load_mdp(path):
@@ -138,12 +133,7 @@ def write_checkpoint(path, *, state, draws: dict, meta: dict) -> None:
             "state_leaves": [[list(a.shape), str(a.dtype)] for k, a in arrays.items() if k.startswith("state.")],
             "draw_names": sorted(draws)}
     arrays["meta"] = np.asarray(json.dumps(meta, sort_keys=True))
-
-    def write(tmp):
-        with open(tmp, "wb") as f:
-            np.savez(f, **arrays)
-
-    atomic_write(path, write, suffix=".npz.tmp")
+    atomic_savez(path, arrays)
 
 
 def read_checkpoint(path):
