@@ -215,6 +215,22 @@ def test_a_lumped_pair_is_split_and_a_true_skill_is_not():
     outs = [split(jax.random.PRNGKey(r), state, *args) for r in range(4)]
     assert any(bool(o[1].accepted) for o in outs), [float(o[1].gain) for o in outs]
     assert _tree_equal(split(jax.random.PRNGKey(0), state, *args), outs[0])
+    # the kernel's loop (one compiled evidence for merges and splits) is the trials one by one
+    from npbrs.inference.sampler import greedy_trials
+
+    merge = jax.jit(greedy_merge, static_argnums=2)
+    k_m, k_s = jax.random.PRNGKey(3), jax.random.PRNGKey(0)
+    looped, merged, kept_splits = jax.jit(greedy_trials, static_argnums=(3, 6, 7))(k_m, k_s, state, *args, 2, 2)
+    one, kept = state, []
+    for key in jax.random.split(k_m, 2):
+        one, info = merge(key, one, *args)
+        kept.append(("merge", bool(info.accepted)))
+    for key in jax.random.split(k_s, 2):
+        one, info = split(key, one, *args)
+        kept.append(("split", bool(info.accepted)))
+    assert _tree_close(looped, one)
+    assert (int(merged), int(kept_splits)) == tuple(sum(a for m, a in kept if m == w) for w in ("merge", "split"))
+    assert int(kept_splits) >= 1, kept  # the lumped pair is split in the loop too
 
 
 def test_fit_runs_greedy_merges_by_default_where_the_emission_supports_them():

@@ -5,4 +5,4 @@ from .state import MoveState
 from .kernel import BPHMMKernel, BPHMMState, skill_weights
 from .birth_death import BirthDeathInfo, birth_death_log_ratio, birth_death_proposal, window_weights
 from .split_merge import SplitMergeInfo, SplitMergeProposal, propose_split_merge, split_merge_log_ratio
-from .greedy import GreedyInfo, greedy_merge, greedy_merge_at, greedy_split, greedy_split_at, merge_score
+from .greedy import GreedyInfo, greedy_merge, greedy_merge_at, greedy_split, greedy_split_at, greedy_trials, merge_score

@@ -60,7 +60,8 @@ from npbrs.domains.precision import float64_all
 from .split_merge import allocate, skill_counts, visiting_order
 from .state import MoveState
 
-__all__ = ["GreedyInfo", "greedy_merge", "greedy_merge_at", "greedy_split", "greedy_split_at", "merge_score"]
+__all__ = ["GreedyInfo", "greedy_merge", "greedy_merge_at", "greedy_split", "greedy_split_at", "greedy_trials",
+           "merge_score"]
 
 
 class GreedyInfo(NamedTuple):
@@ -95,75 +96,54 @@ def _structure_log_prob(hyper, mask, z, features):
             + collapsed_feature_log_prob(features, hyper.alpha, valid))
 
 
-def greedy_merge(key, state: MoveState, emission, data, hyper):
-    """One greedy merge trial of a used skill chosen uniformly: returns (state,
-    :class:`GreedyInfo`) (see :func:`greedy_merge_at`)."""
-    K = state.features.shape[1]
-    k_pick, k_move = jax.random.split(key)
-    used = skill_counts(state.z, data.mask, K) > 0
-    j = jax.random.categorical(k_pick, jnp.where(used, 0.0, -jnp.inf))
-    return greedy_merge_at(k_move, state, emission, data, hyper, j)
+class _Proposal(NamedTuple):
+    """A greedy trial's proposed change, before the one evidence computation that scores it:
+    the proposed (z, F); three step-weight columns ``w`` (N, T, 3) and the fits' starts
+    ``init`` (3, ...) for ``fit_evidence``; ``coef`` (3,), the signs of the three log
+    evidences in the gain; ``slots`` (2,), the skills that get new parameters: the first the fit
+    ``first`` of the three, the second fit 1, or a prior draw from ``prior_key`` when
+    ``second_prior``; ``possible`` (for the info) and ``valid`` (further conditions of keeping
+    it); ``j``, ``k``: the skills the info reports."""
+
+    z: jax.Array
+    features: jax.Array
+    w: jax.Array
+    init: dict
+    coef: jax.Array
+    slots: jax.Array
+    first: jax.Array
+    second_prior: jax.Array
+    prior_key: jax.Array
+    possible: jax.Array
+    valid: jax.Array
+    j: jax.Array
+    k: jax.Array
 
 
-def greedy_merge_at(key, state: MoveState, emission, data, hyper, j):
-    """Merge skill j into the used skill that explains its steps best, if that raises
-    :func:`merge_score`: returns (state, :class:`GreedyInfo`). The state's ``log_lik`` holds
-    the likelihoods of its ``params``, before and after. ``key`` draws slot j's new parameters
-    from the prior. The emission needs ``fit_evidence``."""
+def _merge_proposal(key, state: MoveState, data, j) -> _Proposal:
+    """Merge skill j into the used skill under whose parameters its steps are likeliest."""
     features, _, z, params, log_lik = state
     K = features.shape[1]
-    mask = data.mask
-    onehot = jax.nn.one_hot(z, K, dtype=jnp.float64) * mask[..., None]
+    onehot = jax.nn.one_hot(z, K, dtype=jnp.float64) * data.mask[..., None]
     used = jnp.sum(onehot, axis=(0, 1)) > 0
     steps_j = onehot[..., j]
     absorb = jnp.sum(log_lik * steps_j[..., None], axis=(0, 1))  # (K,) likelihood of j's steps
     k = jnp.argmax(jnp.where(used & (jnp.arange(K) != j), absorb, -jnp.inf))
-    possible = used[j] & (jnp.sum(used) >= 2)
-
     z_new = jnp.where(z == j, k, z).astype(z.dtype)
     f_new = features.at[:, k].set(jnp.maximum(features[:, k], features[:, j])).at[:, j].set(0.0)
     # the evidence of j's steps, k's steps and their union, fits started at the current parameters
     w = jnp.stack([steps_j, onehot[..., k], steps_j + onehot[..., k]], -1)
     init = jax.tree.map(lambda p: jnp.stack([p[j], p[k], p[k]]), params)
-    fits, log_ev = emission.fit_evidence(data, w, init)
-    gain = log_ev[2] - log_ev[0] - log_ev[1] + (_structure_log_prob(hyper, mask, z_new, f_new)
-                                               - _structure_log_prob(hyper, mask, z, features))
-    prior_j = emission.sample_prior_one(key)
-    two = jax.tree.map(lambda a, b: jnp.stack([a[2], b]), fits, prior_j)  # new k, new j
-    new_params = jax.tree.map(lambda p, t: p.at[k].set(t[0]).at[j].set(t[1]), params, two)
-    cols, _ = emission.log_likelihoods(two, data, emission.init_cache(2))  # (N, T, 2)
-    new_log_lik = log_lik.at[..., k].set(cols[..., 0]).at[..., j].set(cols[..., 1])
-    accept = possible & jnp.isfinite(gain) & (gain > 0)
-    info = GreedyInfo(j, k, possible, accept, jnp.where(possible, gain, -jnp.inf))
-    new = state._replace(features=f_new, z=z_new, params=new_params, log_lik=new_log_lik)
-    return select(accept, new, state), info
+    possible = used[j] & (jnp.sum(used) >= 2)
+    slots = jnp.stack([k, j]).astype(jnp.int32)
+    return _Proposal(z_new, f_new, w, init, jnp.array([-1.0, -1.0, 1.0]), slots, jnp.int32(2), jnp.bool_(True), key,
+                     possible, jnp.bool_(True), jnp.int32(j), jnp.int32(k))
 
 
-def greedy_split(key, state: MoveState, emission, data, hyper, num_blocks: int = 2):
-    """One greedy split trial: returns (state, :class:`GreedyInfo`) (see :func:`greedy_split_at`).
-    The skill is drawn in proportion to its steps (a lumped pair is large), the first anchor
-    uniformly among its steps, the second among its other steps in proportion to
-    exp(-log-likelihood) under the skill (steps it explains badly are likely the other skill's).
-    No reverse move is needed, so the choice may look at the state."""
-    N, T = data.mask.shape
-    features, z, log_lik = state.features, state.z, state.log_lik
-    K = features.shape[1]
-    k_pick, k_a, k_b, k_move = jax.random.split(key, 4)
-    flat = (jax.nn.one_hot(z, K, dtype=bool) & data.mask[..., None]).reshape(N * T, K)
-    counts = jnp.sum(flat, axis=0)
-    k1 = jax.random.categorical(k_pick, jnp.where(counts > 0, jnp.log(jnp.maximum(counts, 1)), -jnp.inf))
-    a = jax.random.categorical(k_a, jnp.where(flat[:, k1], 0.0, -jnp.inf))
-    badness = -log_lik.reshape(N * T, K)[:, k1]
-    b = jax.random.categorical(k_b, jnp.where(flat[:, k1] & (jnp.arange(N * T) != a), badness, -jnp.inf))
-    return greedy_split_at(k_move, state, emission, data, hyper, (a // T, a % T, b // T, b % T), num_blocks)
-
-
-def greedy_split_at(key, state: MoveState, emission, data, hyper, anchors, num_blocks: int = 2):
-    """Split the skill of anchor step (i_a, t_a) between it and a free slot, the step
-    (i_b, t_b) of the same skill going to the new slot, if that raises :func:`merge_score`
-    (see the module notes): returns (state, :class:`GreedyInfo`). ``key`` orders the
-    allocation's trajectories after the anchors'."""
-    features, _, z, params, log_lik = state
+def _split_proposal(key, state: MoveState, emission, data, anchors, num_blocks) -> _Proposal:
+    """Split the skill of anchor a between it and a free slot, anchor b going to the slot, by
+    the split-merge move's sequential allocation."""
+    features, _, z, params, _ = state
     mask = data.mask
     ia, ta, ib, tb = anchors
     k1 = z[ia, ta]
@@ -185,17 +165,125 @@ def greedy_split_at(key, state: MoveState, emission, data, hyper, anchors, num_b
     w = jnp.stack([steps_a, steps_b, steps_a + steps_b], -1)
     # the two parts' fits start at the allocation's, the whole's at k1's current parameters
     init = jax.tree.map(lambda a, p: jnp.stack([a[0], a[1], p]), alloc_fits, theta_k1)
-    fits, log_ev = emission.fit_evidence(data, w, init)
-    gain = log_ev[0] + log_ev[1] - log_ev[2] + (_structure_log_prob(hyper, mask, z_new, f_new)
-                                               - _structure_log_prob(hyper, mask, z, features))
-    two = jax.tree.map(lambda f: f[:2], fits)
-    new_params = jax.tree.map(lambda p, t: p.at[k1].set(t[0]).at[k2].set(t[1]), params, two)
+    slots = jnp.stack([k1, k2]).astype(jnp.int32)
+    return _Proposal(z_new, f_new, w, init, jnp.array([1.0, 1.0, -1.0]), slots, jnp.int32(0), jnp.bool_(False), key,
+                     possible, jnp.any(used_a) & jnp.any(used_b), jnp.int32(k1), jnp.int32(k2))
+
+
+def _keep_if_better(prop: _Proposal, state: MoveState, emission, data, hyper):
+    """Score a proposal by the change of :func:`merge_score` (the three log evidences by one
+    ``fit_evidence`` call), give its two slots their new parameters, and keep it when the score
+    rises: (state, :class:`GreedyInfo`)."""
+    features, _, z, params, log_lik = state
+    fits, log_ev = emission.fit_evidence(data, prop.w, prop.init)
+    gain = jnp.dot(prop.coef, log_ev) + (_structure_log_prob(hyper, data.mask, prop.z, prop.features)
+                                         - _structure_log_prob(hyper, data.mask, z, features))
+    prior = emission.sample_prior_one(prop.prior_key)
+    two = jax.tree.map(lambda f, p: jnp.stack([f[prop.first], jnp.where(prop.second_prior, p, f[1])]), fits, prior)
+    a, b = prop.slots[0], prop.slots[1]
+    new_params = jax.tree.map(lambda p, t: p.at[a].set(t[0]).at[b].set(t[1]), params, two)
     cols, _ = emission.log_likelihoods(two, data, emission.init_cache(2))  # (N, T, 2)
-    new_log_lik = log_lik.at[..., k1].set(cols[..., 0]).at[..., k2].set(cols[..., 1])
-    accept = possible & jnp.any(used_a) & jnp.any(used_b) & jnp.isfinite(gain) & (gain > 0)
-    info = GreedyInfo(k1, k2, possible, accept, jnp.where(possible, gain, -jnp.inf))
-    new = state._replace(features=f_new, z=z_new, params=new_params, log_lik=new_log_lik)
+    new_log_lik = log_lik.at[..., a].set(cols[..., 0]).at[..., b].set(cols[..., 1])
+    accept = prop.possible & prop.valid & jnp.isfinite(gain) & (gain > 0)
+    info = GreedyInfo(prop.j, prop.k, prop.possible, accept, jnp.where(prop.possible, gain, -jnp.inf))
+    new = state._replace(features=prop.features, z=prop.z, params=new_params, log_lik=new_log_lik)
     return select(accept, new, state), info
+
+
+def _pick_merge(key, state: MoveState, data):
+    """A used skill chosen uniformly, and the key of the rest of the trial."""
+    K = state.features.shape[1]
+    k_pick, k_move = jax.random.split(key)
+    used = skill_counts(state.z, data.mask, K) > 0
+    return jax.random.categorical(k_pick, jnp.where(used, 0.0, -jnp.inf)), k_move
+
+
+def _pick_split(key, state: MoveState, data):
+    """The skill (in proportion to its steps) and the two anchor steps of a split (see
+    :func:`greedy_split`), and the key of the rest of the trial."""
+    N, T = data.mask.shape
+    features, z, log_lik = state.features, state.z, state.log_lik
+    K = features.shape[1]
+    k_pick, k_a, k_b, k_move = jax.random.split(key, 4)
+    flat = (jax.nn.one_hot(z, K, dtype=bool) & data.mask[..., None]).reshape(N * T, K)
+    counts = jnp.sum(flat, axis=0)
+    k1 = jax.random.categorical(k_pick, jnp.where(counts > 0, jnp.log(jnp.maximum(counts, 1)), -jnp.inf))
+    a = jax.random.categorical(k_a, jnp.where(flat[:, k1], 0.0, -jnp.inf))
+    badness = -log_lik.reshape(N * T, K)[:, k1]
+    b = jax.random.categorical(k_b, jnp.where(flat[:, k1] & (jnp.arange(N * T) != a), badness, -jnp.inf))
+    return (a // T, a % T, b // T, b % T), k_move
+
+
+def greedy_merge(key, state: MoveState, emission, data, hyper):
+    """One greedy merge trial of a used skill chosen uniformly: returns (state,
+    :class:`GreedyInfo`) (see :func:`greedy_merge_at`)."""
+    j, k_move = _pick_merge(key, state, data)
+    return greedy_merge_at(k_move, state, emission, data, hyper, j)
+
+
+def greedy_merge_at(key, state: MoveState, emission, data, hyper, j):
+    """Merge skill j into the used skill that explains its steps best, if that raises
+    :func:`merge_score`: returns (state, :class:`GreedyInfo`). The state's ``log_lik`` holds
+    the likelihoods of its ``params``, before and after. ``key`` draws slot j's new parameters
+    from the prior. The emission needs ``fit_evidence``."""
+    return _keep_if_better(_merge_proposal(key, state, data, j), state, emission, data, hyper)
+
+
+def greedy_split(key, state: MoveState, emission, data, hyper, num_blocks: int = 2):
+    """One greedy split trial: returns (state, :class:`GreedyInfo`) (see :func:`greedy_split_at`).
+    The skill is drawn in proportion to its steps (a lumped pair is large), the first anchor
+    uniformly among its steps, the second among its other steps in proportion to
+    exp(-log-likelihood) under the skill (steps it explains badly are likely the other skill's).
+    No reverse move is needed, so the choice may look at the state."""
+    anchors, k_move = _pick_split(key, state, data)
+    return greedy_split_at(k_move, state, emission, data, hyper, anchors, num_blocks)
+
+
+def greedy_split_at(key, state: MoveState, emission, data, hyper, anchors, num_blocks: int = 2):
+    """Split the skill of anchor step (i_a, t_a) between it and a free slot, the step
+    (i_b, t_b) of the same skill going to the new slot, if that raises :func:`merge_score`
+    (see the module notes): returns (state, :class:`GreedyInfo`). ``key`` orders the
+    allocation's trajectories after the anchors'."""
+    prop = _split_proposal(key, state, emission, data, anchors, num_blocks)
+    return _keep_if_better(prop, state, emission, data, hyper)
+
+
+def greedy_trials(key_merge, key_split, state: MoveState, emission, data, hyper, num_merges: int,
+                  num_splits: int, num_blocks: int = 2):
+    """``num_merges`` greedy merge trials (keys from ``key_merge``), then ``num_splits`` split
+    trials (keys from ``key_split``), each as :func:`greedy_merge` and :func:`greedy_split`
+    with the same random numbers: returns (state, kept merges, kept splits).
+
+    The trials run in one loop whose body holds one ``fit_evidence`` and one
+    ``log_likelihoods``; only the proposal differs between a merge and a split. For the reward
+    emission, an evidence is an IRL fit and a Fisher information: one compiled copy instead of
+    two is a large part of a fit's compile time."""
+    if num_merges + num_splits == 0:
+        return state, jnp.int32(0), jnp.int32(0)
+    keys = jnp.concatenate([jax.random.split(key_merge, num_merges), jax.random.split(key_split, num_splits)]
+                           if num_merges and num_splits else
+                           [jax.random.split(key_merge if num_merges else key_split, num_merges + num_splits)])
+    is_split = jnp.arange(num_merges + num_splits) >= num_merges
+
+    def merge(key, carry):
+        j, k_move = _pick_merge(key, carry, data)
+        return _merge_proposal(k_move, carry, data, j)
+
+    def split(key, carry):
+        anchors, k_move = _pick_split(key, carry, data)
+        return _split_proposal(k_move, carry, emission, data, anchors, num_blocks)
+
+    def one(carry, x):
+        key, splitting = x
+        if num_merges and num_splits:
+            prop = jax.lax.cond(splitting, split, merge, key, carry)
+        else:
+            prop = (merge if num_merges else split)(key, carry)
+        carry, info = _keep_if_better(prop, carry, emission, data, hyper)
+        return carry, info.accepted
+
+    state, accepted = jax.lax.scan(one, state, (keys, is_split))
+    return (state, jnp.sum(accepted & ~is_split, dtype=jnp.int32), jnp.sum(accepted & is_split, dtype=jnp.int32))
 
 
 float64_all(globals())  # npbrs.domains.precision: float64 inside, the user's setting outside

@@ -35,7 +35,7 @@ from npbrs.models.hmm import batch_backward_sample, batch_forward_filter, transi
 from npbrs.domains.precision import float64_all
 
 from .birth_death import birth_death
-from .greedy import greedy_merge, greedy_split
+from .greedy import greedy_trials
 from .options import check_moves
 from .split_merge import split_merge
 from .state import MoveState
@@ -408,15 +408,9 @@ class BPHMMKernel(MCMCKernel, Pytree):
 
             def greedy_run(ops):
                 k_merge, k_split = jax.random.split(k_gm)
-                kept = []
-                for name, move, k in (("greedy_merge", greedy_merge, k_merge),
-                                      ("greedy_split", partial(greedy_split, num_blocks=blocks), k_split)):
-                    if self.moves[name]:
-                        ops, accepted = trials(move, k, self.moves[name])(ops)
-                        kept.append(jnp.sum(accepted, dtype=jnp.int32))
-                    else:
-                        kept.append(jnp.int32(0))
-                return ops, tuple(kept)
+                ops, merged, split = greedy_trials(k_merge, k_split, ops, self.emission, self.data, state.hyper,
+                                                   self.moves["greedy_merge"], self.moves["greedy_split"], blocks)
+                return ops, (merged, split)
 
             moved, (merged, split) = jax.lax.cond(
                 greedy_on, greedy_run, lambda ops: (ops, (jnp.int32(0), jnp.int32(0))), moved)
