@@ -45,6 +45,7 @@ from ..domains.solvers import SoftSolver, make_soft_solver
 from npbrs.domains.precision import float64_all
 
 __all__ = ["PRIOR_SCALE", "count_table", "log_policy", "step_log_likelihoods", "count_log_likelihood",
+           "count_log_likelihood_and_values",
            "count_log_likelihood_and_grad", "fisher_information", "log_prior", "log_posterior", "Posterior", "irl_fit",
            "fit_reward", "IRLFit", "as_solver"]
 
@@ -296,6 +297,15 @@ def log_posterior(solver, theta, counts, v0, prior_scale=PRIOR_SCALE, temperatur
     grad = g - theta / scale ** 2
     ok = converged & jnp.isfinite(lp) & jnp.all(jnp.isfinite(grad), axis=-1)
     return Posterior(lp, grad, V, ok, ll)
+
+
+def count_log_likelihood_and_values(solver, theta, counts, v0, temperature=1.0, epsilon=0.0):
+    """The log-likelihood part of :func:`log_posterior` without its gradient (no adjoint solve):
+    (log_lik (K,), soft values V (K, S), ok (K,): the solve converged and log_lik is finite),
+    for moves that need the density's value only (e.g. the reward scale's magnitude move)."""
+    log_pi, V, residual = _solve_policy(solver, theta, v0, temperature, epsilon)
+    ll = jnp.sum(counts * log_pi, axis=(-2, -1))
+    return ll, V, (residual <= solver.tol) & jnp.isfinite(ll)
 
 
 def _ll_and_grad(solver, theta, counts, v0, epsilon=0.0):

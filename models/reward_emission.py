@@ -48,7 +48,8 @@ from ..domains.solvers import make_soft_solver
 from .emissions import Emission, EmissionInfo, register_emission
 from . import reward_mala
 from .mcmc import metropolis_accept, select
-from .reward import count_table, fisher_information, fit_reward, log_policy, log_posterior, log_prior, step_log_likelihoods
+from .reward import (count_log_likelihood_and_values, count_table, fisher_information, fit_reward, log_policy, log_prior,
+                     step_log_likelihoods)
 from npbrs.domains.precision import float64_all
 
 __all__ = ["RewardEmission", "SingleRewardEmission"]
@@ -285,11 +286,12 @@ class RewardEmission(Emission):
         log_c = jnp.exp(cache["log_rescale"]) * jax.random.normal(k_c, (K,))
         c = jnp.exp(log_c)
         prop, s2_prop = theta * c[:, None], sigma2 * c ** 2
-        post = log_posterior(self.solver, prop, counts, cache["V"], jnp.sqrt(s2_prop), self.temperature, self.epsilon)
+        ll_new, V_new, ok = count_log_likelihood_and_values(self.solver, prop, counts, cache["V"], self.temperature,
+                                                            self.epsilon)
         prior = self._variance_prior()
-        log_ratio = post.log_lik - ll_old + prior.log_prob(s2_prop) - prior.log_prob(sigma2) + 2.0 * log_c
-        accept, rate = metropolis_accept(k_acc, log_ratio, post.ok)
-        theta, V = select(accept, (prop, post.V), (theta, cache["V"]))
+        log_ratio = ll_new - ll_old + prior.log_prob(s2_prop) - prior.log_prob(sigma2) + 2.0 * log_c
+        accept, rate = metropolis_accept(k_acc, log_ratio, ok)
+        theta, V = select(accept, (prop, V_new), (theta, cache["V"]))
         log_rescale = jnp.where(adapt, cache["log_rescale"] + 0.3 * (rate - 0.4), cache["log_rescale"])
         return theta, {**cache, "V": V, "log_rescale": log_rescale}
 

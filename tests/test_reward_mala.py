@@ -127,3 +127,24 @@ def test_bad_shapes_are_reported():
         init(solver, jnp.zeros((1, 1)), C, epsilon=1.0)
     with pytest.raises(ValueError, match="prior_scale"):
         build_kernel(solver, prior_scale=-1.0)
+
+
+def test_the_value_only_likelihood_is_the_posteriors_and_flags_a_failed_solve():
+    """``count_log_likelihood_and_values`` (the magnitude move's density, no adjoint solve) is
+    :func:`log_posterior`'s log-likelihood and values at any temperature and noise rate, and is
+    not ok where the solve missed its tolerance."""
+    from npbrs.models.reward import count_log_likelihood_and_values, log_posterior
+
+    C = jnp.asarray([[[3.0, 7.0]], [[10.0, 2.0]]])
+    theta = jnp.asarray([[0.3], [-1.2]])
+    for solver, converges in ((make_soft_solver(logistic_mdp(), tol=1e-12), True),
+                              (make_soft_solver(logistic_mdp(gamma=0.99), tol=1e-12, method="vi", max_iter=1), False)):
+        ll, V, ok = jax.jit(lambda t: count_log_likelihood_and_values(solver, t, C, None, 2.0, 0.1))(theta)
+        post = jax.jit(lambda t: log_posterior(solver, t, C, None, 1.0, 2.0, 0.1))(theta)
+        np.testing.assert_allclose(np.asarray(ll), np.asarray(post.log_lik), rtol=1e-12)
+        np.testing.assert_allclose(np.asarray(V), np.asarray(post.V), rtol=1e-12)
+        assert np.asarray(ok).tolist() == [converges, converges]
+        if converges:  # the logistic policy's own value: pi(1) = (1 - eps) sigmoid(tau theta) + eps / 2
+            p1 = 0.9 * expit(2.0 * np.asarray(theta)[:, 0]) + 0.05
+            n0, n1 = np.asarray(C)[:, 0, 0], np.asarray(C)[:, 0, 1]
+            np.testing.assert_allclose(np.asarray(ll), n1 * np.log(p1) + n0 * np.log1p(-p1), rtol=1e-10)
