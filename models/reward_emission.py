@@ -1,18 +1,19 @@
 """The reward emission: each skill is a reward r_k = phi . theta_k, and a step is emitted by the
 Boltzmann (maximum-entropy) policy of that reward, pi_k(a | s) = exp(Q_k(s, a) - V_k(s)).
 
-Prior theta_k ~ Normal(0, prior_scale^2 I). The conditional of theta_k given its steps
+Prior theta_k | sigma_k ~ Normal(0, sigma_k^2 I). The conditional of theta_k given its steps
 depends on the steps only through their (S, A) count table (:mod:`npbrs.models.reward`).
 
-With ``scale_prior=(a, b)`` each skill's prior variance is sampled instead: sigma_k^2 ~
+By default (``scale_prior=(a, b)``, (1, 1)) each skill's prior variance is sampled: sigma_k^2 ~
 InvGamma(a, b) (the site ``sigma2``), theta_k | sigma_k ~ Normal(0, sigma_k^2 I), so that the data
 say how large rewards are (one weight per state, the usual choice without features, wants a
 much narrower prior than three hand-made features do). After the move on theta_k, a joint move
 of its magnitude, (theta_k, sigma_k^2) -> (c theta_k, c^2 sigma_k^2), and then sigma_k^2 from its
 exact conditional InvGamma(a + D/2, b + |theta_k|^2 / 2); a skill without steps draws both from
-the prior. Proposals fit theta at the fixed ``prior_scale`` (a reference only)
-and draw sigma^2 from its conditional given the proposed theta, so that the proposal's ratio
-to the prior is the marginal (Student-t) prior of theta.
+the prior. With ``scale_prior=False`` sigma_k is the fixed ``prior_scale`` (10), as in the
+paper. Proposals fit theta at the fixed ``prior_scale`` (a reference only) and draw sigma^2
+from its conditional given the proposed theta, so that the proposal's ratio to the prior is
+the marginal (Student-t) prior of theta.
 
 Moves on theta_k (``update``):
 
@@ -77,9 +78,10 @@ class RewardEmission(Emission):
         proposal_inflation: factor on the proposal's standard deviations.
         proposal_broad_weight, proposal_broad_scale: weight w and scale s of the broad
             component of the defensive-mixture proposal (w = 0: a single Gaussian).
-        scale_prior: None (the prior's sigma is ``prior_scale``) or (a, b): each skill's prior
-            variance sigma_k^2 ~ InvGamma(a, b) is sampled (see the module docstring);
-            ``prior_scale`` then only sets the proposals' fits and the first preconditioner.
+        scale_prior: (a, b), default (1, 1): each skill's prior variance sigma_k^2 ~
+            InvGamma(a, b) is sampled (see the module docstring), and ``prior_scale`` only sets
+            the proposals' fits and the first preconditioner; False (or None, "off"): the prior's
+            sigma is ``prior_scale``, fixed.
         solver_options: keyword options of :func:`npbrs.domains.make_soft_solver`.
         epsilon: probability that the demonstrator acts uniformly at random instead of by the
             skill's Boltzmann policy (a noisy expert): pi = (1 - eps) Boltzmann + eps / A. A few
@@ -92,7 +94,7 @@ class RewardEmission(Emission):
                  update: str = "mala", mala_steps: int = 3, step_size: float = 0.5, target_accept: float = 0.6,
                  map_steps: int = 5, fit_steps: int = 20, refit_steps: int = 3, proposal_inflation: float = 1.5,
                  solver_options: Optional[dict] = None, epsilon: float = 0.0, proposal_broad_weight: float = 0.1,
-                 proposal_broad_scale: float = 10.0, scale_prior=None):
+                 proposal_broad_scale: float = 10.0, scale_prior=(1.0, 1.0)):
         if update not in _UPDATES:
             raise ValueError(f"unknown reward update {update!r}; expected one of {_UPDATES}")
         for name, value in [("prior_scale", prior_scale), ("temperature", temperature), ("step_size", step_size),
@@ -109,11 +111,13 @@ class RewardEmission(Emission):
                             ("refit_steps", refit_steps)]:
             if not isinstance(value, (int, np.integer)) or value < 1:
                 raise ValueError(f"{name} must be an integer >= 1, got {value!r}")
-        if scale_prior is not None:
+        if scale_prior is False or scale_prior is None or (isinstance(scale_prior, str) and scale_prior == "off"):
+            scale_prior = None
+        else:
             if np.ndim(scale_prior) != 1 or len(scale_prior) != 2 or not all(
                     np.isfinite(v) and v > 0 for v in scale_prior):
-                raise ValueError(f"scale_prior must be None or (a, b), two positive numbers (sigma^2 ~ InvGamma(a, b)), "
-                                 f"got {scale_prior!r}")
+                raise ValueError(f"scale_prior must be (a, b), two positive numbers (sigma^2 ~ InvGamma(a, b)), or "
+                                 f"False/None/'off' (a fixed prior_scale), got {scale_prior!r}")
             scale_prior = (float(scale_prior[0]), float(scale_prior[1]))
         self.scale_prior = scale_prior
         if discount is not None:
@@ -144,7 +148,9 @@ class RewardEmission(Emission):
                 "step_size": self.step_size, "target_accept": self.target_accept, "map_steps": self.map_steps,
                 "fit_steps": self.fit_steps, "refit_steps": self.refit_steps, "proposal_inflation": self.proposal_inflation,
                 "epsilon": self.epsilon, "proposal_broad_weight": self.proposal_broad_weight,
-                "proposal_broad_scale": self.proposal_broad_scale, "scale_prior": self.scale_prior}
+                "proposal_broad_scale": self.proposal_broad_scale,
+                # False, not None, for a fixed scale: a saved configuration (TOML has no None) keeps it
+                "scale_prior": list(self.scale_prior) if self.scale_prior else False}
 
     # ------------------------------------------------------------------ prior
     def _variance_prior(self):
@@ -314,36 +320,106 @@ class RewardEmission(Emission):
         cond = self._variance_conditional(theta)
         return {"theta": theta, "sigma2": cond.rate / (cond.concentration + 1.0)}
 
-    def _laplace(self, counts, init=None):
+    def _laplace(self, counts, init=None, at_sampled_scale=False):
         """IRL fits (M, D) to count tables (M, S, A), ``refit_steps`` L-BFGS steps from ``init``
-        (or ``fit_steps`` from theta = 0), their log-likelihoods (M,) and the posterior
-        precisions (M, D, D) at the fits, F + I / sigma^2 (F: the Fisher information, the
-        observed one's stand-in), symmetrised. Shared by the proposal and the evidence."""
+        (or ``fit_steps`` from theta = 0), their log-likelihoods (M,), the posterior precisions
+        (M, D, D) at the fits, F + I / sigma^2 (F: the Fisher information, the observed one's
+        stand-in), symmetrised, and the sigma (M,) of the fits' prior. Shared by the proposal
+        and the evidence. With ``at_sampled_scale`` (a sampled prior variance) the fit is
+        refitted, ``fit_steps`` steps, at sigma^2 = (b + |theta|^2 / 2) / (a + D / 2) of the
+        first fit (where the Student-t prior's gradient is the Gaussian's): one compiled fit for
+        both passes."""
         M, D = counts.shape[0], self.num_features
         theta0 = jnp.zeros((M, D)) if init is None else init["theta"]
         steps = self.fit_steps if init is None else self.refit_steps
-        fit, log_lik, V, _, _ = fit_reward(self.solver, counts, theta0, jnp.zeros((M, self.num_states)),
-                                           self.prior_scale, steps, epsilon=self.epsilon, temperature=self.temperature)
+        fit_at = lambda theta, v, scale, n: fit_reward(self.solver, counts, theta, v, scale, n,  # noqa: E731
+                                                       epsilon=self.epsilon, temperature=self.temperature)[:3]
+        scale = jnp.full((M,), self.prior_scale)
+        if not at_sampled_scale:
+            fit, log_lik, V = fit_at(theta0, jnp.zeros((M, self.num_states)), scale, steps)
+        else:
+            a, b = self.scale_prior
+
+            def one(carry, first):
+                theta, _, V, scale = carry
+                scale = jnp.where(first, scale, jnp.sqrt((b + 0.5 * jnp.sum(theta ** 2, -1)) / (a + 0.5 * D)))
+                return (*fit_at(theta, V, scale, max(steps, self.fit_steps)), scale), None
+
+            (fit, log_lik, V, scale), _ = jax.lax.scan(
+                one, (theta0, jnp.zeros(M), jnp.zeros((M, self.num_states)), scale), jnp.array([True, False]))
         F = fisher_information(self.solver, fit, counts, V, self.temperature)  # (M, D, D)
-        precision = F + jnp.eye(D) / self.prior_scale ** 2
-        return fit, log_lik, 0.5 * (precision + jnp.swapaxes(precision, -1, -2))
+        precision = F + jnp.eye(D) / scale[:, None, None] ** 2
+        return fit, log_lik, 0.5 * (precision + jnp.swapaxes(precision, -1, -2)), scale
 
     def fit_evidence(self, data, weights, init=None):
         """IRL fits (M, D) to weighted steps (N, T, M) and each skill's Laplace log evidence at
         its fit, log p(steps | theta) + log p0(theta) + D/2 log 2 pi - 1/2 log det(precision)
-        (see :meth:`_laplace`)."""
-        theta, log_lik, precision = self._laplace(self._counts(data, weights), init)
-        _, logdet = jnp.linalg.slogdet(precision)
-        params = self._point(theta)
-        log_ev = (log_lik + self.log_prior(params) + 0.5 * self.num_features * jnp.log(2 * jnp.pi)
-                  - 0.5 * logdet)
-        return params, log_ev
+        (see :meth:`_laplace`); with a sampled prior variance, sigma^2 integrated out too
+        (:meth:`_scale_mixture_evidence`)."""
+        counts = self._counts(data, weights)
+        if not self.scale_prior:
+            theta, log_lik, precision, _ = self._laplace(counts, init)
+            _, logdet = jnp.linalg.slogdet(precision)
+            log_ev = (log_lik + self.log_prior({"theta": theta}) + 0.5 * self.num_features * jnp.log(2 * jnp.pi)
+                      - 0.5 * logdet)
+            return self._point(theta), log_ev
+        theta, log_lik, precision, scale = self._laplace(counts, init, at_sampled_scale=True)
+        return self._point(theta), self._scale_mixture_evidence(theta, log_lik, precision, scale ** 2)
+
+    # the coarse grid of log sigma^2 that finds the peak of the evidence's integrand
+    _LOG_VARIANCE_NODES = np.linspace(-16.0, 16.0, 257)
+
+    def _scale_mixture_evidence(self, theta, log_lik, precision, s2_fit):
+        """The log evidence (M,) with sigma^2 ~ InvGamma(a, b) integrated out. The likelihood is
+        taken as the quadratic around the fit theta, made at prior variance ``s2_fit`` (M,): its
+        gradient there is theta / s2_fit (the fit's stationarity), its curvature the Fisher
+        information F = precision - I / s2_fit. Its integral against Normal(0, sigma^2 I) is
+        closed-form for every sigma^2,
+
+            log ev(sigma^2) = c0 - D/2 log sigma^2 - 1/2 log det P + 1/2 h' P^-1 h,
+            P = F + I / sigma^2, h = precision theta, c0 = log L - h' theta + 1/2 theta' F theta,
+
+        (one eigendecomposition of F serves every sigma^2), and the integral over sigma^2 is a
+        trapezoid rule in log sigma^2, 257 nodes on +-10 sd around the integrand's peak (found on
+        a coarse grid of [-16, 16] and one Newton step). With the prior's variance pinned at
+        s2_fit it is the fixed-scale Laplace evidence."""
+        D = self.num_features
+        F = precision - jnp.eye(D) / s2_fit[:, None, None]
+        lam, Q = jnp.linalg.eigh(0.5 * (F + jnp.swapaxes(F, -1, -2)))
+        lam = jnp.maximum(lam, 0.0)  # (M, D)
+        h = jnp.einsum("mde,me->md", precision, theta)
+        c0 = log_lik - jnp.sum(h * theta, -1) + 0.5 * jnp.einsum("md,mde,me->m", theta, F, theta)
+        hq2 = jnp.einsum("mde,md->me", Q, h) ** 2  # (M, D)
+        prior = self._variance_prior()
+
+        def log_integrand(u):  # u: (J, M) values of log sigma^2 -> (J, M)
+            inv = jnp.exp(-u)[..., None]
+            per = (c0 - 0.5 * D * u - 0.5 * jnp.sum(jnp.log(lam + inv), -1) + 0.5 * jnp.sum(hq2 / (lam + inv), -1))
+            return per + prior.log_prob(jnp.exp(u)) + u  # the prior's density in log sigma^2
+
+        # a coarse grid finds the peak, one Newton step by central differences centres it
+        # (exact for a quadratic), and the trapezoid rule runs on +-10 sd around it
+        coarse = jnp.broadcast_to(jnp.asarray(self._LOG_VARIANCE_NODES)[:, None], (257, theta.shape[0]))
+        f = log_integrand(coarse)
+        j = jnp.clip(jnp.argmax(f, axis=0), 1, 255)
+        cols = jnp.arange(theta.shape[0])
+        step = coarse[1, 0] - coarse[0, 0]
+        d1 = (f[j + 1, cols] - f[j - 1, cols]) / (2 * step)
+        d2 = (f[j + 1, cols] - 2 * f[j, cols] + f[j - 1, cols]) / step ** 2
+        curved = d2 < -1e-12
+        peak = jnp.where(curved, coarse[j, cols] - d1 / jnp.where(curved, d2, -1.0), coarse[j, cols])
+        sd = jnp.clip(jnp.where(curved, 1.0 / jnp.sqrt(-jnp.where(curved, d2, -1.0)), 4.0), 1e-4, 4.0)
+        x = jnp.linspace(-10.0, 10.0, 257)
+        fine = peak[None] + x[:, None] * sd[None]
+        ends = (jnp.arange(257) == 0) | (jnp.arange(257) == 256)
+        log_du = jnp.log(jnp.where(ends, 0.5, 1.0) * (x[1] - x[0]))[:, None] + jnp.log(sd)[None]
+        return jax.scipy.special.logsumexp(log_integrand(fine) + log_du, axis=0)
 
     def _proposal(self, data, weights, init=None):
         """Mean (D,) and Cholesky factor (D, D) of the proposal fitted to weighted steps."""
         D = self.num_features
         one = None if init is None else {"theta": init["theta"][None]}
-        mean, _, precision = self._laplace(self._counts(data, weights)[None], one)
+        mean, _, precision, _ = self._laplace(self._counts(data, weights)[None], one)
         cov = jnp.linalg.inv(precision[0]) * self.proposal_inflation ** 2
         chol = jnp.linalg.cholesky(0.5 * (cov + cov.T) + 1e-12 * jnp.eye(D))
         return mean[0], chol

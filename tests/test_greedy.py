@@ -137,10 +137,13 @@ def test_policy_evidence_is_the_prior_expectation_of_the_likelihood():
     np.testing.assert_allclose(np.asarray(log_ev), mc, atol=0.03)
 
 
-def test_reward_laplace_evidence_is_close_to_importance_sampling():
+@pytest.mark.parametrize("scale_prior", [False, (2.0, 4.0)])
+def test_reward_laplace_evidence_is_close_to_importance_sampling(scale_prior):
     """The reward emission's Laplace evidence against an importance-sampling estimate of
-    log E_prior[p(steps | theta)] (proposal: a wide Gaussian around the fit), on a gridworld."""
+    log E_prior[p(steps | theta)] (proposal: a wide Gaussian around the fit), on a gridworld;
+    with a sampled prior variance the prior is theta's marginal, a multivariate Student t."""
     from gridworld import gridworld
+    from jax.scipy.special import gammaln
 
     from npbrs.domains.demos import generate_demonstrations
     from npbrs.inference import make_emission
@@ -149,7 +152,7 @@ def test_reward_laplace_evidence_is_close_to_importance_sampling():
     dom = gridworld(size=3)
     demos = generate_demonstrations(dom, num_trajectories=2, length=30, switch_prob=0.05, seed=1)
     data = HMMData.from_demonstrations(demos)
-    em = make_emission("reward", dom.mdp, prior_scale=3.0)
+    em = make_emission("reward", dom.mdp, prior_scale=3.0, scale_prior=scale_prior)
     z = np.zeros(data.mask.shape, int)
     for i, s in enumerate(demos.skills):
         z[i, :len(s)] = s
@@ -160,6 +163,14 @@ def test_reward_laplace_evidence_is_close_to_importance_sampling():
 
     from numpyro.distributions import MultivariateNormal
 
+    def log_prior(theta):
+        if not scale_prior:
+            return em.log_prior({"theta": theta})
+        a, b = scale_prior
+        D = theta.shape[-1]
+        return (gammaln(a + D / 2) - gammaln(a) - D / 2 * jnp.log(2 * jnp.pi * b)
+                - (a + D / 2) * jnp.log1p(jnp.sum(theta ** 2, -1) / (2 * b)))
+
     @jax.jit  # one program for the three skills (op by op it was a hundred)
     def estimate(key, fit, w):
         count = em._counts(data, w[..., None])[0]
@@ -167,11 +178,20 @@ def test_reward_laplace_evidence_is_close_to_importance_sampling():
         q = MultivariateNormal(fit, 4.0 * jnp.linalg.inv(F))
         theta = q.sample(key, (4000,))
         ll = jnp.einsum("ntd,nt->d", em.log_likelihoods({"theta": theta}, data)[0], w)
-        log_w = ll + em.log_prior({"theta": theta}) - q.log_prob(theta)
+        log_w = ll + log_prior(theta) - q.log_prob(theta)
         return jax.scipy.special.logsumexp(log_w) - np.log(theta.shape[0])
 
     estimates = [float(estimate(jax.random.PRNGKey(m), fits["theta"][m], weights[..., m])) for m in range(3)]
     np.testing.assert_allclose(np.asarray(log_ev), estimates, atol=0.3)
+    if scale_prior:
+        # with the prior's variance pinned (at the variance of the fit), the fixed-scale Laplace evidence
+        pinned = make_emission("reward", dom.mdp, prior_scale=3.0, scale_prior=(1e6, 9e6))
+        theta, log_lik, precision, _ = jax.jit(em._laplace)(em._counts(data, weights))
+        fixed = make_emission("reward", dom.mdp, prior_scale=3.0, scale_prior=False)
+        _, logdet = jnp.linalg.slogdet(precision)
+        laplace = log_lik + fixed.log_prior({"theta": theta}) + 1.5 * np.log(2 * np.pi) - 0.5 * logdet
+        np.testing.assert_allclose(np.asarray(pinned._scale_mixture_evidence(theta, log_lik, precision, jnp.full(3, 9.0))),
+                                   np.asarray(laplace), atol=2e-3)
 
 
 def test_a_lumped_pair_is_split_and_a_true_skill_is_not():

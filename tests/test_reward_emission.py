@@ -27,6 +27,18 @@ def test_reward_emission_follows_the_protocol():
     check_emission(RewardEmission(dom.mdp, scale_prior=(2.0, 8.0)), HMMData.from_demonstrations(demos), sampler=False)
     with pytest.raises(ValueError, match="scale_prior"):
         RewardEmission(dom.mdp, scale_prior=(2.0, -1.0))
+    # the default samples the prior variance, sigma^2 ~ InvGamma(1, 1); False, None or "off" fix
+    # it at prior_scale, and a saved configuration keeps the choice (TOML has no None)
+    from npbrs.inference import ModelConfig, make_emission
+
+    assert RewardEmission(dom.mdp).scale_prior == (1.0, 1.0)
+    for off in (False, None, "off"):
+        assert RewardEmission(dom.mdp, scale_prior=off).scale_prior is None
+    for em in (RewardEmission(dom.mdp), RewardEmission(dom.mdp, scale_prior=False)):
+        options = {k: v for k, v in em.describe().items() if k != "name"}
+        cfg = ModelConfig.from_dict({"emission": {"name": "reward", "options": options}})
+        back = ModelConfig.from_toml_string(cfg.to_toml()).emission.options
+        assert make_emission("reward", dom.mdp, **back).scale_prior == em.scale_prior
     # the noisy expert's emission: its likelihoods are the mixture's (the rest of the protocol is
     # the same code as above; its likelihood's gradient is tested in test_reward.py, and a second
     # full protocol run here cost a minute of the test suite's compiling)
@@ -127,7 +139,8 @@ def test_data_driven_proposal_is_the_defensive_mixture_it_scores():
     dom = gridworld(size=3)
     demos = generate_demonstrations(dom, num_trajectories=2, length=15, seed=3)
     data = HMMData.from_demonstrations(demos)
-    em = RewardEmission(dom.mdp, proposal_broad_weight=0.2, proposal_broad_scale=5.0)
+    # (the fixed-scale emission: its proposal of theta is the whole proposal)
+    em = RewardEmission(dom.mdp, proposal_broad_weight=0.2, proposal_broad_scale=5.0, scale_prior=False)
     weights = jnp.asarray(data.mask, jnp.float64)
     mean, chol = (np.asarray(x) for x in jax.jit(em._proposal)(data, weights))
     D = mean.shape[0]
@@ -150,7 +163,7 @@ def test_data_driven_proposal_is_the_defensive_mixture_it_scores():
     expected = 0.8 * 0.01 + 0.2 * chi2_dist.sf(q / 25.0, D)
     assert abs(np.mean(r2 > q) - expected) < 4 * np.sqrt(expected * (1 - expected) / 4000)
     # w = 0 is the single Gaussian
-    plain = RewardEmission(dom.mdp, proposal_broad_weight=0.0)
+    plain = RewardEmission(dom.mdp, proposal_broad_weight=0.0, scale_prior=False)
     th, lq, _ = jax.jit(plain.propose_and_score)(jax.random.PRNGKey(1), data, weights, other)
     np.testing.assert_allclose(float(lq), multivariate_normal(mean, cov).logpdf(np.asarray(th["theta"])), rtol=1e-8)
     with pytest.raises(ValueError, match="proposal_broad_weight"):
@@ -167,7 +180,7 @@ def test_irl_fits_find_the_posterior_mode_at_any_temperature(tau):
 
     mode = brentq(lambda t: 70 * tau - 100 * tau * expit(tau * t) - t, -10, 10)
     em = RewardEmission(one_state_mdp(), prior_scale=1.0, temperature=tau, refit_steps=20, fit_steps=40,
-                        map_steps=40, update="map")
+                        map_steps=40, update="map", scale_prior=False)
     data = HMMData(jnp.zeros((1, 100), jnp.int32), jnp.asarray([[0] * 30 + [1] * 70], jnp.int32),
                    jnp.ones((1, 100), bool))
     w = jnp.ones((1, 100, 1))
