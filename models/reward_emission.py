@@ -1,19 +1,21 @@
 """The reward emission: each skill is a reward r_k = phi . theta_k, and a step is emitted by the
 Boltzmann (maximum-entropy) policy of that reward, pi_k(a | s) = exp(Q_k(s, a) - V_k(s)).
 
-Prior theta_k | sigma_k ~ Normal(0, sigma_k^2 I). The conditional of theta_k given its steps
+Prior theta_k ~ Normal(0, prior_scale^2 I). The conditional of theta_k given its steps
 depends on the steps only through their (S, A) count table (:mod:`npbrs.models.reward`).
 
-By default (``scale_prior=(a, b)``, (1, 1)) each skill's prior variance is sampled: sigma_k^2 ~
+With ``scale_prior=(a, b)`` each skill's prior variance is sampled instead: sigma_k^2 ~
 InvGamma(a, b) (the site ``sigma2``), theta_k | sigma_k ~ Normal(0, sigma_k^2 I), so that the data
 say how large rewards are (one weight per state, the usual choice without features, wants a
 much narrower prior than three hand-made features do). After the move on theta_k, a joint move
 of its magnitude, (theta_k, sigma_k^2) -> (c theta_k, c^2 sigma_k^2), and then sigma_k^2 from its
 exact conditional InvGamma(a + D/2, b + |theta_k|^2 / 2); a skill without steps draws both from
-the prior. With ``scale_prior=False`` sigma_k is the fixed ``prior_scale`` (10), as in the
-paper. Proposals fit theta at the fixed ``prior_scale`` (a reference only) and draw sigma^2
+the prior. Proposals fit theta at the fixed ``prior_scale`` (a reference only) and draw sigma^2
 from its conditional given the proposed theta, so that the proposal's ratio to the prior is
-the marginal (Student-t) prior of theta.
+the marginal (Student-t) prior of theta. That prior's tail in |theta| falls only as
+|theta|^-(2a + 1): a skill whose steps a deterministic policy explains (the likelihood keeps
+rising with the reward's scale) then wanders to huge scales with a = 1 (a 10 x 64 gridworld,
+2 chains of 40 + 40 sweeps: R-hat of the log joint 1.24), which is why it is not the default.
 
 Moves on theta_k (``update``):
 
@@ -78,10 +80,10 @@ class RewardEmission(Emission):
         proposal_inflation: factor on the proposal's standard deviations.
         proposal_broad_weight, proposal_broad_scale: weight w and scale s of the broad
             component of the defensive-mixture proposal (w = 0: a single Gaussian).
-        scale_prior: (a, b), default (1, 1): each skill's prior variance sigma_k^2 ~
-            InvGamma(a, b) is sampled (see the module docstring), and ``prior_scale`` only sets
-            the proposals' fits and the first preconditioner; False (or None, "off"): the prior's
-            sigma is ``prior_scale``, fixed.
+        scale_prior: False (default; or None, "off"): the prior's sigma is ``prior_scale``,
+            fixed; or (a, b): each skill's prior variance sigma_k^2 ~ InvGamma(a, b) is sampled
+            (see the module docstring), and ``prior_scale`` only sets the proposals' fits and
+            the first preconditioner.
         solver_options: keyword options of :func:`npbrs.domains.make_soft_solver`.
         epsilon: probability that the demonstrator acts uniformly at random instead of by the
             skill's Boltzmann policy (a noisy expert): pi = (1 - eps) Boltzmann + eps / A. A few
@@ -94,7 +96,7 @@ class RewardEmission(Emission):
                  update: str = "mala", mala_steps: int = 3, step_size: float = 0.5, target_accept: float = 0.6,
                  map_steps: int = 5, fit_steps: int = 20, refit_steps: int = 3, proposal_inflation: float = 1.5,
                  solver_options: Optional[dict] = None, epsilon: float = 0.0, proposal_broad_weight: float = 0.1,
-                 proposal_broad_scale: float = 10.0, scale_prior=(1.0, 1.0)):
+                 proposal_broad_scale: float = 10.0, scale_prior=False):
         if update not in _UPDATES:
             raise ValueError(f"unknown reward update {update!r}; expected one of {_UPDATES}")
         for name, value in [("prior_scale", prior_scale), ("temperature", temperature), ("step_size", step_size),

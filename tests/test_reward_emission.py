@@ -27,14 +27,14 @@ def test_reward_emission_follows_the_protocol():
     check_emission(RewardEmission(dom.mdp, scale_prior=(2.0, 8.0)), HMMData.from_demonstrations(demos), sampler=False)
     with pytest.raises(ValueError, match="scale_prior"):
         RewardEmission(dom.mdp, scale_prior=(2.0, -1.0))
-    # the default samples the prior variance, sigma^2 ~ InvGamma(1, 1); False, None or "off" fix
-    # it at prior_scale, and a saved configuration keeps the choice (TOML has no None)
+    # the default fixes the prior's scale at prior_scale (as do False, None and "off"); (a, b)
+    # samples its variance, and a saved configuration keeps the choice (TOML has no None)
     from npbrs.inference import ModelConfig, make_emission
 
-    assert RewardEmission(dom.mdp).scale_prior == (1.0, 1.0)
+    assert RewardEmission(dom.mdp).scale_prior is None
     for off in (False, None, "off"):
         assert RewardEmission(dom.mdp, scale_prior=off).scale_prior is None
-    for em in (RewardEmission(dom.mdp), RewardEmission(dom.mdp, scale_prior=False)):
+    for em in (RewardEmission(dom.mdp, scale_prior=[1, 1]), RewardEmission(dom.mdp)):
         options = {k: v for k, v in em.describe().items() if k != "name"}
         cfg = ModelConfig.from_dict({"emission": {"name": "reward", "options": options}})
         back = ModelConfig.from_toml_string(cfg.to_toml()).emission.options
