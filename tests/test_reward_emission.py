@@ -142,11 +142,20 @@ def test_data_driven_proposal_is_the_defensive_mixture_it_scores():
     # (the fixed-scale emission: its proposal of theta is the whole proposal)
     em = RewardEmission(dom.mdp, proposal_broad_weight=0.2, proposal_broad_scale=5.0, scale_prior=False)
     weights = jnp.asarray(data.mask, jnp.float64)
-    mean, chol = (np.asarray(x) for x in jax.jit(em._proposal)(data, weights))
+    plain = RewardEmission(dom.mdp, proposal_broad_weight=0.0, scale_prior=False)  # w = 0: the single Gaussian
+
+    @jax.jit  # one program: XLA shares the proposals' common IRL fit (four programs took twice as long)
+    def run(keys, key):
+        mean, chol = em._proposal(data, weights)
+        other = {"theta": mean + 7.0 * jnp.diag(chol)}
+        thetas, log_q, log_q_other = jax.vmap(lambda k: em.propose_and_score(k, data, weights, other))(keys)
+        first = em.log_proposal({"theta": thetas["theta"][0]}, data, weights)
+        return mean, chol, other, thetas, log_q, log_q_other, first, plain.propose_and_score(key, data, weights, other)
+
+    mean, chol, other, thetas, log_q, log_q_other, first, (th, lq, _) = run(
+        jax.random.split(jax.random.PRNGKey(0), 4000), jax.random.PRNGKey(1))
+    mean, chol = np.asarray(mean), np.asarray(chol)
     D = mean.shape[0]
-    other = {"theta": jnp.asarray(mean + 7.0 * np.diag(chol))}
-    draw = jax.jit(jax.vmap(lambda k: em.propose_and_score(k, data, weights, other)))
-    thetas, log_q, log_q_other = draw(jax.random.split(jax.random.PRNGKey(0), 4000))
     thetas = np.asarray(thetas["theta"])
     cov = chol @ chol.T
 
@@ -156,15 +165,12 @@ def test_data_driven_proposal_is_the_defensive_mixture_it_scores():
 
     np.testing.assert_allclose(np.asarray(log_q)[:20], mixture(thetas[:20]), rtol=1e-8)
     np.testing.assert_allclose(np.asarray(log_q_other)[0], mixture(np.asarray(other["theta"])), rtol=1e-8)
-    np.testing.assert_allclose(float(jax.jit(em.log_proposal)({"theta": jnp.asarray(thetas[0])}, data, weights)),
-                               mixture(thetas[0]), rtol=1e-8)
+    np.testing.assert_allclose(float(first), mixture(thetas[0]), rtol=1e-8)
     r2 = np.sum(np.linalg.solve(chol, (thetas - mean).T) ** 2, axis=0)
     q = chi2_dist.ppf(0.99, D)
     expected = 0.8 * 0.01 + 0.2 * chi2_dist.sf(q / 25.0, D)
     assert abs(np.mean(r2 > q) - expected) < 4 * np.sqrt(expected * (1 - expected) / 4000)
     # w = 0 is the single Gaussian
-    plain = RewardEmission(dom.mdp, proposal_broad_weight=0.0, scale_prior=False)
-    th, lq, _ = jax.jit(plain.propose_and_score)(jax.random.PRNGKey(1), data, weights, other)
     np.testing.assert_allclose(float(lq), multivariate_normal(mean, cov).logpdf(np.asarray(th["theta"])), rtol=1e-8)
     with pytest.raises(ValueError, match="proposal_broad_weight"):
         RewardEmission(dom.mdp, proposal_broad_weight=1.0)
