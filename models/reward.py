@@ -254,17 +254,17 @@ def count_log_likelihood_and_grad(solver: SoftSolver, theta, counts, v0=None, ep
 
 def _ll_grad_residual(solver, theta, counts, v0, epsilon=0.0, temperature=1.0):
     """(K,) log-likelihoods, (K, D) gradients and (K, S) values of K skills, and whether each
-    solve converged (K,), by one batched solve and one batched adjoint solve (skill k's
+    solve converged with a finite log-likelihood (K,) (:func:`count_log_likelihood_and_values`,
+    differentiated), by one batched solve and one batched adjoint solve (skill k's
     log-likelihood depends on theta_k only, so the gradient of their sum holds every skill's
     gradient)."""
 
     def total(t):
-        log_pi, V, residual = _solve_policy(solver, t, v0, temperature, epsilon)
-        ll = jnp.sum(counts * log_pi, axis=(-2, -1))
-        return jnp.sum(ll), (ll, V, residual)
+        ll, V, ok = count_log_likelihood_and_values(solver, t, counts, v0, temperature, epsilon)
+        return jnp.sum(ll), (ll, V, ok)
 
-    (_, (ll, V, residual)), g = jax.value_and_grad(total, has_aux=True)(theta)
-    return ll, g, V, residual <= solver.tol
+    (_, (ll, V, ok)), g = jax.value_and_grad(total, has_aux=True)(theta)
+    return ll, g, V, ok
 
 
 class Posterior(NamedTuple):
