@@ -99,20 +99,19 @@ def _structure_log_prob(hyper, mask, z, features):
 class _Proposal(NamedTuple):
     """A greedy trial's proposed change, before the one evidence computation that scores it:
     the proposed (z, F); three step-weight columns ``w`` (N, T, 3) and the fits' starts
-    ``init`` (3, ...) for ``fit_evidence``; ``coef`` (3,), the signs of the three log
-    evidences in the gain; ``slots`` (2,), the skills that get new parameters: the first the fit
-    ``first`` of the three, the second fit 1, or a prior draw from ``prior_key`` when
-    ``second_prior``; ``possible`` (for the info) and ``valid`` (further conditions of keeping
-    it); ``j``, ``k``: the skills the info reports."""
+    ``init`` (3, ...) for ``fit_evidence``: (part, part, whole), a merge's parts being j and k,
+    a split's its two new skills; ``merging``, which of the two it is (a merge's gain is
+    whole - parts, and its second slot gets a prior draw from ``prior_key``; a split's gain is
+    parts - whole, its slots the parts' fits); ``slots`` (2,), the skills that get new
+    parameters; ``possible`` (for the info) and ``valid`` (further conditions of keeping it);
+    ``j``, ``k``: the skills the info reports."""
 
     z: jax.Array
     features: jax.Array
     w: jax.Array
     init: dict
-    coef: jax.Array
+    merging: jax.Array
     slots: jax.Array
-    first: jax.Array
-    second_prior: jax.Array
     prior_key: jax.Array
     possible: jax.Array
     valid: jax.Array
@@ -136,8 +135,8 @@ def _merge_proposal(key, state: MoveState, data, j) -> _Proposal:
     init = jax.tree.map(lambda p: jnp.stack([p[j], p[k], p[k]]), params)
     possible = used[j] & (jnp.sum(used) >= 2)
     slots = jnp.stack([k, j]).astype(jnp.int32)
-    return _Proposal(z_new, f_new, w, init, jnp.array([-1.0, -1.0, 1.0]), slots, jnp.int32(2), jnp.bool_(True), key,
-                     possible, jnp.bool_(True), jnp.int32(j), jnp.int32(k))
+    return _Proposal(z_new, f_new, w, init, jnp.bool_(True), slots, key, possible, jnp.bool_(True), jnp.int32(j),
+                     jnp.int32(k))
 
 
 def _split_proposal(key, state: MoveState, emission, data, anchors, num_blocks) -> _Proposal:
@@ -166,8 +165,8 @@ def _split_proposal(key, state: MoveState, emission, data, anchors, num_blocks) 
     # the two parts' fits start at the allocation's, the whole's at k1's current parameters
     init = jax.tree.map(lambda a, p: jnp.stack([a[0], a[1], p]), alloc_fits, theta_k1)
     slots = jnp.stack([k1, k2]).astype(jnp.int32)
-    return _Proposal(z_new, f_new, w, init, jnp.array([1.0, 1.0, -1.0]), slots, jnp.int32(0), jnp.bool_(False), key,
-                     possible, jnp.any(used_a) & jnp.any(used_b), jnp.int32(k1), jnp.int32(k2))
+    return _Proposal(z_new, f_new, w, init, jnp.bool_(False), slots, key, possible, jnp.any(used_a) & jnp.any(used_b),
+                     jnp.int32(k1), jnp.int32(k2))
 
 
 def _keep_if_better(prop: _Proposal, state: MoveState, emission, data, hyper):
@@ -176,10 +175,13 @@ def _keep_if_better(prop: _Proposal, state: MoveState, emission, data, hyper):
     rises: (state, :class:`GreedyInfo`)."""
     features, _, z, params, log_lik = state
     fits, log_ev = emission.fit_evidence(data, prop.w, prop.init)
-    gain = jnp.dot(prop.coef, log_ev) + (_structure_log_prob(hyper, data.mask, prop.z, prop.features)
-                                         - _structure_log_prob(hyper, data.mask, z, features))
+    parts_minus_whole = log_ev[0] + log_ev[1] - log_ev[2]
+    structure = (_structure_log_prob(hyper, data.mask, prop.z, prop.features)
+                 - _structure_log_prob(hyper, data.mask, z, features))
+    gain = jnp.where(prop.merging, -parts_minus_whole, parts_minus_whole) + structure
     prior = emission.sample_prior_one(prop.prior_key)
-    two = jax.tree.map(lambda f, p: jnp.stack([f[prop.first], jnp.where(prop.second_prior, p, f[1])]), fits, prior)
+    # a merge: the whole's fit, then a prior draw; a split: the two parts' fits
+    two = jax.tree.map(lambda f, p: jnp.where(prop.merging, jnp.stack([f[2], p]), f[:2]), fits, prior)
     a, b = prop.slots[0], prop.slots[1]
     new_params = jax.tree.map(lambda p, t: p.at[a].set(t[0]).at[b].set(t[1]), params, two)
     cols, _ = emission.log_likelihoods(two, data, emission.init_cache(2))  # (N, T, 2)
