@@ -84,7 +84,8 @@ def one_run(name, run, args, worlds):
     for method, emission in (("npbrs", "reward"), ("irl", "single")):
         s = settings["npbrs" if method == "npbrs" else "irl"]
         start = time.perf_counter()
-        options = {"prior_scale": args.prior_scale} if args.prior_scale else None
+        options = {**({"prior_scale": args.prior_scale} if args.prior_scale else {}),
+                   **({"scale_prior": list(args.scale_prior)} if args.scale_prior else {})} or None
         fits[method] = fit(domain.mdp, demos, emission=emission, emission_options=options,
                            num_chains=s["chains"], num_warmup=s["warmup"],
                            num_samples=s["samples"], max_skills=s["max_skills"], seed=run, progress_bar=False,
@@ -170,6 +171,9 @@ def main(argv=None) -> int:
     p.add_argument("--quick", action="store_true", help="a few sweeps of one chain (a check that it runs)")
     p.add_argument("--prior-scale", type=float, default=None,
                    help="the reward prior's scale for both fits (default: the emission's, 10)")
+    p.add_argument("--scale-prior", type=float, nargs=2, metavar=("A", "B"), default=None,
+                   help="sample each skill's reward prior variance under InvGamma(A, B) in both fits "
+                        "(the reward emission's scale_prior; default: the fixed scale)")
     p.add_argument("--save-runs", metavar="DIR", help="also save every fit as DIR/DOMAIN-RUN-METHOD.nc")
     p.add_argument("--out", default=os.path.join(os.path.dirname(__file__), "results", "transfer"))
     args = p.parse_args(argv)
@@ -179,7 +183,9 @@ def main(argv=None) -> int:
     results = {"description": f"{args.trajectories} demonstrations of {args.length} steps per run in the paper's "
                               "world; the reproduction's sampler settings (npbrs: 4 chains x (20 + 20) sweeps, "
                               "15 + 15 on the quadcopter); reward prior scale "
-                              f"{args.prior_scale or 'the default (10)'}; control reward as in the paper's Figures "
+                              f"{args.prior_scale or 'the default (10)'}"
+                              + (f", each skill's variance sampled under InvGamma{tuple(args.scale_prior)}"
+                                 if args.scale_prior else "") + "; control reward as in the paper's Figures "
                               "7 and 10; each skill's policy from its posterior mean weights (FitResult.policies' "
                               "default). "
                               f"Machine: {platform.machine()}, {os.cpu_count()} cores, shared with other jobs.",
