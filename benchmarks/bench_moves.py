@@ -45,7 +45,7 @@ def sweeps_to_recover(data, true, emission, moves, chains, sweeps, seed, init_sk
             s = kernel.sweep(s)
             return s, (s.z, s.num_skills)
 
-        return jax.lax.scan(body, kernel._init(key), None, length=sweeps)[1]
+        return jax.lax.scan(body, kernel.initial_state(key), None, length=sweeps)[1]
 
     start = time.perf_counter()
     zs, ks = jax.jit(jax.vmap(run))(jax.random.split(jax.random.PRNGKey(seed), chains))

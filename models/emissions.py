@@ -253,8 +253,9 @@ class PolicyEmission(Emission):
         ll = self.log_policies(params)[:, data.states, data.actions]  # (K, N, T)
         return jnp.where(data.mask[..., None], jnp.moveaxis(ll, 0, -1), 0.0), cache
 
-    def _counts(self, data, weights):
-        """Weighted (state, action) counts, (..., S, A) for weights (N, T, ...)."""
+    def counts(self, data, weights):
+        """Weighted (state, action) counts of the real steps of ``data``, (..., S, A) for weights
+        (N, T, ...) (e.g. one-hot skill assignments (N, T, K): one table per skill)."""
         S, A = self.num_states, self.num_actions
         flat = (data.states * A + data.actions).reshape(-1)
         w = (weights * data.mask.reshape(data.mask.shape + (1,) * (weights.ndim - 2))).reshape(flat.shape[0], -1)
@@ -262,30 +263,30 @@ class PolicyEmission(Emission):
         return jnp.moveaxis(c.reshape((S, A) + weights.shape[2:]), (0, 1), (-2, -1))
 
     def update(self, key, params, cache, data, weights, adapt):
-        counts = self._counts(data, weights)  # (K, S, A)
+        counts = self.counts(data, weights)  # (K, S, A)
         policy = jax.random.dirichlet(key, self.concentration + counts)
         return {"policy": jnp.maximum(policy, 1e-300)}, cache, EmissionInfo(jnp.ones(()))
 
     def propose(self, key, data, weights):
-        conc = self.concentration + self._counts(data, weights)
+        conc = self.concentration + self.counts(data, weights)
         policy = jnp.maximum(jax.random.dirichlet(key, conc), 1e-300)
         return {"policy": policy}, self.log_proposal({"policy": policy}, data, weights)
 
     def log_proposal(self, params_one, data, weights):
         import numpyro.distributions as dist
 
-        conc = self.concentration + self._counts(data, weights)
+        conc = self.concentration + self.counts(data, weights)
         return jnp.sum(dist.Dirichlet(conc).log_prob(params_one["policy"]))
 
     def fit_point(self, data, weights, init=None):
-        conc = self.concentration + self._counts(data, weights)  # (M, S, A)
+        conc = self.concentration + self.counts(data, weights)  # (M, S, A)
         return {"policy": conc / jnp.sum(conc, -1, keepdims=True)}
 
     def fit_evidence(self, data, weights, init=None):
         """Posterior means and the exact Dirichlet-multinomial log evidence of each skill."""
         from jax.scipy.special import gammaln
 
-        n = self._counts(data, weights)  # (M, S, A)
+        n = self.counts(data, weights)  # (M, S, A)
         c = self.concentration
         A = self.num_actions
         log_ev = jnp.sum(gammaln(A * c) - gammaln(A * c + jnp.sum(n, -1))

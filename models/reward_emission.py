@@ -195,7 +195,9 @@ class RewardEmission(Emission):
             cache["log_rescale"] = jnp.full((K,), np.log(0.1))
         return cache
 
-    def _counts(self, data, weights):
+    def counts(self, data, weights):
+        """Weighted (state, action) counts of the real steps of ``data``: (S, A) for weights (N, T),
+        (K, S, A) for weights (N, T, K) (e.g. one-hot skill assignments: one table per skill)."""
         return count_table(data.states, data.actions, weights, self.num_states, self.num_actions, data.mask)
 
     def _log_policies_and_values(self, theta, cache=()):
@@ -220,7 +222,7 @@ class RewardEmission(Emission):
     def update(self, key, params, cache, data, weights, adapt):
         theta = params["theta"]
         K, D = theta.shape
-        counts = self._counts(data, weights)  # (K, S, A)
+        counts = self.counts(data, weights)  # (K, S, A)
         has_steps = jnp.sum(counts, axis=(1, 2)) > 0
         k_prior, k_move = jax.random.split(key)
         scale = self._scales(params)
@@ -256,7 +258,7 @@ class RewardEmission(Emission):
         this in warmup only, every ``tune_every`` sweeps (D tangent solves a skill: the most
         expensive part of a warmup sweep with many features); the sampling sweeps keep it fixed."""
         theta = params["theta"]
-        counts = self._counts(data, weights)
+        counts = self.counts(data, weights)
         fisher = jax.vmap(lambda t, c, v: jnp.diag(fisher_information(self.solver, t, c, v, self.temperature)))(
             theta, counts, cache["V"])
         scale = jnp.asarray(self._scales(params))
@@ -307,7 +309,7 @@ class RewardEmission(Emission):
     def fit_point(self, data, weights, init=None):
         """IRL fits (M, D) to weighted steps (N, T, M): ``refit_steps`` L-BFGS steps from
         ``init``, or twice as many from theta = 0."""
-        counts = self._counts(data, weights)  # (M, S, A)
+        counts = self.counts(data, weights)  # (M, S, A)
         M, D = counts.shape[0], self.num_features
         theta0 = jnp.zeros((M, D)) if init is None else init["theta"]
         steps = 2 * self.refit_steps if init is None else self.refit_steps
@@ -322,7 +324,7 @@ class RewardEmission(Emission):
         cond = self._variance_conditional(theta)
         return {"theta": theta, "sigma2": cond.rate / (cond.concentration + 1.0)}
 
-    def _laplace(self, counts, init=None, at_sampled_scale=False):
+    def laplace(self, counts, init=None, at_sampled_scale=False):
         """IRL fits (M, D) to count tables (M, S, A), ``refit_steps`` L-BFGS steps from ``init``
         (or ``fit_steps`` from theta = 0), their log-likelihoods (M,), the posterior precisions
         (M, D, D) at the fits, F + I / sigma^2 (F: the Fisher information, the observed one's
@@ -356,22 +358,22 @@ class RewardEmission(Emission):
     def fit_evidence(self, data, weights, init=None):
         """IRL fits (M, D) to weighted steps (N, T, M) and each skill's Laplace log evidence at
         its fit, log p(steps | theta) + log p0(theta) + D/2 log 2 pi - 1/2 log det(precision)
-        (see :meth:`_laplace`); with a sampled prior variance, sigma^2 integrated out too
-        (:meth:`_scale_mixture_evidence`)."""
-        counts = self._counts(data, weights)
+        (see :meth:`laplace`); with a sampled prior variance, sigma^2 integrated out too
+        (:meth:`scale_mixture_evidence`)."""
+        counts = self.counts(data, weights)
         if not self.scale_prior:
-            theta, log_lik, precision, _ = self._laplace(counts, init)
+            theta, log_lik, precision, _ = self.laplace(counts, init)
             _, logdet = jnp.linalg.slogdet(precision)
             log_ev = (log_lik + self.log_prior({"theta": theta}) + 0.5 * self.num_features * jnp.log(2 * jnp.pi)
                       - 0.5 * logdet)
             return self._point(theta), log_ev
-        theta, log_lik, precision, scale = self._laplace(counts, init, at_sampled_scale=True)
-        return self._point(theta), self._scale_mixture_evidence(theta, log_lik, precision, scale ** 2)
+        theta, log_lik, precision, scale = self.laplace(counts, init, at_sampled_scale=True)
+        return self._point(theta), self.scale_mixture_evidence(theta, log_lik, precision, scale ** 2)
 
     # the coarse grid of log sigma^2 that finds the peak of the evidence's integrand
     _LOG_VARIANCE_NODES = np.linspace(-16.0, 16.0, 257)
 
-    def _scale_mixture_evidence(self, theta, log_lik, precision, s2_fit):
+    def scale_mixture_evidence(self, theta, log_lik, precision, s2_fit):
         """The log evidence (M,) with sigma^2 ~ InvGamma(a, b) integrated out. The likelihood is
         taken as the quadratic around the fit theta, made at prior variance ``s2_fit`` (M,): its
         gradient there is theta / s2_fit (the fit's stationarity), its curvature the Fisher
@@ -417,11 +419,13 @@ class RewardEmission(Emission):
         log_du = jnp.log(jnp.where(ends, 0.5, 1.0) * (x[1] - x[0]))[:, None] + jnp.log(sd)[None]
         return jax.scipy.special.logsumexp(log_integrand(fine) + log_du, axis=0)
 
-    def _proposal(self, data, weights, init=None):
-        """Mean (D,) and Cholesky factor (D, D) of the proposal fitted to weighted steps."""
+    def proposal(self, data, weights, init=None):
+        """Mean (D,) and Cholesky factor (D, D) of the Laplace proposal fitted to steps weighted by
+        ``weights`` (N, T): the IRL fit (from one skill's params ``init`` when given) and its
+        posterior covariance (see :meth:`laplace`), inflated by ``proposal_inflation``."""
         D = self.num_features
         one = None if init is None else {"theta": init["theta"][None]}
-        mean, _, precision, _ = self._laplace(self._counts(data, weights)[None], one)
+        mean, _, precision, _ = self.laplace(self.counts(data, weights)[None], one)
         cov = jnp.linalg.inv(precision[0]) * self.proposal_inflation ** 2
         chol = jnp.linalg.cholesky(0.5 * (cov + cov.T) + 1e-12 * jnp.eye(D))
         return mean[0], chol
@@ -458,21 +462,21 @@ class RewardEmission(Emission):
         """A starting point: a draw of the Laplace proposal (the narrow component only) around
         each skill's IRL fit to its weighted steps. (K, D)."""
         keys = jax.random.split(key, weights.shape[-1])
-        return self._point(jax.vmap(lambda k, w: self._draw(k, *self._proposal(data, w), 0.0), in_axes=(0, 2))(
+        return self._point(jax.vmap(lambda k, w: self._draw(k, *self.proposal(data, w), 0.0), in_axes=(0, 2))(
             keys, weights))
 
     def propose(self, key, data, weights):
-        mean, chol = self._proposal(data, weights)
+        mean, chol = self.proposal(data, weights)
         one = self._propose_one(key, mean, chol)
         return one, self._log_q(one, mean, chol)
 
     def propose_and_score(self, key, data, weights, other_one, init=None):
-        mean, chol = self._proposal(data, weights, init)
+        mean, chol = self.proposal(data, weights, init)
         one = self._propose_one(key, mean, chol)
         return one, self._log_q(one, mean, chol), self._log_q(other_one, mean, chol)
 
     def log_proposal(self, params_one, data, weights):
-        return self._log_q(params_one, *self._proposal(data, weights))
+        return self._log_q(params_one, *self.proposal(data, weights))
 
 
 @register_emission("single")

@@ -272,7 +272,7 @@ def test_the_warmup_sweeps_scalars_are_kept_saved_and_drawn(tmp_path):
     assert (tmp_path / "trace.png").stat().st_size > 1000
 
 
-def test_toml_is_read_on_python_3_10_too(monkeypatch):
+def test_toml_is_read_on_python_3_10_too(monkeypatch, tmp_path):
     """requires-python is >= 3.10, whose standard library has no tomllib: the reader falls back
     to tomli, which pyproject.toml requires there."""
     import builtins
@@ -289,12 +289,26 @@ def test_toml_is_read_on_python_3_10_too(monkeypatch):
             raise ModuleNotFoundError("No module named 'tomllib'")
         return real_import(name, *args, **kwargs)
 
+    # a stand-in tomli (tomllib's functions) that records what it parses
+    parsed = []
+
+    def loads(text):
+        parsed.append(text)
+        return tomllib.loads(text)
+
+    def load(f):
+        return loads(f.read().decode())
+
     monkeypatch.setattr(builtins, "__import__", no_tomllib)
-    monkeypatch.setitem(sys.modules, "tomli", types.SimpleNamespace(loads=tomllib.loads, load=tomllib.load,
+    monkeypatch.setitem(sys.modules, "tomli", types.SimpleNamespace(loads=loads, load=load,
                                                                     TOMLDecodeError=tomllib.TOMLDecodeError))
-    assert config._toml() is sys.modules["tomli"]
     cfg = config.ModelConfig.from_toml_string("max_skills = 6")
-    assert cfg.max_skills == 6
+    assert cfg.max_skills == 6 and parsed == ["max_skills = 6"]
+    (tmp_path / "model.toml").write_text("max_skills = 7\n")
+    assert config.ModelConfig.from_toml(tmp_path / "model.toml").max_skills == 7 and parsed[1:] == ["max_skills = 7\n"]
+    with pytest.raises(ValueError, match="not valid TOML"):  # tomli's decode error, as tomllib's
+        config.ModelConfig.from_toml_string("max_skills = = 6")
+    assert len(parsed) == 3
     from pathlib import Path
 
     text = open(Path(__file__).resolve().parent.parent / "pyproject.toml").read()

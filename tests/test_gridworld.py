@@ -7,7 +7,6 @@ import numpy as np
 import pytest
 
 from npbrs.domains import make_soft_solver
-from npbrs.domains.solvers import _Columns, _policy_solve
 from npbrs.domains.gridworld import ACTIONS, goal_cells, open_gridworld
 
 from test_solvers import numpy_soft_vi
@@ -94,18 +93,37 @@ def test_soft_solve_equals_dense_reference():
 def test_policy_evaluation_solves_the_linear_system(transpose):
     """(I - gamma P_pi) x = b (or its transpose), as the Newton steps and the implicit
     derivatives use it, against a dense solve: its preconditioned GMRES must return the
-    solution, not merely a Newton step that the next backup corrects."""
+    solution, not merely a Newton step that the next backup corrects.
+
+    Through the solver's derivatives, whose tangent is dV = (I - gamma P_pi)^-1 sum_a pi_a dr_a
+    at the fixed point's policy pi: a tangent dr(s, a) = b(s) gives x = dV (forward mode), and
+    a cotangent b of V gives dr(s, a) = pi(s, a) x(s) with x the transposed system's solution
+    (reverse mode). The rewards are made so that the fixed point's policy is a random one:
+    r = log pi + V0 - gamma E[V0] has the soft values V0 and the Boltzmann policy pi."""
     mdp = open_gridworld(4, slip=0.3, discount=0.95, seed=1)
     rng = np.random.default_rng(0)
     pi = rng.dirichlet(np.ones(5), size=(2, 16))  # (K, S, A)
     b = rng.normal(size=(2, 16))
     with jax.enable_x64(True):
-        op = _Columns(mdp, "sparse")
-        solve = jax.jit(lambda op, pi, b: _policy_solve(op, 0.95, pi, b, 1e-13, 4, 5, 40, transpose=transpose)[0])
-        x = solve(op, tuple(jnp.asarray(pi[..., a]) for a in range(5)), jnp.asarray(b))
+        # its derivatives' linear solves with the options of the solve this test once called directly
+        # (relative tolerance 1e-13, a Neumann preconditioner of degree 4, GMRES(5), 40 restarts)
+        solver = make_soft_solver(mdp, operator="sparse", grad_tol=1e-13, precondition_degree=4, krylov_dim=5,
+                                  max_restarts=40)
+        V0 = rng.normal(size=(2, 16))
+        rewards = jnp.asarray(np.log(pi) + V0[..., None]) - 0.95 * solver.expected_next_value(jnp.asarray(V0))
+        values = jax.jit(lambda r: solver(r).V)
+        if transpose:
+            V, pullback = jax.vjp(values, rewards)
+            x = pullback(jnp.asarray(b))[0].sum(-1)  # sum_a pi(s, a) x(s) = x(s)
+        else:
+            V, x = jax.jvp(values, (rewards,), (jnp.broadcast_to(jnp.asarray(b)[..., None], rewards.shape),))
+        res = solver(rewards)
+    np.testing.assert_allclose(np.asarray(V), V0, rtol=1e-8, atol=1e-8)
+    policy = np.exp(np.asarray(res.Q) - np.asarray(res.V)[..., None])  # the policy the derivatives use
+    np.testing.assert_allclose(policy, pi, rtol=1e-7)
     P = mdp.dense_transitions()
     for k in range(2):
-        M = np.eye(16) - 0.95 * np.einsum("sa,sat->st", pi[k], P)
+        M = np.eye(16) - 0.95 * np.einsum("sa,sat->st", policy[k], P)
         np.testing.assert_allclose(np.asarray(x[k]), np.linalg.solve(M.T if transpose else M, b[k]), rtol=1e-10,
                                    atol=1e-10)
 

@@ -207,7 +207,7 @@ def run_chains(kernel, P, key, start, sweeps, coordinate):
     len(NAMES)), each taken after a sweep."""
     # the state's other fields are zeros: ``_finish`` recomputes the log-likelihoods, marginals
     # and summaries for each new data set, and the rest are diagnostics
-    template = jax.eval_shape(kernel._init, jax.random.PRNGKey(0))
+    template = jax.eval_shape(kernel.initial_state, jax.random.PRNGKey(0))
 
     def one(key, alpha, kappa, gamma, omega, F, eta, params):
         state = jax.tree.map(lambda x: jnp.zeros(x.shape, x.dtype), template)

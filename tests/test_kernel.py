@@ -91,7 +91,7 @@ def test_transition_weights_follow_the_gamma_dirichlet_conditional(kernel_and_st
     features = state.features.at[0].set(jnp.array([1.0, 1.0, 0.0, 1.0]))
     z = state.z.at[0].set(jnp.where(kernel.data.mask[0], jnp.arange(state.z.shape[1]) // 10 % 2, -1))
     hyper = state.hyper
-    draws = jax.jit(jax.vmap(lambda k: kernel._sample_eta(k, z, features, hyper)))(
+    draws = jax.jit(jax.vmap(lambda k: kernel.sample_eta(k, z, features, hyper)))(
         jax.random.split(jax.random.PRNGKey(1), 4000))
     from npbrs.models.hmm import transition_counts
 
@@ -162,7 +162,7 @@ def test_hyperparameter_moves_sample_their_full_conditionals(name):
     draws = 20000
 
     def body(s, key):
-        h = kernel._sample_hyper(key, s)
+        h = kernel.sample_hyperparameters(key, s)
         return s._replace(hyper=h), getattr(h, name)
 
     _, xs = jax.jit(lambda s, k: jax.lax.scan(body, s, jax.random.split(k, draws)))(state, jax.random.PRNGKey(2))

@@ -86,7 +86,7 @@ def test_sampler_visits_segmentations_in_proportion_to_their_posterior(moves):
     chains, sweeps = 8, 3000
 
     def run(key):
-        state = kernel._init(key)
+        state = kernel.initial_state(key)
 
         def body(s, _):
             s = kernel.sweep(s)
@@ -136,7 +136,7 @@ def test_split_merge_trial_leaves_the_exact_posterior_invariant():
 
     def one(key, f, z):
         k_eta, k_par, k_move = jax.random.split(key, 3)
-        eta = kernel._sample_eta(k_eta, z, f, hyper)
+        eta = kernel.sample_eta(k_eta, z, f, hyper)
         params, _, _ = em.update(k_par, params0, em.init_cache(K), data, skill_weights(z, data.mask, K), False)
         log_lik, _ = em.log_likelihoods(params, data)
         new, info = split_merge(k_move, MoveState(f, eta, z, params, log_lik), em, data, hyper, 2)

@@ -146,7 +146,7 @@ def test_data_driven_proposal_is_the_defensive_mixture_it_scores():
 
     @jax.jit  # one program: XLA shares the proposals' common IRL fit (four programs took twice as long)
     def run(keys, key):
-        mean, chol = em._proposal(data, weights)
+        mean, chol = em.proposal(data, weights)
         other = {"theta": mean + 7.0 * jnp.diag(chol)}
         thetas, log_q, log_q_other = jax.vmap(lambda k: em.propose_and_score(k, data, weights, other))(keys)
         first = em.log_proposal({"theta": thetas["theta"][0]}, data, weights)

@@ -173,7 +173,7 @@ def test_moves_start_runs_gibbs_before_the_start_sweep_and_the_moves_from_it():
     gibbs, always = make(None), make({"split_merge": 2})
     early, late = make({"split_merge": 2, "start": 2}), make({"split_merge": 2, "start": 9})
     # two chains, vectorised as numpyro runs them (one flag shared by the chains)
-    state = jax.jit(jax.vmap(gibbs._init))(jax.random.split(jax.random.PRNGKey(3), 2))
+    state = jax.jit(jax.vmap(gibbs.initial_state))(jax.random.split(jax.random.PRNGKey(3), 2))
     sweep = {k: jax.jit(lambda s, k=k: k.sample(s, (), {})) for k in (gibbs, always, early, late)}
     for step in range(8):  # no move is accepted in these sweeps: all four kernels agree
         new = sweep[gibbs](state)
@@ -219,7 +219,7 @@ def test_split_merge_recovers_planted_reward_skills_in_fewer_sweeps():
             return s, (s.z, s.num_skills)
 
         zs, ks = (np.asarray(x) for x in jax.jit(
-            lambda k: jax.lax.scan(body, kernel._init(k), None, length=sweeps)[1])(key))
+            lambda k: jax.lax.scan(body, kernel.initial_state(k), None, length=sweeps)[1])(key))
         ok = [t + 1 for t in range(sweeps)
               if ks[t] <= 3 and hungarian_accuracy(true, [zs[t, i][mask[i]] for i in range(mask.shape[0])]) >= 0.9]
         return (ok[0] if ok else sweeps + 1), int(ks[-1])

@@ -237,7 +237,12 @@ class BPHMMKernel(MCMCKernel, Pytree):
         return state._replace(cache=cache, log_lik=log_lik, log_marginals=log_marg, log_joint=log_joint,
                               num_skills=num_skills, num_switches=num_switches)
 
-    def _init(self, rng_key, z0=None, num_warmup=0):
+    def initial_state(self, rng_key, z0=None, num_warmup=0) -> BPHMMState:
+        """One chain's initial state for ``rng_key`` (no checks, no compilation of its own: it
+        traces under ``jit``, ``vmap`` and ``eval_shape``). ``z0``: an (N, T) segmentation to
+        start from (see :meth:`check_segmentation`), or None: random windows of
+        ``init_window`` steps over ``init_skills`` skills. ``num_warmup``: the chain's warmup
+        sweeps. :meth:`init` is numpyro's entry point, compiled and batched over keys."""
         N, T = self.data.states.shape
         K, K0 = self.max_skills, self.init_skills
         keys = jax.random.split(rng_key, 6)
@@ -267,8 +272,10 @@ class BPHMMKernel(MCMCKernel, Pytree):
             best_params=params, best_features=features)
         return self._finish(state)
 
-    def _sample_eta(self, key, z, features, hyper):
-        """eta | z, F (see :meth:`_sample_eta_omega`)."""
+    def sample_eta(self, key, z, features, hyper):
+        """A draw of the transition weights eta (N, K, K) from their conditional given the skill
+        sequences z (N, T), the features (N, K) and the hyperparameters (see
+        :meth:`_sample_eta_omega`, which the sweep calls to draw omega in the same batch)."""
         return self._sample_eta_omega(key, z, features, hyper)[0]
 
     def _sample_eta_omega(self, key, z, features, hyper):
@@ -438,7 +445,7 @@ class BPHMMKernel(MCMCKernel, Pytree):
                              z=z, accept=jnp.mean(accept), birth_accept=births, split_accept=splits,
                              **greedy_kept)
         if self.hyperpriors:
-            new = new._replace(hyper=self._sample_hyper(k_hyp, new))
+            new = new._replace(hyper=self.sample_hyperparameters(k_hyp, new))
         new = self._finish(new)
         better = (state.step >= state.num_warmup) & (new.log_joint > state.best_log_joint)
         pick = lambda a, b: jax.tree.map(lambda x, y: jnp.where(better, x, y), a, b)  # noqa: E731
@@ -446,8 +453,10 @@ class BPHMMKernel(MCMCKernel, Pytree):
                             best_z=pick(new.z, state.best_z), best_params=pick(new.params, state.best_params),
                             best_features=pick(new.features, state.best_features))
 
-    def _sample_hyper(self, key, state: BPHMMState) -> Hyper:
-        """Random-walk Metropolis on log alpha, log kappa, log gamma (each in turn)."""
+    def sample_hyperparameters(self, key, state: BPHMMState) -> Hyper:
+        """The hyperparameters with a prior (``hyperpriors``) after one random-walk Metropolis
+        step each on log alpha, log kappa, log gamma (in turn), given the rest of ``state``; the
+        others as they are."""
         hyper = state.hyper
         zeros = jnp.zeros(state.features.shape[0])
 
@@ -474,8 +483,8 @@ def _init_state(kernel: BPHMMKernel, rng_key, z0, num_warmup, batched: bool):
     """The initial state(s), compiled per kernel structure and shapes (the kernel's data and
     emission are arguments, so a new dataset of the same shapes reuses the program)."""
     if batched:
-        return jax.vmap(kernel._init, in_axes=(0, None, None))(rng_key, z0, num_warmup)
-    return kernel._init(rng_key, z0, num_warmup)
+        return jax.vmap(kernel.initial_state, in_axes=(0, None, None))(rng_key, z0, num_warmup)
+    return kernel.initial_state(rng_key, z0, num_warmup)
 
 
 float64_all(globals())  # npbrs.domains.precision: float64 inside, the user's setting outside
