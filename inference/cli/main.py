@@ -63,6 +63,12 @@ def _add_fit(sub):
     p.add_argument("--samples", type=at_least(1), help="sweeps kept per chain")
     p.add_argument("--warmup", type=at_least(0), help="warmup sweeps per chain")
     p.add_argument("--seed", type=at_least(0), help="random seed")
+    p.add_argument("--max-samples", type=at_least(1), metavar="N",
+                   help="choose the run length by convergence: keep sampling (half of --samples at a time) until "
+                        "every label-invariant R-hat is at most --target-rhat, or N sweeps are kept per chain")
+    p.add_argument("--target-rhat", type=float, help="the R-hat a run extended with --max-samples stops at (1.05)")
+    p.add_argument("--time-budget", type=float, metavar="SECONDS",
+                   help="stop extending a --max-samples run after this many seconds (default: no budget)")
     p.add_argument("-o", "--output", required=True, help="the run file to write (.nc)")
     p.add_argument("--init-from", metavar="RUN", help="start every chain from the segmentation of a saved run (.nc)")
     p.add_argument("--resume", action="store_true", help="continue from the output's checkpoint if there is one")
@@ -108,7 +114,8 @@ def fit_command(args) -> int:
                      num_chains=args.chains, num_samples=args.samples, num_warmup=args.warmup, seed=args.seed,
                      progress_bar=not args.no_progress, checkpoint_path=checkpoint,
                      checkpoint_every=args.checkpoint_every or None, resume=args.resume, init_segmentation=init,
-                     devices=args.devices)
+                     devices=args.devices, max_samples=args.max_samples, target_rhat=args.target_rhat,
+                     time_budget=args.time_budget)
     except (OSError, ValueError) as e:  # a missing or unreadable --config among them
         message = str(e)
         if args.config and message.startswith("emission.options") and os.fspath(args.config) not in message:

@@ -285,6 +285,16 @@ class SamplerConfig:
     compiled sampler. The padding trajectories have no steps: the posterior of the real ones is
     the same, but the random streams have other shapes, so the draws differ from an unpadded
     run's (the same seed gives the same draws with the same setting).
+    max_samples, target_rhat, time_budget: a run length chosen by convergence. With
+    ``max_samples`` above ``samples`` (0, the default: off), the chains keep sampling after
+    ``samples`` sweeps, ``max(samples // 2, 1)`` sweeps at a time, until the rank-normalised
+    split R-hat of every label-invariant scalar (log joint, number of skills, number of switches)
+    is at most ``target_rhat`` (a scalar constant over every draw of every chain counts as
+    converged), or ``max_samples`` sweeps are drawn, or more than ``time_budget`` seconds
+    (0: no budget) have passed since the run started. The first two rules depend on the draws
+    only, so the same seed gives the same run; the time budget depends on the machine. The
+    result's ``run_length`` says which rule stopped the run and the R-hat reached. Needs at
+    least 2 chains.
     """
 
     chains: int = 4
@@ -296,6 +306,9 @@ class SamplerConfig:
     init_window: int = 25
     moves: Dict[str, Any] = field(default_factory=dict)
     bucket: bool = False
+    max_samples: int = 0
+    target_rhat: float = 1.05
+    time_budget: float = 0.0
 
     def __post_init__(self):
         self.chains = _integer("sampler.chains", self.chains, 1)
@@ -313,6 +326,18 @@ class SamplerConfig:
         if not isinstance(self.bucket, bool):
             raise ValueError(f"sampler.bucket: expected true or false, got {_describe(self.bucket)}")
         self.bucket = bool(self.bucket)
+        self.max_samples = _integer("sampler.max_samples", self.max_samples, 0)
+        if self.max_samples and self.max_samples < self.samples:
+            raise ValueError(f"sampler.max_samples: {self.max_samples} is below sampler.samples ({self.samples}); "
+                             "it is the most sweeps a run extended until convergence may draw (0: no extension)")
+        if self.max_samples > self.samples and self.chains < 2:
+            raise ValueError("sampler.max_samples: a run length chosen by convergence (R-hat across chains) needs "
+                             f"at least 2 chains, got {self.chains}")
+        self.target_rhat = _number("sampler.target_rhat", self.target_rhat)
+        if not self.target_rhat > 1.0:
+            raise ValueError(f"sampler.target_rhat: expected a number above 1 (R-hat is at least 1), got "
+                             f"{self.target_rhat}")
+        self.time_budget = _number("sampler.time_budget", self.time_budget, minimum=0.0)
 
     @classmethod
     def from_dict(cls, data) -> "SamplerConfig":

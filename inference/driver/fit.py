@@ -39,7 +39,7 @@ from npbrs.domains.precision import float64_all
 from ..sampler.kernel import BPHMMKernel
 from ..sampler.options import MOVE_DEFAULTS
 from .config import EmissionConfig, ModelConfig, PriorConfig
-from .results import LABEL_INVARIANT, FitResult
+from .results import LABEL_INVARIANT, FitResult, label_invariant_diagnostic
 
 __all__ = ["fit", "make_emission", "resolve_config", "default_moves", "compilation_cache_dir", "use_compilation_cache",
            "device_mesh", "CHAINS", "TRAJECTORIES", "DEFAULT_GREEDY_TRIALS"]
@@ -150,7 +150,7 @@ def resolve_config(config=None, **overrides) -> ModelConfig:
             data["prior"][name] = {"value": value, "shape": shape, "rate": rate}
     renames = {"num_chains": "chains", "num_samples": "samples", "num_warmup": "warmup"}
     for key in ("num_chains", "num_samples", "num_warmup", "seed", "chain_method", "init_skills", "init_window",
-                "moves", "bucket"):
+                "moves", "bucket", "max_samples", "target_rhat", "time_budget"):
         value = overrides.pop(key, None)
         if value is not None:
             data["sampler"][renames.get(key, key)] = value
@@ -614,6 +614,14 @@ class _Progress:
             self._line(f"sweep {self.n}/{self.total} ({self.phase}), {rate:.2f} s per sweep, "
                        f"about {eta:.0f} s left" + (f", {self.postfix}" if self.postfix else ""))
 
+    def extend(self, total: int):
+        """More sweeps to run than first planned (a run extended until convergence)."""
+        self.total = int(total)
+        self.every = max(1, self.total // 10)
+        if self.bar is not None:
+            self.bar.total = self.total
+            self.bar.refresh()
+
     def close(self, message: str = ""):
         if self.bar is not None:
             self.bar.close()
@@ -641,8 +649,8 @@ def fit(mdp, demos: Demonstrations, config: Union[ModelConfig, dict, str, os.Pat
         seed: Optional[int] = None, chain_method: Optional[str] = None, alpha: Optional[float] = None,
         kappa: Optional[float] = None, gamma: Optional[float] = None, hyperpriors: Optional[dict] = None,
         init_skills: Optional[int] = None, init_window: Optional[int] = None, moves: Optional[dict] = None,
-        bucket: Optional[bool] = None,
-        init_segmentation=None, progress_bar: bool = True, checkpoint_path=None,
+        bucket: Optional[bool] = None, max_samples: Optional[int] = None, target_rhat: Optional[float] = None,
+        time_budget: Optional[float] = None, init_segmentation=None, progress_bar: bool = True, checkpoint_path=None,
         checkpoint_every: Optional[int] = None, resume: bool = False, mesh: Optional[Mesh] = None,
         devices=None) -> FitResult:
     """Segment demonstrations into skills.
@@ -675,6 +683,12 @@ def fit(mdp, demos: Demonstrations, config: Union[ModelConfig, dict, str, os.Pat
         bucket: pad the demonstrations to shape buckets (a quarter at most more trajectories
             and steps), so that another data set of similar size reuses the compiled sampler
             (see :class:`~npbrs.inference.driver.config.SamplerConfig`; off by default).
+        max_samples, target_rhat, time_budget: a run length chosen by convergence: with
+            ``max_samples`` above ``num_samples``, keep sampling (``num_samples // 2`` sweeps at a
+            time) until every label-invariant scalar's R-hat is at most ``target_rhat`` (1.05),
+            ``max_samples`` sweeps are drawn or ``time_budget`` seconds (0: none) have passed;
+            the result's ``run_length`` says which (see
+            :class:`~npbrs.inference.driver.config.SamplerConfig`). Off by default.
         init_segmentation: start every chain from this segmentation instead of random windows:
             per trajectory an integer label per step (any integers, e.g. a previous result's
             ``segmentation`` or hand labels), or a FitResult. The skills' initial parameters are
@@ -720,13 +734,14 @@ def fit(mdp, demos: Demonstrations, config: Union[ModelConfig, dict, str, os.Pat
 
 
 def _fit(mdp, demos, config, *, emission, emission_options, num_chains, num_samples, num_warmup, max_skills, seed,
-         chain_method, alpha, kappa, gamma, hyperpriors, init_skills, init_window, moves, bucket, init_segmentation,
-         progress_bar, checkpoint_path, checkpoint_every, resume, mesh, devices) -> FitResult:
+         chain_method, alpha, kappa, gamma, hyperpriors, init_skills, init_window, moves, bucket, max_samples,
+         target_rhat, time_budget, init_segmentation, progress_bar, checkpoint_path, checkpoint_every, resume, mesh, devices) -> FitResult:
     use_compilation_cache()
     cfg = resolve_config(config, emission=emission, emission_options=emission_options, num_chains=num_chains,
                          num_samples=num_samples, num_warmup=num_warmup, max_skills=max_skills, seed=seed,
                          chain_method=chain_method, alpha=alpha, kappa=kappa, gamma=gamma, hyperpriors=hyperpriors,
-                         init_skills=init_skills, init_window=init_window, moves=moves, bucket=bucket)
+                         init_skills=init_skills, init_window=init_window, moves=moves, bucket=bucket,
+                         max_samples=max_samples, target_rhat=target_rhat, time_budget=time_budget)
     if not isinstance(demos, Demonstrations):
         raise ValueError(f"demos must be npbrs.domains.Demonstrations, got {type(demos).__name__}")
     demos.validate(mdp)
@@ -767,8 +782,11 @@ def _fit(mdp, demos, config, *, emission, emission_options, num_chains, num_samp
     z0 = None
     if init_segmentation is not None:
         z0 = kernel.check_segmentation(getattr(init_segmentation, "segmentation", init_segmentation))
+    # a run length chosen by convergence: from W + S sweeps on, a block at a time up to W + max_samples
+    extend = sampler.max_samples > S
+    block, cap = max(S // 2, 1), W + (sampler.max_samples if extend else S)
     meta = {"config": cfg.to_dict(), "emission": em.describe(), "fingerprint": demos.fingerprint(),
-            "seed": sampler.seed, "num_chains": C, "total_sweeps": total,
+            "seed": sampler.seed, "num_chains": C, "total_sweeps": cap,
             "init": None if z0 is None else hashlib.sha256(z0.tobytes()).hexdigest()}
     keys = jax.random.split(jax.random.PRNGKey(sampler.seed), C)
 
@@ -824,28 +842,43 @@ def _fit(mdp, demos, config, *, emission, emission_options, num_chains, num_samp
         if jax.process_index() == 0:  # one writer of the file
             write_checkpoint(checkpoint_path, state=host_state, draws=draws, meta=write)
 
+    if done > total:  # resumed after the planned sweeps: the extension's next point
+        total = min(cap, total + -(-(done - total) // block) * block)
+        bar.extend(total * (C if method == "sequential" else 1))
+    run_length = None
     try:
         with _Interrupt() as interrupt:
-            while done < total:
-                bar.set_phase("warmup" if done < W else "sample")
-                records = chains.advance()
-                if progress_bar:  # dispatch is asynchronous: time the sweep, not its dispatch
-                    jax.block_until_ready(records)
-                (pending if done >= W else warm).append(records)
-                done += 1
-                bar.update(C if method == "sequential" else 1)
-                if checkpoint_path is not None and (done % every == 0 or done == total):
-                    checkpoint(done)
-                    bar.set_postfix(f"log joint {float(np.max(draws['log_joint'][:, -1])):.1f}"
-                                    if "log_joint" in draws else "")
-                elif len(pending) + len(warm) >= 100:
-                    flush()
-                if interrupt.flag:
-                    if checkpoint_path is not None:
+            while True:
+                while done < total:
+                    bar.set_phase("warmup" if done < W else "sample")
+                    records = chains.advance()
+                    if progress_bar:  # dispatch is asynchronous: time the sweep, not its dispatch
+                        jax.block_until_ready(records)
+                    (pending if done >= W else warm).append(records)
+                    done += 1
+                    bar.update(C if method == "sequential" else 1)
+                    if checkpoint_path is not None and (done % every == 0 or done == total):
                         checkpoint(done)
-                    raise KeyboardInterrupt(f"stopped after {done} of {total} sweeps"
-                                            + (f"; resume from {checkpoint_path}" if checkpoint_path else ""))
-            flush()
+                        bar.set_postfix(f"log joint {float(np.max(draws['log_joint'][:, -1])):.1f}"
+                                        if "log_joint" in draws else "")
+                    elif len(pending) + len(warm) >= 100:
+                        flush()
+                    if interrupt.flag:
+                        if checkpoint_path is not None:
+                            checkpoint(done)
+                        raise KeyboardInterrupt(f"stopped after {done} of {total} sweeps"
+                                                + (f"; resume from {checkpoint_path}" if checkpoint_path else ""))
+                flush()
+                if not extend:
+                    break
+                elapsed = wall + time.perf_counter() - start
+                run_length = _run_length(draws, sampler, done - W, cap - W, elapsed)
+                if run_length["stopped"] != "running":
+                    break
+                total = min(total + block, cap)
+                bar.extend(total * (C if method == "sequential" else 1))
+                bar.set_postfix("R-hat " + ", ".join(f"{k} {'undefined' if v is None else format(v, '.3f')}"
+                                                     for k, v in run_length["rhat"].items()))
     finally:
         bar.close(f"done: {done} sweeps in {time.perf_counter() - start:.1f} s")
     wall += time.perf_counter() - start
@@ -854,7 +887,28 @@ def _fit(mdp, demos, config, *, emission, emission_options, num_chains, num_samp
                                  feature_names=tuple(getattr(mdp, "feature_names", ())), wall_time=wall,
                                  sample_names=compiled.hyper_names, init_segmentation=z0,
                                  mdp_fingerprint=mdp.fingerprint() if hasattr(mdp, "fingerprint") else "",
-                                 warmup_stats=warmup or None)
+                                 warmup_stats=warmup or None, run_length=run_length)
+
+
+def _run_length(draws: dict, sampler, drawn: int, most: int, elapsed: float) -> dict:
+    """Where a run whose length is chosen by convergence stands after ``drawn`` sampling sweeps
+    (of at most ``most``, ``elapsed`` seconds since it started): the R-hat of each label-invariant
+    scalar over the draws so far and the rule that stops it ("converged", "max_samples",
+    "time_budget"), or "running"."""
+    rhat = label_invariant_diagnostic(draws, "rhat")
+    # (NaN: a constant scalar, converged if every chain holds the same value)
+    converged = all(v <= sampler.target_rhat if np.isfinite(v) else np.ptp(draws[k]) == 0 for k, v in rhat.items())
+    if converged:
+        stopped = "converged"
+    elif drawn >= most:
+        stopped = "max_samples"
+    elif sampler.time_budget and elapsed > sampler.time_budget:
+        stopped = "time_budget"
+    else:
+        stopped = "running"
+    return {"samples": int(drawn), "rhat": {k: (v if np.isfinite(v) else None) for k, v in rhat.items()},
+            "stopped": stopped, "target_rhat": sampler.target_rhat,
+            "max_samples": sampler.max_samples, "time_budget": sampler.time_budget}
 
 
 def _read_checkpoint(path, meta):

@@ -44,11 +44,40 @@ from npbrs.domains.precision import float64_all
 
 from .config import ModelConfig
 
-__all__ = ["FitResult", "LABEL_INVARIANT", "RUN_FORMAT", "RUN_VERSION", "NETCDF_ENGINE", "trajectory_rows"]
+__all__ = ["FitResult", "LABEL_INVARIANT", "label_invariant_diagnostic", "RUN_FORMAT", "RUN_VERSION", "NETCDF_ENGINE", "trajectory_rows"]
 
 #: Scalars whose meaning does not depend on how skills are labelled: safe for R-hat and ESS
 #: across chains (skill labels switch between chains).
 LABEL_INVARIANT = ("log_joint", "num_skills", "num_switches")
+
+
+def label_invariant_diagnostic(stats: Dict[str, np.ndarray], which: str = "rhat") -> Dict[str, float]:
+    """ArviZ's rank-normalised split R-hat (``which="rhat"``) or bulk ESS (``"ess"``) of each
+    label-invariant scalar in ``stats`` ({name: (chains, draws)}): the numbers ``convergence``
+    (``az.summary``) shows; NaN where undefined (a constant scalar, chains that are each constant
+    at different values, fewer than 4 draws)."""
+    import logging
+    import warnings
+
+    import arviz as az
+
+    if which not in ("rhat", "ess"):
+        raise ValueError(f"which must be 'rhat' or 'ess', got {which!r}")
+    fn = az.rhat if which == "rhat" else az.ess
+    logger = logging.getLogger("arviz")
+    level = logger.level
+    logger.setLevel(logging.ERROR)  # one chain: "shape validation failed" is expected
+    out = {}
+    try:
+        for name in LABEL_INVARIANT:
+            x = np.asarray(stats[name], dtype=np.float64)
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore")
+                value = float(fn(x)) if x.shape[1] >= 4 else float("nan")
+            out[name] = value if np.isfinite(value) else float("nan")
+    finally:
+        logger.setLevel(level)
+    return out
 #: The ArviZ form's format name and version (``constant_data`` attributes), and the netCDF engine.
 RUN_FORMAT, RUN_VERSION = "npbrs-run", 1
 NETCDF_ENGINE = "h5netcdf"
@@ -132,6 +161,12 @@ class FitResult:
         log_likelihood: (C, D, N) each fitted trajectory's log-likelihood under each draw, once
             :meth:`add_log_likelihood` has computed it (saved as the ArviZ ``log_likelihood``
             group, which ``az.loo`` and ``az.compare`` read); None before.
+        run_length: for a run whose length was chosen by convergence (``max_samples`` above
+            ``samples``, see :class:`~npbrs.inference.driver.config.SamplerConfig`): the sampling
+            sweeps drawn ("samples"), the R-hat of each label-invariant scalar at the end
+            ("rhat"; None where undefined, e.g. a scalar constant in every draw), the rule that stopped the run ("stopped": "converged", "max_samples" or
+            "time_budget") and the settings ("target_rhat", "max_samples", "time_budget");
+            None for a run of fixed length.
 
     The methods :meth:`policies`, :meth:`options`, :meth:`segment`, :meth:`log_predictive` and
     :meth:`add_log_likelihood` are shortcuts to the functions of :mod:`npbrs.inference.analysis`
@@ -157,12 +192,14 @@ class FitResult:
     log_likelihood: Optional[np.ndarray] = None
     mdp_fingerprint: str = ""
     warmup_stats: Optional[Dict[str, np.ndarray]] = None
+    run_length: Optional[dict] = None
 
     @classmethod
     def from_states(cls, last_state, draws: Dict[str, np.ndarray], demos, *, config: Optional[dict] = None,
                     emission: Optional[dict] = None, feature_names=(), wall_time: float = float("nan"),
                     sample_names=(), init_segmentation=None, mdp_fingerprint: str = "",
-                    warmup_stats: Optional[Dict[str, np.ndarray]] = None) -> "FitResult":
+                    warmup_stats: Optional[Dict[str, np.ndarray]] = None,
+                    run_length: Optional[dict] = None) -> "FitResult":
         """Assemble a result from the chains' last kernel states and their draws.
 
         Args:
@@ -192,7 +229,8 @@ class FitResult:
                    demos=demos, init_segmentation=None if init_segmentation is None else
                    trajectory_rows(np.asarray(init_segmentation)[:N, :T], demos.lengths),
                    mdp_fingerprint=str(mdp_fingerprint or ""),
-                   warmup_stats=None if not warmup_stats else {k: np.asarray(v) for k, v in warmup_stats.items()})
+                   warmup_stats=None if not warmup_stats else {k: np.asarray(v) for k, v in warmup_stats.items()},
+                   run_length=None if run_length is None else dict(run_length))
 
     @property
     def model_config(self) -> ModelConfig:
@@ -247,6 +285,7 @@ class FitResult:
                          and all(same(a, b) for a, b in zip(self.init_segmentation, other.init_segmentation))))
                 and ((self.log_likelihood is None) == (other.log_likelihood is None))
                 and (self.log_likelihood is None or same(self.log_likelihood, other.log_likelihood))
+                and json.dumps(self.run_length, sort_keys=True) == json.dumps(other.run_length, sort_keys=True)
                 and (not wall_time or same(self.wall_time, other.wall_time)))
 
     @property
@@ -254,41 +293,16 @@ class FitResult:
         """(C, D) log joint density of every draw."""
         return self.stats["log_joint"]
 
-    def _diagnostic(self, which: str) -> Dict[str, float]:
-        """ArviZ's rank-normalised split R-hat or bulk ESS of each label-invariant scalar: the
-        numbers ``convergence`` (``az.summary``) shows; NaN where undefined (a constant scalar,
-        or a run too short to split)."""
-        import logging
-        import warnings
-
-        import arviz as az
-
-        fn = az.rhat if which == "rhat" else az.ess
-        logger = logging.getLogger("arviz")
-        level = logger.level
-        logger.setLevel(logging.ERROR)  # one chain: "shape validation failed" is expected
-        out = {}
-        try:
-            for name in LABEL_INVARIANT:
-                x = np.asarray(self.stats[name], dtype=np.float64)
-                with warnings.catch_warnings():
-                    warnings.simplefilter("ignore")
-                    value = float(fn(x)) if x.shape[1] >= 4 else float("nan")
-                out[name] = value if np.isfinite(value) else float("nan")
-        finally:
-            logger.setLevel(level)
-        return out
-
     @property
     def rhat(self) -> Dict[str, float]:
         """Rank-normalised split R-hat (ArviZ) of the label-invariant scalars across chains;
         NaN where undefined (a constant scalar, fewer than 4 draws)."""
-        return self._diagnostic("rhat")
+        return label_invariant_diagnostic(self.stats, "rhat")
 
     @property
     def ess(self) -> Dict[str, float]:
         """Bulk effective sample size (ArviZ) of the label-invariant scalars; NaN where undefined."""
-        return self._diagnostic("ess")
+        return label_invariant_diagnostic(self.stats, "ess")
 
     def convergence_warning(self) -> str:
         """A line saying which label-invariant scalars have R-hat above 1.05 or ESS below 100,
@@ -401,6 +415,8 @@ class FitResult:
                  "fingerprint": self.fingerprint, "feature_names": json.dumps(list(self.feature_names)),
                  "best_chain": int(self.best_chain), "best_log_joint": float(self.best_log_joint),
                  "wall_time": float(self.wall_time), "mdp_fingerprint": str(self.mdp_fingerprint or "")}
+        if self.run_length is not None:
+            attrs["run_length"] = json.dumps(self.run_length, sort_keys=True)
         groups = {"posterior": xr.Dataset(posterior, coords=chain_draw),
                   "sample_stats": xr.Dataset(sample_stats, coords=chain_draw),
                   "constant_data": xr.Dataset(constant, attrs=attrs)}
@@ -464,7 +480,8 @@ class FitResult:
                                    if "log_likelihood" in idata.groups() else None),
                    mdp_fingerprint=str(attrs.get("mdp_fingerprint", "")),
                    warmup_stats=({k: np.asarray(v.values) for k, v in idata.warmup_sample_stats.data_vars.items()}
-                                 if "warmup_sample_stats" in idata.groups() else None))
+                                 if "warmup_sample_stats" in idata.groups() else None),
+                   run_length=json.loads(attrs["run_length"]) if "run_length" in attrs else None)
 
     def summary(self) -> str:
         """A short text summary: skills, segment lengths, diagnostics."""
@@ -481,6 +498,13 @@ class FitResult:
         if self.init_segmentation is not None:
             used = len(np.unique(np.concatenate(self.init_segmentation)))
             lines.append(f"started from a given segmentation ({used} skills)")
+        if self.run_length is not None:
+            r = self.run_length
+            why = {"converged": f"every label-invariant R-hat at most {r['target_rhat']}",
+                   "max_samples": f"max_samples reached before every R-hat was at most {r['target_rhat']}",
+                   "time_budget": f"the time budget ({r['time_budget']:g} s) spent before every R-hat was at most "
+                                  f"{r['target_rhat']}"}.get(r["stopped"], r["stopped"])
+            lines.append(f"run length chosen by convergence: {r['samples']} sampling sweeps per chain ({why})")
         rhat, ess = self.rhat, self.ess
 
         def shown(value, fmt):

@@ -1,0 +1,89 @@
+"""A run length chosen by convergence (``max_samples``, ``target_rhat``, ``time_budget``): the
+run keeps sampling in blocks until every label-invariant R-hat reaches the target, and its
+first sweeps are those of a run of fixed length."""
+
+import arviz as az
+import numpy as np
+import pytest
+
+from npbrs.domains import Demonstrations, TabularMDP
+from npbrs.inference import fit, load
+from npbrs.inference.driver.results import LABEL_INVARIANT
+
+
+def problem(seed=0, N=6, T=30, S=4, A=3):
+    rng = np.random.default_rng(seed)
+    mdp = TabularMDP.from_dense(rng.dirichlet(np.ones(S), (S, A)))
+    skills = [(np.arange(T - 3 * (i % 3)) // 10 + i) % 3 for i in range(N)]  # ragged
+    actions = [np.where(rng.random(len(k)) < 0.8, k, rng.integers(0, A, len(k))) for k in skills]
+    return mdp, Demonstrations([rng.integers(0, S, len(k)) for k in skills], actions, skills)
+
+
+MDP, DEMOS = problem()
+# (the greedy moves off: their compilation is not what this tests)
+KW = dict(emission="policy", num_chains=2, num_warmup=4, num_samples=4, max_skills=3, seed=3, progress_bar=False,
+          moves={"greedy_merge": 0, "greedy_split": 0})
+
+
+def converged(stats, n, target):
+    """The stopping rule, written out: every label-invariant scalar's R-hat over the first n
+    draws at most the target, or the scalar constant over all of them."""
+    for name in LABEL_INVARIANT:
+        x = np.asarray(stats[name][:, :n], np.float64)
+        r = float(az.rhat(x))
+        if not (r <= target if np.isfinite(r) else np.ptp(x) == 0):
+            return False
+    return True
+
+
+def test_a_run_extends_until_the_label_invariant_rhat_reaches_its_target(tmp_path):
+    kw = {**KW, "seed": 0, "num_warmup": 10}
+    checkpoint = tmp_path / "run.ckpt.npz"
+    result = fit(MDP, DEMOS, max_samples=60, target_rhat=1.1, checkpoint_path=checkpoint, **kw)
+    run = result.run_length
+    n = run["samples"]
+    assert np.shape(result.stats["log_joint"]) == (2, n)
+    # blocks of samples // 2 sweeps after the first 4, at most max_samples
+    points = list(range(4, 61, 2))
+    assert n in points and n > 4, run  # (this problem does not converge in 4 draws)
+    assert not any(converged(result.stats, m, 1.1) for m in points if m < n)
+    assert run["stopped"] == "converged" and converged(result.stats, n, 1.1), run  # (after 14 draws)
+    np.testing.assert_allclose([np.nan if run["rhat"][k] is None else run["rhat"][k] for k in LABEL_INVARIANT],
+                               [float(az.rhat(np.asarray(result.stats[k], np.float64))) for k in LABEL_INVARIANT],
+                               equal_nan=True)
+    # the extension only adds sweeps: a fixed-length run with the same seed made the first ones
+    fixed = fit(MDP, DEMOS, **kw)
+    assert fixed.run_length is None
+    for name, v in fixed.stats.items():
+        np.testing.assert_array_equal(result.stats[name][:, :4], v)
+    for name, v in fixed.samples.items():
+        np.testing.assert_array_equal(result.samples[name][:, :4], v)
+    # and it is kept with the run
+    path = tmp_path / "run.nc"
+    result.save(path)
+    again = load(path)
+    assert again.run_length == run and again.equals(result)
+    assert "run length chosen by convergence" in result.summary()
+    # resumed from its last checkpoint (after the extension), the run is over: the same result
+    resumed = fit(MDP, DEMOS, max_samples=60, target_rhat=1.1, checkpoint_path=checkpoint, resume=True, **kw)
+    assert resumed.equals(result)
+
+
+def test_an_unreachable_target_stops_at_max_samples_or_the_time_budget():
+    result = fit(MDP, DEMOS, max_samples=8, target_rhat=1.0 + 1e-12, **KW)
+    assert result.run_length["stopped"] == "max_samples" and result.run_length["samples"] == 8
+    assert "max_samples reached" in result.summary()
+    spent = fit(MDP, DEMOS, max_samples=8, target_rhat=1.0 + 1e-12, time_budget=1e-9, **KW)
+    assert spent.run_length["stopped"] == "time_budget" and spent.run_length["samples"] == 4
+
+
+@pytest.mark.parametrize("options, message", [
+    (dict(max_samples=3), "below sampler.samples"),
+    (dict(max_samples=8, num_chains=1), "at least 2 chains"),
+    (dict(max_samples=8, target_rhat=1.0), "above 1"),
+    (dict(max_samples=8, time_budget=-1.0), "time_budget"),
+    (dict(max_samples=8, target_rhat=float("nan")), "target_rhat"),
+])
+def test_bad_run_length_options_are_refused_naming_them(options, message):
+    with pytest.raises(ValueError, match=message):
+        fit(MDP, DEMOS, **{**KW, **options})
