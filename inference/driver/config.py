@@ -416,7 +416,7 @@ class ModelConfig:
     @classmethod
     def from_toml(cls, path) -> "ModelConfig":
         """Read a TOML file (see the module docstring for its keys)."""
-        tomllib = _toml()
+        import tomllib
         try:
             with open(path, "rb") as f:
                 data = tomllib.load(f)
@@ -429,7 +429,7 @@ class ModelConfig:
 
     @classmethod
     def from_toml_string(cls, text: str) -> "ModelConfig":
-        tomllib = _toml()
+        import tomllib
         try:
             data = tomllib.loads(text)
         except tomllib.TOMLDecodeError as e:
@@ -513,12 +513,3 @@ def _toml_document(data: dict) -> str:
     table("", data)
     return "\n".join(lines) + "\n"
 
-
-def _toml():
-    """The TOML reader: the standard library's ``tomllib`` (Python 3.11+), or on Python 3.10
-    ``tomli``, the same parser under its earlier name (a dependency there)."""
-    try:
-        import tomllib
-    except ModuleNotFoundError:  # Python 3.10
-        import tomli as tomllib
-    return tomllib
