@@ -44,7 +44,8 @@ from npbrs.domains.precision import float64_all
 
 from .config import ModelConfig
 
-__all__ = ["FitResult", "LABEL_INVARIANT", "label_invariant_diagnostic", "RUN_FORMAT", "RUN_VERSION", "NETCDF_ENGINE", "trajectory_rows"]
+__all__ = ["FitResult", "LABEL_INVARIANT", "label_invariant_diagnostic", "RUN_FORMAT", "RUN_VERSION", "NETCDF_ENGINE",
+           "trajectory_rows"]
 
 #: Scalars whose meaning does not depend on how skills are labelled: safe for R-hat and ESS
 #: across chains (skill labels switch between chains).
