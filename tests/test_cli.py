@@ -194,6 +194,10 @@ def test_fit_errors_name_what_is_wrong(demo, tmp_path):
         code, _, err = run_main(["fit", out / "demos.npz", "--domain", "highway", "--devices", devices,
                                  "-o", tmp_path / "x.nc"])
         assert code == 2 and says in err, (devices, err)
+    # --max-samples reaches fit (the demo's quick configuration has one chain: no R-hat across chains)
+    code, _, err = run_main(["fit", out / "demos.npz", "--domain", "highway", "--config", out / "config.toml",
+                             "--max-samples", "8", "-o", tmp_path / "x.nc"])
+    assert code == 2 and "sampler.max_samples" in err and "at least 2 chains" in err, err
     code, _, err = run_main(["report", tmp_path / "missing.nc"])
     assert code == 2 and "missing.nc" in err
     assert not (tmp_path / "x.nc").exists()
