@@ -58,6 +58,7 @@ from npbrs.domains.precision import float64_all
 __all__ = ["RewardEmission", "SingleRewardEmission"]
 
 _UPDATES = ("mala", "map")
+_STARTS = ("draw", "fit")
 
 
 @register_emission("reward")
@@ -90,13 +91,20 @@ class RewardEmission(Emission):
             actions that no reward explains then cost log(eps / A) each instead of opening a
             skill of their own. The Fisher information used for preconditioning and proposal
             scales stays the Boltzmann policy's (an approximation; the moves stay exact).
+        start: the skills' rewards at a chain's start: "draw" (default) draws them from the
+            data-driven proposal around each skill's IRL fit to its starting steps; "fit" starts
+            at the fit itself. With one weight per state a draw lies far below the fit and the
+            first sweep scrambles the starting segmentation; "fit" keeps it (measured in
+            ``benchmarks/results/worlds-probes/``; a candidate for the default).
     """
 
     def __init__(self, mdp, prior_scale: float = 10.0, temperature: float = 1.0, discount: Optional[float] = None,
                  update: str = "mala", mala_steps: int = 3, step_size: float = 0.5, target_accept: float = 0.6,
                  map_steps: int = 5, fit_steps: int = 20, refit_steps: int = 3, proposal_inflation: float = 1.5,
                  solver_options: Optional[dict] = None, epsilon: float = 0.0, proposal_broad_weight: float = 0.1,
-                 proposal_broad_scale: float = 10.0, scale_prior=False):
+                 proposal_broad_scale: float = 10.0, scale_prior=False, start: str = "draw"):
+        if start not in _STARTS:
+            raise ValueError(f"unknown start {start!r}; expected one of {_STARTS}")
         if update not in _UPDATES:
             raise ValueError(f"unknown reward update {update!r}; expected one of {_UPDATES}")
         for name, value in [("prior_scale", prior_scale), ("temperature", temperature), ("step_size", step_size),
@@ -129,6 +137,7 @@ class RewardEmission(Emission):
         self.temperature = float(temperature)
         self.discount = float(mdp.discount)
         self.update_kind = update
+        self.start = start
         self.mala_steps = int(mala_steps)
         self.step_size = float(step_size)
         self.target_accept = float(target_accept)
@@ -152,7 +161,7 @@ class RewardEmission(Emission):
                 "epsilon": self.epsilon, "proposal_broad_weight": self.proposal_broad_weight,
                 "proposal_broad_scale": self.proposal_broad_scale,
                 # False, not None, for a fixed scale: a saved configuration (TOML has no None) keeps it
-                "scale_prior": list(self.scale_prior) if self.scale_prior else False}
+                "scale_prior": list(self.scale_prior) if self.scale_prior else False, "start": self.start}
 
     # ------------------------------------------------------------------ prior
     def _variance_prior(self):
@@ -459,8 +468,10 @@ class RewardEmission(Emission):
         return {"theta": theta, "sigma2": self._variance_conditional(theta).sample(k_var)}
 
     def init_params(self, key, data, weights):
-        """A starting point: a draw of the Laplace proposal (the narrow component only) around
-        each skill's IRL fit to its weighted steps. (K, D)."""
+        """A starting point: each skill's IRL fit to its weighted steps (``start="fit"``), or a
+        draw of the Laplace proposal (the narrow component only) around it. (K, D)."""
+        if self.start == "fit":
+            return self._point(jax.vmap(lambda w: self.proposal(data, w)[0], in_axes=2)(weights))
         keys = jax.random.split(key, weights.shape[-1])
         return self._point(jax.vmap(lambda k, w: self._draw(k, *self.proposal(data, w), 0.0), in_axes=(0, 2))(
             keys, weights))

@@ -196,3 +196,31 @@ def test_irl_fits_find_the_posterior_mode_at_any_temperature(tau):
     np.testing.assert_allclose(float(params["theta"][0, 0]), mode, atol=1e-4)
     if tau == 2.0:
         assert abs(mode - 0.4187) < 1e-4
+
+
+def test_start_at_the_fit_is_each_skills_posterior_mode():
+    """``start="fit"``: a chain's first rewards are each skill's IRL fit, where the gradient of
+    its conditional log-posterior vanishes (up to the fit's 20 L-BFGS steps; the default draw
+    around it has gradients of order 100 here). Bad values are refused; the choice is part of the
+    emission's description."""
+    from npbrs.models.reward import log_posterior
+
+    dom = gridworld(size=3)
+    demos = generate_demonstrations(dom, num_trajectories=4, length=40, switch_prob=0.05, seed=2)
+    data = HMMData.from_demonstrations(demos)
+    z = np.zeros(data.mask.shape, int)
+    for i, s in enumerate(demos.skills):
+        z[i, :len(s)] = s
+    weights = jax.nn.one_hot(jnp.asarray(z), 3) * data.mask[..., None]
+    em = RewardEmission(dom.mdp, prior_scale=3.0, start="fit", epsilon=0.05, temperature=2.0)
+    assert em.describe()["start"] == "fit" and RewardEmission(dom.mdp).start == "draw"
+
+    @jax.jit
+    def gradient_at_start(key):
+        theta = em.init_params(key, data, weights)["theta"]
+        return log_posterior(em.solver, theta, em.counts(data, weights), jnp.zeros((3, em.num_states)), 3.0,
+                             temperature=2.0, epsilon=0.05).grad
+
+    assert np.max(np.abs(np.asarray(gradient_at_start(jax.random.PRNGKey(0))))) < 1e-3
+    with pytest.raises(ValueError, match="start"):
+        RewardEmission(dom.mdp, start="mode")
