@@ -470,8 +470,8 @@ class RewardEmission(Emission):
     def init_params(self, key, data, weights):
         """A starting point: each skill's IRL fit to its weighted steps (``start="fit"``), or a
         draw of the Laplace proposal (the narrow component only) around it. (K, D)."""
-        if self.start == "fit":
-            return self._point(jax.vmap(lambda w: self.proposal(data, w)[0], in_axes=2)(weights))
+        if self.start == "fit":  # the proposal's mean, every skill in one batched fit
+            return self._point(self.laplace(self.counts(data, weights))[0])
         keys = jax.random.split(key, weights.shape[-1])
         return self._point(jax.vmap(lambda k, w: self._draw(k, *self.proposal(data, w), 0.0), in_axes=(0, 2))(
             keys, weights))

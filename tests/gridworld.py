@@ -31,3 +31,16 @@ def gridworld(size=4, slip=0.1, discount=0.9):
                                 state_vectors=np.array([[s // size, s % size] for s in range(S)], float))
     weights = 5.0 * np.eye(3)
     return Domain(name="gridworld", mdp=mdp, skill_names=("TL", "TR", "BR"), skill_weights=weights)
+
+
+def ragged_policy_problem(seed=0, N=6, T=30, S=4, A=3, correct=0.9):
+    """A random S-state MDP and N ragged demonstrations (lengths T, T - 3, T - 6, ...) of three
+    skills in blocks of 10 steps, each acting "its" action with probability ``correct``
+    (uniformly otherwise): a small problem for the policy emission's fits."""
+    from npbrs.domains import Demonstrations
+
+    rng = np.random.default_rng(seed)
+    mdp = TabularMDP.from_dense(rng.dirichlet(np.ones(S), (S, A)))
+    skills = [(np.arange(T - 3 * (i % 3)) // 10 + i) % 3 for i in range(N)]  # ragged
+    actions = [np.where(rng.random(len(k)) < correct, k, rng.integers(0, A, len(k))) for k in skills]
+    return mdp, Demonstrations([rng.integers(0, S, len(k)) for k in skills], actions, skills)

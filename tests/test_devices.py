@@ -45,21 +45,15 @@ CHILD = textwrap.dedent('''
     import numpy as np
     import jax
     from jax.sharding import Mesh
-    from npbrs.domains import Demonstrations, TabularMDP
     from npbrs.inference import fit
 
     F = importlib.import_module("npbrs.inference.driver.fit")
     out_path = sys.argv[1]
     assert jax.device_count() == 4, jax.devices()
 
-    def problem(seed=0, N=6, T=30, S=4, A=3):
-        rng = np.random.default_rng(seed)
-        mdp = TabularMDP.from_dense(rng.dirichlet(np.ones(S), (S, A)))
-        skills = [(np.arange(T - 3 * (i % 3)) // 10 + i) % 3 for i in range(N)]  # ragged
-        actions = [np.where(rng.random(len(k)) < 0.9, k, rng.integers(0, A, len(k))) for k in skills]
-        return mdp, Demonstrations([rng.integers(0, S, len(k)) for k in skills], actions, skills)
+    from gridworld import ragged_policy_problem  # (the tests' folder is on PYTHONPATH)
 
-    mdp, demos = problem()
+    mdp, demos = ragged_policy_problem()
     # a greedy merge in every warmup sweep (it gathers one skill's steps over all trajectories);
     # greedy splits, birth/death and split-merge moves are left out to save their compilation
     kw = dict(emission="policy", num_chains=4, num_warmup=3, num_samples=3, max_skills=4, kappa=5.0, seed=1,
@@ -128,6 +122,8 @@ def four_devices(tmp_path_factory):
     env = dict(os.environ)
     env["XLA_FLAGS"] = (env.get("XLA_FLAGS", "") + " --xla_force_host_platform_device_count=4").strip()
     env["NPBRS_CACHE_DIR"] = "off"
+    tests = os.path.dirname(os.path.abspath(__file__))
+    env["PYTHONPATH"] = os.pathsep.join([tests] + ([env["PYTHONPATH"]] if env.get("PYTHONPATH") else []))
     cache = jax.config.jax_compilation_cache_dir  # the test session's: a second run compiles less
     if cache:
         env["JAX_COMPILATION_CACHE_DIR"] = os.path.join(cache, "devices4")

@@ -6,20 +6,12 @@ import arviz as az
 import numpy as np
 import pytest
 
-from npbrs.domains import Demonstrations, TabularMDP
+from gridworld import ragged_policy_problem
 from npbrs.inference import fit, load
 from npbrs.inference.driver.results import LABEL_INVARIANT
 
 
-def problem(seed=0, N=6, T=30, S=4, A=3):
-    rng = np.random.default_rng(seed)
-    mdp = TabularMDP.from_dense(rng.dirichlet(np.ones(S), (S, A)))
-    skills = [(np.arange(T - 3 * (i % 3)) // 10 + i) % 3 for i in range(N)]  # ragged
-    actions = [np.where(rng.random(len(k)) < 0.8, k, rng.integers(0, A, len(k))) for k in skills]
-    return mdp, Demonstrations([rng.integers(0, S, len(k)) for k in skills], actions, skills)
-
-
-MDP, DEMOS = problem()
+MDP, DEMOS = ragged_policy_problem(correct=0.8)
 # (the greedy moves off: their compilation is not what this tests)
 KW = dict(emission="policy", num_chains=2, num_warmup=4, num_samples=4, max_skills=3, seed=3, progress_bar=False,
           moves={"greedy_merge": 0, "greedy_split": 0})
