@@ -43,6 +43,7 @@ def main(argv=None):
         oracle_hungarian=round(hungarian_accuracy(world.demos.skills, oracle.viterbi), 3),
         switch_ratio=round(num_switches(result.segmentation) / num_switches(world.demos.skills), 2),
         heldout_ll=round(float(held.per_step), 4), oracle_heldout_ll=round(oracle.heldout_ll, 4),
+        sticky_heldout_ll=round(oracle.sticky_heldout_ll, 4),
         rhat={k: round(float(v), 3) for k, v in result.rhat.items()}, wall_s=round(wall),
         peak_mb=round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024))), flush=True)
 

@@ -32,7 +32,9 @@ are drawn independently of everything else.
 The oracle (:meth:`World.oracle`): the generating model's held-out log-likelihood per step (the
 actions given the states, the skill set and skill sequence summed out by the forward algorithm;
 the state dynamics are the same under every model and drop out, as in
-``FitResult.log_predictive``) and its Viterbi segmentation's accuracy on the training set. It is
+``FitResult.log_predictive``) and its Viterbi segmentation's accuracy on the training set; and
+the same for the true policies under state-independent (sticky) switching, the BP-HMM's own
+kind, which bounds what a fit of it can reach where the truth's switching depends on the state. It is
 computed here in NumPy because the library's HMM routines (``npbrs.models.hmm``) take one
 transition matrix per trajectory, not one per state, and ``domains`` imports nothing from
 ``models``.
@@ -108,6 +110,13 @@ class Oracle(NamedTuple):
     train_ll: the same per step on the training set; viterbi: per training trajectory the most
     probable skill sequence (jointly with the skill set); viterbi_accuracy: the fraction of
     training steps where it equals the true skill.
+
+    sticky_heldout_ll, sticky_viterbi_accuracy: the same for the generating model with its
+    switching made independent of the state (:meth:`SkillProcess.state_independent`, fitted to
+    the training set's true skills): the true policies under a sticky HMM, about the best the
+    BP-HMM (whose switching never depends on the state) can reach. Where the truth's switching
+    depends on the state (the labyrinth, the tabular grid), the gap between the two held-out
+    log-likelihoods is what no fit of the BP-HMM can close.
     """
 
     heldout_ll: float
@@ -115,6 +124,8 @@ class Oracle(NamedTuple):
     train_ll: float
     viterbi: List[np.ndarray]
     viterbi_accuracy: float
+    sticky_heldout_ll: float = math.nan
+    sticky_viterbi_accuracy: float = math.nan
 
 
 @dataclass(frozen=True, eq=False)
@@ -177,6 +188,29 @@ class SkillProcess:
     def _trans_at(self, m: np.ndarray, s: np.ndarray) -> np.ndarray:
         """(n, K, K) transition matrices of trajectories in sets m (n,) entering states s (n,)."""
         return self.transitions[m, s if self.transitions.shape[1] > 1 else 0]
+
+    def state_independent(self, demos: Demonstrations, prior: float = 1e-3) -> "SkillProcess":
+        """This model with switching that does not depend on the state: the transitions k -> j
+        counted over ``demos``'s true skills (all sets pooled; ``prior``: a pseudo-count added
+        to every count), restricted to each skill set and renormalised within it. Policies,
+        skill sets and initial skills are kept. With many demonstrations from a model whose
+        switching is already state-independent and the same for every set, it returns that
+        model (up to sampling error)."""
+        if demos.skills is None:
+            raise ValueError("state_independent: the demonstrations have no true skills")
+        K = self.num_skills
+        prior = _real("prior", prior, 0.0, open_low=True)
+        counts = np.zeros((K, K))
+        for i, z in enumerate(demos.skills):
+            z = np.asarray(z)
+            if z.size and (z.min() < 0 or z.max() >= K):
+                raise ValueError(f"state_independent: trajectory {i}'s skills are outside 0..{K - 1}")
+            np.add.at(counts, (z[:-1], z[1:]), 1.0)
+        within = (counts + prior)[None] * self.skill_sets[:, None, :]  # (M, K, K)
+        trans = within / within.sum(-1, keepdims=True)
+        return SkillProcess(log_policies=self.log_policies, skill_sets=self.skill_sets,
+                            skill_set_probs=self.skill_set_probs, initial_skill=self.initial_skill,
+                            transitions=trans[:, None], skill_names=self.skill_names)
 
     # ----------------------------------------------------------------------- sampling
     def sample(self, mdp: TabularMDP, lengths: Sequence[int], rng: np.random.Generator) -> Demonstrations:
@@ -302,9 +336,12 @@ class World:
         path = self.model.viterbi(self.demos)
         truth = np.concatenate(self.demos.skills)
         accuracy = float(np.mean(np.concatenate(path) == truth))
+        sticky = self.model.state_independent(self.demos)
+        sticky_path = np.concatenate(sticky.viterbi(self.demos))
         return Oracle(heldout_ll=float(held.sum() / self.heldout.num_steps), heldout_ll_per_trajectory=held,
                       train_ll=self.model.log_likelihood_per_step(self.demos), viterbi=path,
-                      viterbi_accuracy=accuracy)
+                      viterbi_accuracy=accuracy, sticky_heldout_ll=sticky.log_likelihood_per_step(self.heldout),
+                      sticky_viterbi_accuracy=float(np.mean(sticky_path == truth)))
 
     def __repr__(self):
         return (f"World({self.name!r}, {self.mdp.num_states} states, {self.model.num_skills} skills, "

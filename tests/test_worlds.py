@@ -168,6 +168,42 @@ def test_the_oracle_scores_the_held_out_set_and_segments_the_training_set(name, 
     assert oracle.viterbi_accuracy > 0.8
 
 
+def test_the_state_independent_model_counts_the_true_switches():
+    # a model whose switching already ignores the state (one set): from many of its own
+    # demonstrations, state_independent gives back its transitions; its rows are the counted
+    # frequencies exactly (checked on a hand count)
+    rng = np.random.default_rng(0)
+    K, S, A = 3, 4, 3
+    trans = np.array([[0.8, 0.15, 0.05], [0.1, 0.7, 0.2], [0.3, 0.3, 0.4]])
+    logits = rng.normal(size=(K, S, A))
+    model = SkillProcess(log_policies=logits - np.log(np.exp(logits).sum(-1, keepdims=True)),
+                         skill_sets=np.ones((1, K), bool), skill_set_probs=np.ones(1),
+                         initial_skill=np.full((1, K), 1 / K), transitions=trans[None, None])
+    demos = model.sample(grid_mdp(2), [400] * 50, rng)
+    fitted = model.state_independent(demos)
+    assert fitted.transitions.shape == (1, 1, K, K)
+    np.testing.assert_allclose(fitted.transitions[0, 0], trans, atol=0.02)
+    z = [np.array([0, 0, 1, 2]), np.array([2, 2, 0])]
+    counts = np.array([[1, 1, 0], [0, 0, 1], [1, 0, 1]], float) + 1e-3
+    np.testing.assert_allclose(model.state_independent(Demonstrations(z, z, z)).transitions[0, 0],
+                               counts / counts.sum(-1, keepdims=True))
+    with pytest.raises(ValueError, match="no true skills"):
+        model.state_independent(Demonstrations(z, z))
+    with pytest.raises(ValueError, match="trajectory 1's skills"):
+        model.state_independent(Demonstrations(z, z, [z[0], np.array([2, 3, 0])]))
+
+
+def test_sticky_switching_scores_below_the_truth_where_switching_depends_on_the_state():
+    # the labyrinth's skills end on reaching their goal; under sticky switching with the true
+    # policies the held-out likelihood is lower (on these sizes by about 0.07 nats per step)
+    world = labyrinth(seed=0, depth=3, num_trajectories=300, num_heldout=300)
+    oracle = world.oracle()
+    assert oracle.sticky_heldout_ll < oracle.heldout_ll - 0.02
+    assert oracle.sticky_heldout_ll == pytest.approx(
+        world.model.state_independent(world.demos).log_likelihood_per_step(world.heldout))
+    assert 0.5 < oracle.sticky_viterbi_accuracy <= 1.0
+
+
 @pytest.mark.parametrize("name", sorted(TINY))
 def test_the_experts_are_boltzmann_in_the_soft_q_of_the_domains_reward_weights(name, tiny):
     # pi(a | s) = exp(Q(s, a) - V(s)) with Q = r + gamma P V: then V(s) - gamma sum_s' P(s' | s, a) V(s')
