@@ -58,7 +58,12 @@ from npbrs.domains.precision import float64_all
 __all__ = ["RewardEmission", "SingleRewardEmission"]
 
 _UPDATES = ("mala", "map")
-_STARTS = ("draw", "fit")
+_STARTS = ("auto", "draw", "fit")
+# start="auto" starts each skill at its IRL fit when the reward has more weights than this (one
+# weight per state: a draw around the fit in that many dimensions lands far below it), and draws
+# around the fit otherwise (a handful of features: the paper's domains, where starting at the
+# fit gave the quadcopter a fourth skill in 2 of 10 runs)
+START_FIT_FEATURES = 16
 
 
 @register_emission("reward")
@@ -91,18 +96,21 @@ class RewardEmission(Emission):
             actions that no reward explains then cost log(eps / A) each instead of opening a
             skill of their own. The Fisher information used for preconditioning and proposal
             scales stays the Boltzmann policy's (an approximation; the moves stay exact).
-        start: the skills' rewards at a chain's start: "draw" (default) draws them from the
-            data-driven proposal around each skill's IRL fit to its starting steps; "fit" starts
-            at the fit itself. With one weight per state a draw lies far below the fit and the
-            first sweep scrambles the starting segmentation; "fit" keeps it (measured in
-            ``benchmarks/results/worlds-probes/``; a candidate for the default).
+        start: the skills' rewards at a chain's start: "draw" draws them from the data-driven
+            proposal around each skill's IRL fit to its starting steps; "fit" starts at the fit
+            itself; "auto" (default) is "fit" for rewards of more than ``START_FIT_FEATURES``
+            (16) weights and "draw" otherwise. With one weight per state a draw lies far below
+            the fit and the first sweep scrambles the starting segmentation ("fit" keeps it: the
+            labyrinth's default fit found 4 skills instead of 8); with a handful of features a
+            draw lands near the fit, and starting at the fit gave the quadcopter's 500-step runs a
+            fourth skill in 2 of 10 (``benchmarks/results/worlds-probes/``).
     """
 
     def __init__(self, mdp, prior_scale: float = 10.0, temperature: float = 1.0, discount: Optional[float] = None,
                  update: str = "mala", mala_steps: int = 3, step_size: float = 0.5, target_accept: float = 0.6,
                  map_steps: int = 5, fit_steps: int = 20, refit_steps: int = 3, proposal_inflation: float = 1.5,
                  solver_options: Optional[dict] = None, epsilon: float = 0.0, proposal_broad_weight: float = 0.1,
-                 proposal_broad_scale: float = 10.0, scale_prior=False, start: str = "draw"):
+                 proposal_broad_scale: float = 10.0, scale_prior=False, start: str = "auto"):
         if start not in _STARTS:
             raise ValueError(f"unknown start {start!r}; expected one of {_STARTS}")
         if update not in _UPDATES:
@@ -138,6 +146,7 @@ class RewardEmission(Emission):
         self.discount = float(mdp.discount)
         self.update_kind = update
         self.start = start
+        self.starts_at_fit = start == "fit" or (start == "auto" and mdp.num_features > START_FIT_FEATURES)
         self.mala_steps = int(mala_steps)
         self.step_size = float(step_size)
         self.target_accept = float(target_accept)
@@ -280,13 +289,16 @@ class RewardEmission(Emission):
         kernel = reward_mala.build_kernel(self.solver, prior_scale, temperature=self.temperature,
                                           epsilon=self.epsilon)
         minv = cache["scale"] ** 2
+        # only skills with steps are solved: the others are redrawn from the prior after the move
+        active = jnp.sum(counts, axis=(1, 2)) > 0
         state = reward_mala.init(self.solver, theta, counts, prior_scale, cache["V"],
-                                 temperature=self.temperature, epsilon=self.epsilon)
+                                 temperature=self.temperature, epsilon=self.epsilon, active=active)
 
         def step(carry, key):
             state, log_step, acc_sum = carry
-            state, info = kernel(key, state, counts, jnp.exp(log_step), minv)
-            log_step = jnp.where(adapt, log_step + 0.3 * (info.acceptance_rate - self.target_accept), log_step)
+            state, info = kernel(key, state, counts, jnp.exp(log_step), minv, active)
+            log_step = jnp.where(adapt & active, log_step + 0.3 * (info.acceptance_rate - self.target_accept),
+                                 log_step)
             return (state, log_step, acc_sum + info.acceptance_rate), None
 
         init = (state, cache["log_step"], jnp.zeros(theta.shape[0]))
@@ -468,9 +480,10 @@ class RewardEmission(Emission):
         return {"theta": theta, "sigma2": self._variance_conditional(theta).sample(k_var)}
 
     def init_params(self, key, data, weights):
-        """A starting point: each skill's IRL fit to its weighted steps (``start="fit"``), or a
-        draw of the Laplace proposal (the narrow component only) around it. (K, D)."""
-        if self.start == "fit":  # the proposal's mean, every skill in one batched fit
+        """A starting point: each skill's IRL fit to its weighted steps (``start="fit"``, or
+        "auto" with many features), or a draw of the Laplace proposal (the narrow component
+        only) around it. (K, D)."""
+        if self.starts_at_fit:  # the proposal's mean, every skill in one batched fit
             return self._point(self.laplace(self.counts(data, weights))[0])
         keys = jax.random.split(key, weights.shape[-1])
         return self._point(jax.vmap(lambda k, w: self._draw(k, *self.proposal(data, w), 0.0), in_axes=(0, 2))(

@@ -32,7 +32,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .mcmc import metropolis_accept, select
-from .reward import PRIOR_SCALE, as_solver, log_posterior
+from .reward import PRIOR_SCALE, Posterior, as_solver, log_posterior
 from npbrs.domains.precision import float64_all
 
 __all__ = ["RewardMALAState", "RewardMALAInfo", "init", "build_kernel"]
@@ -67,6 +67,53 @@ class RewardMALAInfo(NamedTuple):
 
 _POSTERIOR = jax.jit(log_posterior, static_argnums=6)  # epsilon static (0 skips the mixture)
 
+# Skills solved together when only some are active: a batched solve costs about its batch size
+# times one skill's once a skill's policy has this many (state, action) entries (measured on the
+# highway, 1080 x 3: 3.6 ms for one skill, 10 ms for 3, 36 ms for 8), while small MDPs cost the
+# same for 1 skill as for 8 (the labyrinth, 127 x 4: about 1.2 ms either way).
+BATCH_ENTRIES = 4096
+
+
+def chunk_size(solver, K: int) -> int:
+    """How many active skills one solve takes (a power of two, static): K (all at once, the
+    inactive ones too) for MDPs of at most ``BATCH_ENTRIES / K`` (state, action) entries, down
+    to 1 for large ones."""
+    entries = max(1, solver.num_states * solver.num_actions)
+    c = max(1, BATCH_ENTRIES // entries)
+    return K if c >= K else 1 << (c.bit_length() - 1)
+
+
+def _posterior(solver, theta, counts, v0, prior_scale, temperature, epsilon, active, fallback):
+    """:func:`log_posterior` of the ``active`` skills (K,) bool, solved ``chunk_size`` at a time
+    in a loop that runs as many times as the active skills need (under ``vmap`` over chains: as
+    the chain with the most needs); an inactive skill is not solved and gets ``fallback``'s
+    (log_density, grad, V) with ok False. ``active=None``, or an MDP small enough to batch all K
+    skills, solves all K at once."""
+    K = theta.shape[0]
+    c = chunk_size(solver, K)
+    if active is None or c >= K:
+        return _POSTERIOR(solver, theta, counts, v0, prior_scale, temperature, epsilon)
+    scale = jnp.broadcast_to(jnp.asarray(prior_scale, jnp.float64), (K,))
+    order = jnp.argsort(~active, stable=True)  # the active skills first, in slot order
+    order = jnp.concatenate([order, jnp.full((-K) % c, K, order.dtype)])  # index K: out of range
+    num_chunks = (jnp.sum(active) + c - 1) // c
+    lp0, grad0, V0 = fallback
+    init = Posterior(lp0, grad0, V0, jnp.zeros(K, bool), jnp.zeros(K))
+
+    def body(j, out):
+        idx = jax.lax.dynamic_slice(order, (j * c,), (c,))
+        take = lambda x: jnp.take(x, idx, axis=0, mode="fill", fill_value=0)  # noqa: E731
+        new = _POSTERIOR(solver, take(theta), take(counts), take(v0), take(scale) + (idx >= K), temperature,
+                         epsilon)
+        # a chunk's tail may hold inactive skills (solved, then discarded) or index K (dropped)
+        keep = take(active)
+        new = new._replace(ok=new.ok & keep)
+        return jax.tree.map(lambda o, n: o.at[idx].set(jnp.where(keep.reshape(keep.shape + (1,) * (n.ndim - 1)),
+                                                                    n, o[jnp.minimum(idx, K - 1)]), mode="drop"),
+                            out, new)
+
+    return jax.lax.fori_loop(0, num_chunks, body, init)
+
 
 def _check_options(prior_scale, temperature, epsilon):
     if not isinstance(prior_scale, jax.core.Tracer) and not np.all(np.isfinite(prior_scale) & (np.asarray(prior_scale) > 0)):
@@ -84,7 +131,7 @@ def _check_counts(solver, counts, K):
 
 
 def init(solver, theta, counts, prior_scale=PRIOR_SCALE, v0=None, *, temperature: float = 1.0,
-         epsilon: float = 0.0) -> RewardMALAState:
+         epsilon: float = 0.0, active=None) -> RewardMALAState:
     """The chain's state at theta (K, D) for counts (K, S, A).
 
     Args:
@@ -93,6 +140,8 @@ def init(solver, theta, counts, prior_scale=PRIOR_SCALE, v0=None, *, temperature
         prior_scale: sigma of the Gaussian prior, scalar or (K,).
         v0: optional (K, S) warm start of the first solve.
         temperature, epsilon: the demonstrator's inverse temperature and random-action rate.
+        active: optional (K,) bool, the skills to solve (see :func:`build_kernel`); the others
+            get log_density 0 and gradient 0, and keep v0.
     """
     solver = as_solver(solver)
     temperature, epsilon = _check_options(prior_scale, temperature, epsilon)
@@ -103,7 +152,8 @@ def init(solver, theta, counts, prior_scale=PRIOR_SCALE, v0=None, *, temperature
     K = theta.shape[0]
     _check_counts(solver, counts, K)
     v0 = jnp.zeros((K, solver.num_states)) if v0 is None else jnp.asarray(v0, jnp.float64)
-    post = _POSTERIOR(solver, theta, counts, v0, prior_scale, temperature, epsilon)
+    post = _posterior(solver, theta, counts, v0, prior_scale, temperature, epsilon, active,
+                      (jnp.zeros(K), jnp.zeros_like(theta), v0))
     return RewardMALAState(theta, post.log_density, post.grad, post.V)
 
 
@@ -115,14 +165,18 @@ def build_kernel(solver, prior_scale=PRIOR_SCALE, *, temperature: float = 1.0, e
         prior_scale: sigma of the Gaussian prior, scalar or (K,) (an array may be traced).
         temperature, epsilon: the demonstrator's inverse temperature and random-action rate.
     Returns:
-        ``kernel(rng_key, state, counts, step_size, inverse_mass=None) -> (state, info)`` with
-        counts (K, S, A), step_size scalar or (K,), inverse_mass (the diagonal preconditioner
-        M^-1) None, (D,) or (K, D).
+        ``kernel(rng_key, state, counts, step_size, inverse_mass=None, active=None) -> (state,
+        info)`` with counts (K, S, A), step_size scalar or (K,), inverse_mass (the diagonal
+        preconditioner M^-1) None, (D,) or (K, D), and active None (every skill moves) or (K,)
+        bool: only the active skills' proposals are solved (:func:`chunk_size` at a time) and
+        can be accepted; the others keep their state (acceptance rate 0, not a failed solve).
+        The random numbers are drawn for all K skills either way, so an active skill's step is
+        the same as in a step of all K (up to the solver's tolerance).
     """
     solver = as_solver(solver)
     temperature, epsilon = _check_options(prior_scale, temperature, epsilon)
 
-    def kernel(rng_key, state: RewardMALAState, counts, step_size, inverse_mass=None):
+    def kernel(rng_key, state: RewardMALAState, counts, step_size, inverse_mass=None, active=None):
         K, D = state.theta.shape
         counts = jnp.asarray(counts, jnp.float64)
         _check_counts(solver, counts, K)
@@ -134,14 +188,15 @@ def build_kernel(solver, prior_scale=PRIOR_SCALE, *, temperature: float = 1.0, e
         mean_fwd = theta + 0.5 * eps ** 2 * minv * grad
         prop = mean_fwd + eps * jnp.sqrt(minv) * jax.random.normal(k_prop, theta.shape)
         # all skills' proposals in one batched solve, warm-started from the current values
-        new = _POSTERIOR(solver, prop, counts, V, prior_scale, temperature, epsilon)
+        new = _posterior(solver, prop, counts, V, prior_scale, temperature, epsilon, active, (lp, grad, V))
         mean_bwd = prop + 0.5 * eps ** 2 * minv * new.grad
         log_q_fwd = -0.5 * jnp.sum((prop - mean_fwd) ** 2 / minv / eps ** 2, -1)
         log_q_bwd = -0.5 * jnp.sum((theta - mean_bwd) ** 2 / minv / eps ** 2, -1)
         log_ratio = new.log_density - lp + log_q_bwd - log_q_fwd
         accept, rate = metropolis_accept(k_acc, log_ratio, possible=new.ok)
         state = select(accept, RewardMALAState(prop, new.log_density, new.grad, new.V), state)
-        return state, RewardMALAInfo(rate, accept, new.log_density, ~new.ok)
+        failed = ~new.ok if active is None else active & ~new.ok
+        return state, RewardMALAInfo(rate, accept, new.log_density, failed)
 
     return kernel
 

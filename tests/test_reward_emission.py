@@ -213,7 +213,12 @@ def test_start_at_the_fit_is_each_skills_posterior_mode():
         z[i, :len(s)] = s
     weights = jax.nn.one_hot(jnp.asarray(z), 3) * data.mask[..., None]
     em = RewardEmission(dom.mdp, prior_scale=3.0, start="fit", epsilon=0.05, temperature=2.0)
-    assert em.describe()["start"] == "fit" and RewardEmission(dom.mdp).start == "draw"
+    assert em.describe()["start"] == "fit" and em.starts_at_fit
+    # the default, "auto": a draw around the fit for a handful of features, the fit for one-hot ones
+    assert RewardEmission(dom.mdp).start == "auto" and not RewardEmission(dom.mdp).starts_at_fit
+    from npbrs.domains.worlds import labyrinth_mdp
+    one_hot = labyrinth_mdp(depth=4)  # 31 states, a weight each
+    assert RewardEmission(one_hot).starts_at_fit and not RewardEmission(one_hot, start="draw").starts_at_fit
 
     @jax.jit
     def gradient_at_start(key):

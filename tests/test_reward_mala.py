@@ -148,3 +148,43 @@ def test_the_value_only_likelihood_is_the_posteriors_and_flags_a_failed_solve():
             p1 = 0.9 * expit(2.0 * np.asarray(theta)[:, 0]) + 0.05
             n0, n1 = np.asarray(C)[:, 0, 0], np.asarray(C)[:, 0, 1]
             np.testing.assert_allclose(np.asarray(ll), n1 * np.log(p1) + n0 * np.log1p(-p1), rtol=1e-10)
+
+
+@pytest.mark.parametrize("chunk", [1, 2, 4])
+def test_only_the_active_skills_move_each_as_in_a_step_of_all(chunk, monkeypatch):
+    """With ``active`` the kernel solves only the active skills (``chunk`` at a time: the
+    module's batching threshold is set so; 2 puts an inactive skill in a chunk's tail, 4 pads
+    past K) and each takes the same step as in a step of all K skills with the same key; the
+    inactive skills keep their state. Under vmap two chains with 3 and 1 active skills."""
+    from npbrs.models import reward_mala
+
+    rng = np.random.default_rng(0)
+    S, A, D, K = 6, 3, 4, 5
+    mdp = TabularMDP(successors=rng.integers(S, size=(S, A, 2)), probs=np.full((S, A, 2), 0.5),
+                     features=rng.normal(size=(S, A, D)), discount=0.9)
+    solver = make_soft_solver(mdp, tol=1e-12)
+    monkeypatch.setattr(reward_mala, "BATCH_ENTRIES", chunk * S * A)
+    assert reward_mala.chunk_size(solver, K) == chunk
+    scale = jnp.asarray([1.0, 2.0, 3.0, 1.5, 0.7])  # per skill: gathered with them
+    theta = jnp.asarray(rng.normal(size=(2, K, D)))
+    counts = jnp.asarray(rng.poisson(2.0, size=(2, K, S, A)).astype(float))
+    active = jnp.asarray([[True, False, True, True, False], [False, False, False, True, False]])
+    kernel = build_kernel(solver, prior_scale=scale, temperature=1.5, epsilon=0.05)
+
+    def both(key, th, c, act):
+        full = init(solver, th, c, prior_scale=scale, temperature=1.5, epsilon=0.05)
+        part = init(solver, th, c, prior_scale=scale, temperature=1.5, epsilon=0.05, active=act)
+        return full, part, kernel(key, full, c, 0.4)[0:2], kernel(key, part, c, 0.4, None, act)[0:2]
+
+    keys = jax.random.split(jax.random.PRNGKey(3), 2)
+    full0, part0, (full, full_info), (part, info) = jax.jit(jax.vmap(both))(keys, theta, counts, active)
+    act = np.asarray(active)
+    for a, b in zip(full0, part0):  # the start: solved where active
+        np.testing.assert_allclose(np.asarray(a)[act], np.asarray(b)[act], rtol=1e-9, atol=1e-10)
+    for a, b, b0 in zip(full, part, part0):
+        np.testing.assert_allclose(np.asarray(a)[act], np.asarray(b)[act], rtol=1e-9, atol=1e-10)
+        np.testing.assert_array_equal(np.asarray(b)[~act], np.asarray(b0)[~act])  # kept
+    np.testing.assert_array_equal(np.asarray(info.is_accepted)[act], np.asarray(full_info.is_accepted)[act])
+    assert np.asarray(info.is_accepted)[act].any() and not np.asarray(info.is_accepted)[~act].any()
+    assert np.all(np.asarray(info.acceptance_rate)[~act] == 0.0)
+    assert not np.asarray(info.solver_failed).any()
