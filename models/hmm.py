@@ -124,15 +124,20 @@ def backward_sample(key, log_trans, log_alpha, mask=None, active=None) -> jax.Ar
     mask = jnp.ones(T, dtype=bool) if mask is None else jnp.asarray(mask, dtype=bool)
     _, log_trans = _prepare(None, jnp.asarray(log_trans), active)
 
+    # every step's Gumbel noise at once, outside the scan (the random bits are the bulk of a
+    # step's work): jax.random.categorical(k, logits) is argmax(gumbel(k, (K,)) + logits), so
+    # these are the same draws as categorical with key fold_in(key, t) at step t
+    gumbels = jax.vmap(lambda t: jax.random.gumbel(jax.random.fold_in(key, t), (K,), log_alpha.dtype))(jnp.arange(T))
+
     def step(z_next, inputs):
-        t, filt, real = inputs
+        noise, filt, real = inputs
         # z_next == -1 until the last real step has been drawn
         to_next = jnp.where(z_next >= 0, log_trans[:, jnp.maximum(z_next, 0)], 0.0)
-        z = jax.random.categorical(jax.random.fold_in(key, t), filt + to_next).astype(jnp.int32)
+        z = jnp.argmax(noise + (filt + to_next)).astype(jnp.int32)
         z = jnp.where(real, z, jnp.int32(-1))
         return jnp.where(real, z, z_next), z
 
-    _, z = jax.lax.scan(step, jnp.int32(-1), (jnp.arange(T), log_alpha, mask), reverse=True)
+    _, z = jax.lax.scan(step, jnp.int32(-1), (gumbels, log_alpha, mask), reverse=True)
     return z
 
 
