@@ -15,10 +15,7 @@ from its conditional given the proposed theta, so that the proposal's ratio to t
 the marginal (Student-t) prior of theta. That prior's tail in |theta| falls only as
 |theta|^-(2a + 1): a skill whose steps a deterministic policy explains (the likelihood keeps
 rising with the reward's scale) then wanders to huge scales with a = 1 (a 10 x 64 gridworld,
-2 chains of 40 + 40 sweeps: R-hat of the log joint 1.24), which is why the default
-(``scale_prior="auto"``) samples it only for rewards of many weights (more than
-``MANY_FEATURES``), with a = b = 3 (a tail as |theta|^-7), and keeps sigma fixed for a handful
-of features.
+2 chains of 40 + 40 sweeps: R-hat of the log joint 1.24), which is why it is not the default.
 
 Moves on theta_k (``update``):
 
@@ -62,15 +59,11 @@ __all__ = ["RewardEmission", "SingleRewardEmission"]
 
 _UPDATES = ("mala", "map")
 _STARTS = ("auto", "draw", "fit")
-# Rewards of more weights than this (one weight per state) get, with the options' "auto"
-# defaults, a start at each skill's IRL fit (a draw around the fit in that many dimensions
-# lands far below it) and a sampled prior scale (AUTO_SCALE_PRIOR: that many weights a skill
-# tell how large its weights are; a fixed sigma of 10 lets the ones its steps leave alone
-# roam). A handful of features (the paper's domains) keep the draw (starting at the fit gave the
-# quadcopter a fourth skill in 2 of 10 runs) and the fixed scale (a few weights cannot inform a
-# scale, and a skill that a deterministic policy explains wanders to huge ones).
-MANY_FEATURES = 16
-AUTO_SCALE_PRIOR = (3.0, 3.0)
+# start="auto" starts each skill at its IRL fit when the reward has more weights than this (one
+# weight per state: a draw around the fit in that many dimensions lands far below it), and draws
+# around the fit otherwise (a handful of features: the paper's domains, where starting at the
+# fit gave the quadcopter a fourth skill in 2 of 10 runs)
+START_FIT_FEATURES = 16
 
 
 @register_emission("reward")
@@ -93,13 +86,10 @@ class RewardEmission(Emission):
         proposal_inflation: factor on the proposal's standard deviations.
         proposal_broad_weight, proposal_broad_scale: weight w and scale s of the broad
             component of the defensive-mixture proposal (w = 0: a single Gaussian).
-        scale_prior: False (or None, "off"): the prior's sigma is ``prior_scale``, fixed; or
-            (a, b): each skill's prior variance sigma_k^2 ~ InvGamma(a, b) is sampled (see the
-            module docstring), and ``prior_scale`` only sets the proposals' fits and the first
-            preconditioner; or "auto" (default): ``AUTO_SCALE_PRIOR`` (3, 3) for rewards of more
-            than ``MANY_FEATURES`` (16) weights, fixed otherwise. On the benchmark worlds' rooms
-            (104 weights, 3 seeds) the sampled scale raised one-to-one accuracy from 0.47-0.59 to
-            0.57-0.82 and the held-out log-likelihood by 0.02-0.03 nats per step.
+        scale_prior: False (default; or None, "off"): the prior's sigma is ``prior_scale``,
+            fixed; or (a, b): each skill's prior variance sigma_k^2 ~ InvGamma(a, b) is sampled
+            (see the module docstring), and ``prior_scale`` only sets the proposals' fits and
+            the first preconditioner.
         solver_options: keyword options of :func:`npbrs.domains.make_soft_solver`.
         epsilon: probability that the demonstrator acts uniformly at random instead of by the
             skill's Boltzmann policy (a noisy expert): pi = (1 - eps) Boltzmann + eps / A. A few
@@ -108,7 +98,7 @@ class RewardEmission(Emission):
             scales stays the Boltzmann policy's (an approximation; the moves stay exact).
         start: the skills' rewards at a chain's start: "draw" draws them from the data-driven
             proposal around each skill's IRL fit to its starting steps; "fit" starts at the fit
-            itself; "auto" (default) is "fit" for rewards of more than ``MANY_FEATURES``
+            itself; "auto" (default) is "fit" for rewards of more than ``START_FIT_FEATURES``
             (16) weights and "draw" otherwise. With one weight per state a draw lies far below
             the fit and the first sweep scrambles the starting segmentation ("fit" keeps it: the
             labyrinth's default fit found 4 skills instead of 8); with a handful of features a
@@ -120,7 +110,7 @@ class RewardEmission(Emission):
                  update: str = "mala", mala_steps: int = 3, step_size: float = 0.5, target_accept: float = 0.6,
                  map_steps: int = 5, fit_steps: int = 20, refit_steps: int = 3, proposal_inflation: float = 1.5,
                  solver_options: Optional[dict] = None, epsilon: float = 0.0, proposal_broad_weight: float = 0.1,
-                 proposal_broad_scale: float = 10.0, scale_prior="auto", start: str = "auto"):
+                 proposal_broad_scale: float = 10.0, scale_prior=False, start: str = "auto"):
         if start not in _STARTS:
             raise ValueError(f"unknown start {start!r}; expected one of {_STARTS}")
         if update not in _UPDATES:
@@ -139,15 +129,13 @@ class RewardEmission(Emission):
                             ("refit_steps", refit_steps)]:
             if not isinstance(value, (int, np.integer)) or value < 1:
                 raise ValueError(f"{name} must be an integer >= 1, got {value!r}")
-        if isinstance(scale_prior, str) and scale_prior == "auto":
-            scale_prior = AUTO_SCALE_PRIOR if mdp.num_features > MANY_FEATURES else None
         if scale_prior is False or scale_prior is None or (isinstance(scale_prior, str) and scale_prior == "off"):
             scale_prior = None
         else:
             if np.ndim(scale_prior) != 1 or len(scale_prior) != 2 or not all(
                     np.isfinite(v) and v > 0 for v in scale_prior):
                 raise ValueError(f"scale_prior must be (a, b), two positive numbers (sigma^2 ~ InvGamma(a, b)), or "
-                                 f"False/None/'off' (a fixed prior_scale), or 'auto', got {scale_prior!r}")
+                                 f"False/None/'off' (a fixed prior_scale), got {scale_prior!r}")
             scale_prior = (float(scale_prior[0]), float(scale_prior[1]))
         self.scale_prior = scale_prior
         if discount is not None:
@@ -158,7 +146,7 @@ class RewardEmission(Emission):
         self.discount = float(mdp.discount)
         self.update_kind = update
         self.start = start
-        self.starts_at_fit = start == "fit" or (start == "auto" and mdp.num_features > MANY_FEATURES)
+        self.starts_at_fit = start == "fit" or (start == "auto" and mdp.num_features > START_FIT_FEATURES)
         self.mala_steps = int(mala_steps)
         self.step_size = float(step_size)
         self.target_accept = float(target_accept)
