@@ -15,10 +15,12 @@ emission, 4 chains, 3 + 3 sweeps, a greedy merge in each warmup sweep) three way
 
 and records what the compiled sweep was given: the devices its data and state span and their
 shards' shapes. The test then asks for the same draws: every discrete draw (segmentations,
-features, skills used, steps per skill, the greedy merges kept) and the policies bit for bit,
+features, skills used, steps per skill, the greedy merges kept) bit for bit, and the policies
 and the floating-point statistics to a relative 1e-12: sums over trajectories (the log joint)
 are added in another order when the trajectories are split over devices (measured: 1e-13 in a
-log joint of about -400), and XLA may round a mean differently in another program (1e-16).
+log joint of about -400), and XLA may round a mean or a Dirichlet draw's normalisation
+differently in another program (measured: 2e-16 in 23 of the 576 policy entries of the chains
+run, once the backward sampler drew its Gumbel noise before its scan; they had been equal).
 
 (Checked by hand: with each device's chains given other keys (``fit._place_state`` folding the
 device's index into the state's ``rng_key``) the chains run fails; with omega's Gammas drawn
@@ -112,8 +114,7 @@ CHILD = textwrap.dedent('''
         json.dump({"seen": seen, "times": times, "errors": errors}, f)
 ''')
 
-EXACT = ("num_skills", "features", "skill_steps", "greedy_merges", "policy", "chain_best_z",
-         "segmentation")
+EXACT = ("num_skills", "features", "skill_steps", "greedy_merges", "chain_best_z", "segmentation")
 
 
 @pytest.fixture(scope="module")
