@@ -69,6 +69,9 @@ def _add_fit(sub):
     p.add_argument("--target-rhat", type=float, help="the R-hat a run extended with --max-samples stops at (1.05)")
     p.add_argument("--time-budget", type=float, metavar="SECONDS",
                    help="stop extending a --max-samples run after this many seconds (default: no budget)")
+    p.add_argument("--grow", action="store_true",
+                   help="while every skill slot is in use in most draws, refit with twice the slots from the "
+                        "run's segmentation (up to 64; fit's grow=True; no checkpoints then)")
     p.add_argument("-o", "--output", required=True, help="the run file to write (.nc)")
     p.add_argument("--init-from", metavar="RUN", help="start every chain from the segmentation of a saved run (.nc)")
     p.add_argument("--resume", action="store_true", help="continue from the output's checkpoint if there is one")
@@ -106,7 +109,10 @@ def fit_command(args) -> int:
             init = load(args.init_from).segmentation
     except (OSError, ValueError) as e:
         return command_error("fit", e)
-    checkpoint = checkpoint_path_for(args.output) if args.checkpoint_every > 0 or args.resume else None
+    if args.grow and args.resume:
+        return command_error("fit", "--grow refits with more skill slots and keeps no checkpoint to --resume")
+    checkpoint = checkpoint_path_for(args.output) if (args.checkpoint_every > 0 or args.resume) and not args.grow \
+        else None
     if args.resume and checkpoint and os.path.exists(checkpoint):
         print(f"resuming from {checkpoint}")
     try:
@@ -115,7 +121,7 @@ def fit_command(args) -> int:
                      progress_bar=not args.no_progress, checkpoint_path=checkpoint,
                      checkpoint_every=args.checkpoint_every or None, resume=args.resume, init_segmentation=init,
                      devices=args.devices, max_samples=args.max_samples, target_rhat=args.target_rhat,
-                     time_budget=args.time_budget)
+                     time_budget=args.time_budget, grow=args.grow)
     except (OSError, ValueError) as e:  # a missing or unreadable --config among them
         message = str(e)
         if args.config and message.startswith("emission.options") and os.fspath(args.config) not in message:

@@ -12,8 +12,8 @@ the sampled hyperparameters.
 
 from __future__ import annotations
 
-import hashlib
 import dataclasses
+import hashlib
 import json
 import math
 import os
@@ -21,6 +21,7 @@ import signal
 import sys
 import threading
 import time
+import warnings
 from collections import OrderedDict
 from functools import partial
 from operator import attrgetter
@@ -544,8 +545,6 @@ def _chain_method(method: str, num_chains: int, mesh, devices):
             local = jax.local_devices()
             used = math.gcd(num_chains, len(local))
             if used == 1 and num_chains > 1:
-                import warnings
-
                 warnings.warn(f"chain_method='parallel': {num_chains} chains on {len(local)} device"
                               f"{'s' if len(local) > 1 else ''}; running them vectorized on one", stacklevel=3)
             mesh = Mesh(np.array(local[:used], dtype=object).reshape(used, 1), (CHAINS, TRAJECTORIES))
@@ -652,7 +651,7 @@ def fit(mdp, demos: Demonstrations, config: Union[ModelConfig, dict, str, os.Pat
         bucket: Optional[bool] = None, max_samples: Optional[int] = None, target_rhat: Optional[float] = None,
         time_budget: Optional[float] = None, init_segmentation=None, progress_bar: bool = True, checkpoint_path=None,
         checkpoint_every: Optional[int] = None, resume: bool = False, mesh: Optional[Mesh] = None,
-        devices=None) -> FitResult:
+        devices=None, grow: bool = False) -> FitResult:
     """Segment demonstrations into skills.
 
     The model and sampler come from ``config`` (defaults: :class:`ModelConfig`); the keyword
@@ -715,6 +714,12 @@ def fit(mdp, demos: Demonstrations, config: Union[ModelConfig, dict, str, os.Pat
         devices: a shortcut for ``mesh``: a number of devices, a list of ``jax.Device`` or
             "all" (``jax.devices()``); see :func:`device_mesh` (chains spread first, the
             remaining devices shard the trajectories).
+        grow: when every skill slot was in use in more than half of the sampling draws (the
+            truncation ``max_skills`` may be hiding skills), fit again with twice the slots,
+            starting from the run's best segmentation, until it is not so or ``GROW_LIMIT``
+            (64) slots; the result is the last fit's, with ``truncation`` recording each fit's
+            slots, skills and saturation. Without it such a run warns (``UserWarning``) and says
+            how to refit. Not with ``checkpoint_path``.
     Returns:
         a :class:`~npbrs.inference.driver.results.FitResult`.
     Raises:
@@ -730,7 +735,44 @@ def fit(mdp, demos: Demonstrations, config: Union[ModelConfig, dict, str, os.Pat
     numbered by its position, so that it does not depend on the devices or the padding.
     """
     with jax.threefry_partitionable(True):
-        return _fit(**locals())
+        args = dict(locals())
+        grow = args.pop("grow")
+        if grow and checkpoint_path is not None:
+            raise ValueError("grow=True refits with more skill slots, which a checkpoint of one run cannot hold; "
+                             "give either grow or checkpoint_path")
+        result = _fit(**args)
+        record = {"max_skills": [], "skills": [], "saturated": []}
+        while True:
+            K, share = saturation(result)
+            record["max_skills"].append(K)
+            record["skills"].append(int(result.num_skills))
+            record["saturated"].append(share)
+            if K < 2 or share <= SATURATED:
+                break
+            if not grow or 2 * K > GROW_LIMIT:
+                warnings.warn(f"npbrs.fit: all {K} skill slots were in use in {share:.0%} of the sampling draws, "
+                              "so the truncation may be hiding skills; "
+                              + (f"refit with max_skills={2 * K} or with grow=True" if not grow else
+                                 f"grow=True stops at {GROW_LIMIT} slots"), UserWarning, stacklevel=2)
+                break
+            args.update(max_skills=2 * K, init_segmentation=result)
+            result = _fit(**args)
+        if len(record["max_skills"]) > 1:
+            result = dataclasses.replace(result, truncation=record)
+        return result
+
+
+#: ``fit(grow=True)``: the most skill slots it grows to, and the share of the sampling draws that
+#: must use every slot for it to grow
+GROW_LIMIT = 64
+SATURATED = 0.5
+
+
+def saturation(result: FitResult):
+    """(max_skills, the share of the run's sampling draws that used every skill slot)."""
+    K = int(result.config.get("max_skills", 0))
+    used = np.asarray(result.stats.get("num_skills", np.zeros((0, 0))))
+    return K, float(np.mean(used >= K)) if used.size and K else 0.0
 
 
 def _fit(mdp, demos, config, *, emission, emission_options, num_chains, num_samples, num_warmup, max_skills, seed,

@@ -168,6 +168,9 @@ class FitResult:
             ("rhat"; None where undefined, e.g. a scalar constant in every draw), the rule that stopped the run ("stopped": "converged", "max_samples" or
             "time_budget") and the settings ("target_rhat", "max_samples", "time_budget");
             None for a run of fixed length.
+        truncation: for a run whose skill slots grew (``fit(..., grow=True)``): the slots of
+            each fit in turn ("max_skills", e.g. [8, 16]), the skills each found ("skills") and
+            the share of its sampling draws that used every slot ("saturated"); None otherwise.
 
     The methods :meth:`policies`, :meth:`options`, :meth:`segment`, :meth:`log_predictive` and
     :meth:`add_log_likelihood` are shortcuts to the functions of :mod:`npbrs.inference.analysis`
@@ -194,6 +197,7 @@ class FitResult:
     mdp_fingerprint: str = ""
     warmup_stats: Optional[Dict[str, np.ndarray]] = None
     run_length: Optional[dict] = None
+    truncation: Optional[dict] = None
 
     @classmethod
     def from_states(cls, last_state, draws: Dict[str, np.ndarray], demos, *, config: Optional[dict] = None,
@@ -287,6 +291,7 @@ class FitResult:
                 and ((self.log_likelihood is None) == (other.log_likelihood is None))
                 and (self.log_likelihood is None or same(self.log_likelihood, other.log_likelihood))
                 and json.dumps(self.run_length, sort_keys=True) == json.dumps(other.run_length, sort_keys=True)
+                and json.dumps(self.truncation, sort_keys=True) == json.dumps(other.truncation, sort_keys=True)
                 and (not wall_time or same(self.wall_time, other.wall_time)))
 
     @property
@@ -418,6 +423,8 @@ class FitResult:
                  "wall_time": float(self.wall_time), "mdp_fingerprint": str(self.mdp_fingerprint or "")}
         if self.run_length is not None:
             attrs["run_length"] = json.dumps(self.run_length, sort_keys=True)
+        if self.truncation is not None:
+            attrs["truncation"] = json.dumps(self.truncation, sort_keys=True)
         groups = {"posterior": xr.Dataset(posterior, coords=chain_draw),
                   "sample_stats": xr.Dataset(sample_stats, coords=chain_draw),
                   "constant_data": xr.Dataset(constant, attrs=attrs)}
@@ -482,7 +489,8 @@ class FitResult:
                    mdp_fingerprint=str(attrs.get("mdp_fingerprint", "")),
                    warmup_stats=({k: np.asarray(v.values) for k, v in idata.warmup_sample_stats.data_vars.items()}
                                  if "warmup_sample_stats" in idata.groups() else None),
-                   run_length=json.loads(attrs["run_length"]) if "run_length" in attrs else None)
+                   run_length=json.loads(attrs["run_length"]) if "run_length" in attrs else None,
+                   truncation=json.loads(attrs["truncation"]) if "truncation" in attrs else None)
 
     def summary(self) -> str:
         """A short text summary: skills, segment lengths, diagnostics."""
@@ -506,6 +514,11 @@ class FitResult:
                    "time_budget": f"the time budget ({r['time_budget']:g} s) spent before every R-hat was at most "
                                   f"{r['target_rhat']}"}.get(r["stopped"], r["stopped"])
             lines.append(f"run length chosen by convergence: {r['samples']} sampling sweeps per chain ({why})")
+        if self.truncation is not None:
+            t = self.truncation
+            steps = "; ".join(f"{k} slots: {n} skills, every slot in use in {p:.0%} of the draws"
+                              for k, n, p in zip(t["max_skills"], t["skills"], t["saturated"]))
+            lines.append(f"skill slots grew ({steps})")
         rhat, ess = self.rhat, self.ess
 
         def shown(value, fmt):

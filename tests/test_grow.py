@@ -1,0 +1,45 @@
+"""Skill slots that grow: ``fit(..., grow=True)`` refits with twice the slots when every slot was
+in use in most draws, and that refit is a plain fit with more slots from the run's segmentation."""
+
+import warnings
+
+import numpy as np
+import pytest
+
+from gridworld import ragged_policy_problem
+from npbrs.inference import fit, load
+from npbrs.inference.driver.fit import saturation
+
+KW = dict(emission="policy", num_chains=2, num_warmup=4, num_samples=4, seed=3, kappa=5.0, progress_bar=False)
+
+
+@pytest.fixture(scope="module")
+def problem():
+    return ragged_policy_problem(seed=1, N=8, T=40)  # three skills
+
+
+def test_a_saturated_truncation_grows_and_the_refit_is_a_fit_with_more_slots(problem, tmp_path):
+    mdp, demos = problem
+    with pytest.warns(UserWarning, match=r"all 2 skill slots were in use in 100% .* max_skills=4 or with grow=True"):
+        small = fit(mdp, demos, max_skills=2, **KW)
+    assert saturation(small) == (2, 1.0) and small.truncation is None
+    grown = fit(mdp, demos, max_skills=2, grow=True, **KW)
+    # the two-slot fit is the warned one; the refit has 4 slots, starts from its segmentation
+    # and is exactly what fit gives with those settings
+    direct = fit(mdp, demos, max_skills=4, init_segmentation=small.segmentation, **KW)
+    assert grown.truncation["max_skills"] == [2, 4] and grown.truncation["skills"][0] == 2
+    assert grown.truncation["saturated"][0] == 1.0 and grown.truncation["saturated"][1] <= 0.5
+    assert grown.config["max_skills"] == 4 and grown.num_skills == 3
+    for a, b in zip(grown.segmentation, direct.segmentation):
+        np.testing.assert_array_equal(a, b)
+    np.testing.assert_array_equal(grown.stats["log_joint"], direct.stats["log_joint"])
+    assert "skill slots grew (2 slots: 2 skills" in grown.summary()
+    path = tmp_path / "grown.nc"
+    grown.save(path)
+    assert load(path).truncation == grown.truncation
+    # enough slots: no warning, no growth
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert fit(mdp, demos, max_skills=4, grow=True, **KW).truncation is None
+    with pytest.raises(ValueError, match="grow"):
+        fit(mdp, demos, max_skills=2, grow=True, checkpoint_path=tmp_path / "c.nc", **KW)
