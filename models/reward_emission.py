@@ -251,7 +251,7 @@ class RewardEmission(Emission):
             cache = {**cache, "V": V}
         else:
             k_move, k_rescale = jax.random.split(k_move) if self.scale_prior else (k_move, None)
-            new, cache, accept, log_density = self._mala(k_move, theta, counts, cache, adapt, scale)
+            new, cache, accept, log_density = self._mala(k_move, theta, counts, cache, adapt, scale, has_steps)
             if self.scale_prior:
                 # (its sigma^2 is not kept: the exact conditional below redraws it from theta alone)
                 new, cache = self._rescale(k_rescale, new, params["sigma2"], log_density, counts, cache, adapt)
@@ -282,15 +282,14 @@ class RewardEmission(Emission):
         scale = jnp.asarray(self._scales(params))
         return {**cache, "scale": 1.0 / jnp.sqrt(jnp.maximum(fisher, 0.0) + 1.0 / scale[..., None] ** 2)}
 
-    def _mala(self, key, theta, counts, cache, adapt, prior_scale):
+    def _mala(self, key, theta, counts, cache, adapt, prior_scale, active):
         """``mala_steps`` steps of the reward move (:mod:`npbrs.models.reward_mala`) with the
         cache's preconditioner (refreshed by :meth:`tune` during warmup); in warmup each skill's
         step size follows its acceptance rate towards ``target_accept``."""
         kernel = reward_mala.build_kernel(self.solver, prior_scale, temperature=self.temperature,
                                           epsilon=self.epsilon)
         minv = cache["scale"] ** 2
-        # only skills with steps are solved: the others are redrawn from the prior after the move
-        active = jnp.sum(counts, axis=(1, 2)) > 0
+        # only skills with steps (``active``) are solved: the others are redrawn from the prior after the move
         state = reward_mala.init(self.solver, theta, counts, prior_scale, cache["V"],
                                  temperature=self.temperature, epsilon=self.epsilon, active=active)
 

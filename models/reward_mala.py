@@ -95,22 +95,18 @@ def _posterior(solver, theta, counts, v0, prior_scale, temperature, epsilon, act
         return _POSTERIOR(solver, theta, counts, v0, prior_scale, temperature, epsilon)
     scale = jnp.broadcast_to(jnp.asarray(prior_scale, jnp.float64), (K,))
     order = jnp.argsort(~active, stable=True)  # the active skills first, in slot order
-    order = jnp.concatenate([order, jnp.full((-K) % c, K, order.dtype)])  # index K: out of range
+    order = jnp.concatenate([order, jnp.full((-K) % c, K, order.dtype)])  # pad to whole chunks
     num_chunks = (jnp.sum(active) + c - 1) // c
     lp0, grad0, V0 = fallback
     init = Posterior(lp0, grad0, V0, jnp.zeros(K, bool), jnp.zeros(K))
 
     def body(j, out):
         idx = jax.lax.dynamic_slice(order, (j * c,), (c,))
-        take = lambda x: jnp.take(x, idx, axis=0, mode="fill", fill_value=0)  # noqa: E731
-        new = _POSTERIOR(solver, take(theta), take(counts), take(v0), take(scale) + (idx >= K), temperature,
-                         epsilon)
-        # a chunk's tail may hold inactive skills (solved, then discarded) or index K (dropped)
-        keep = take(active)
-        new = new._replace(ok=new.ok & keep)
-        return jax.tree.map(lambda o, n: o.at[idx].set(jnp.where(keep.reshape(keep.shape + (1,) * (n.ndim - 1)),
-                                                                    n, o[jnp.minimum(idx, K - 1)]), mode="drop"),
-                            out, new)
+        take = lambda x: jnp.take(x, idx, axis=0, mode="clip")  # noqa: E731  (index K: slot K - 1 again)
+        new = _POSTERIOR(solver, take(theta), take(counts), take(v0), take(scale), temperature, epsilon)
+        # a chunk's tail may hold inactive skills or index K: solved, and not written back
+        keep = take(active) & (idx < K)
+        return jax.tree.map(lambda o, n: o.at[jnp.where(keep, idx, K)].set(n, mode="drop"), out, new)
 
     return jax.lax.fori_loop(0, num_chunks, body, init)
 
@@ -187,7 +183,7 @@ def build_kernel(solver, prior_scale=PRIOR_SCALE, *, temperature: float = 1.0, e
         theta, lp, grad, V = state
         mean_fwd = theta + 0.5 * eps ** 2 * minv * grad
         prop = mean_fwd + eps * jnp.sqrt(minv) * jax.random.normal(k_prop, theta.shape)
-        # all skills' proposals in one batched solve, warm-started from the current values
+        # the (active) skills' proposals solved together, warm-started from the current values
         new = _posterior(solver, prop, counts, V, prior_scale, temperature, epsilon, active, (lp, grad, V))
         mean_bwd = prop + 0.5 * eps ** 2 * minv * new.grad
         log_q_fwd = -0.5 * jnp.sum((prop - mean_fwd) ** 2 / minv / eps ** 2, -1)
