@@ -18,6 +18,14 @@ Conventions shared by every function here:
   inactive skill has probability exactly 0 after exponentiation, one active skill is enough,
   and -inf entries in the inputs are safe. At least one skill must be active.
 - Skill sequences use ``-1`` at padded steps.
+- ``gate`` (T, K) (optional) makes the transitions depend on the step: ``gate[t, k]`` is the
+  probability that skill k *ends* on entering step t (e.g. its termination in the state
+  reached at t), and the transition into step t is
+  ``A_t[k, j] = (1 - gate[t, k]) [j == k] + gate[t, k] pi[k, j]``: the skill continues, or it
+  ends and the next one is drawn from row k of ``log_trans`` (which then usually puts no
+  weight on k itself). ``gate[0]`` is not used. Without a gate, ``A_t = pi`` at every step.
+  Padding must come at the end of a trajectory when a gate is given (the gate of the step
+  after a real step is read from the next row).
 """
 
 from __future__ import annotations
@@ -55,12 +63,28 @@ def _prepare(log_init, log_trans, active):
     return out
 
 
+def _gate_logs(gate, T, K, dtype):
+    """(log gate, log (1 - gate)) of the *next* step at each step, (T, K) each: a gate's rows
+    shifted up by one (the last row, which nothing reads, is 1: the skill ends)."""
+    gate = jnp.clip(jnp.asarray(gate, dtype), jnp.finfo(dtype).tiny, 1.0)
+    nxt = jnp.concatenate([gate[1:], jnp.ones((1, K), dtype)], axis=0)
+    return jnp.log(nxt), jnp.log1p(-nxt)
+
+
+def _gated_trans(log_trans, log_end, log_stay):
+    """The step's (K, K) log transition matrix log[(1 - g) I + g pi] from log pi and the
+    gate's log g, log (1 - g) (K,)."""
+    K = log_trans.shape[-1]
+    stay = jnp.where(jnp.eye(K, dtype=bool), log_stay[:, None], -jnp.inf)
+    return jnp.logaddexp(log_end[:, None] + log_trans, stay)
+
+
 def _prepare_lik(log_lik, active):
     # NaN or -inf in an inactive skill's column must not leak into the sums (or their gradients)
     return jnp.where(active, jnp.maximum(log_lik, NEG_LOG), 0.0)
 
 
-def forward_filter(log_init, log_trans, log_lik, mask=None, active=None) -> Tuple[jax.Array, jax.Array]:
+def forward_filter(log_init, log_trans, log_lik, mask=None, active=None, gate=None) -> Tuple[jax.Array, jax.Array]:
     """Forward filter: the marginal likelihood with the skill sequence summed out.
 
     Args:
@@ -69,6 +93,7 @@ def forward_filter(log_init, log_trans, log_lik, mask=None, active=None) -> Tupl
         log_lik: (T, K) per-step log-likelihoods.
         mask: (T,) bool, real steps (default all).
         active: (K,) bool, usable skills (default all).
+        gate: (T, K) end probabilities (see the module docstring), or None.
     Returns:
         log_marginal: scalar, log p(x_{1:T}).
         log_alpha: (T, K) normalised filtered log-probabilities log p(z_t | x_{1:t}); at a
@@ -86,25 +111,34 @@ def forward_filter(log_init, log_trans, log_lik, mask=None, active=None) -> Tupl
     shift = jnp.max(log_trans, axis=0)
     trans = jnp.exp(log_trans - shift)
     tiny = jnp.finfo(log_lik.dtype).tiny
+    # with a gate: p(z_t+1 = j) = sum_k p_k g_k pi_kj + p_j (1 - g_j), the skills that end
+    # through the matrix product, those that continue added in log space
+    ends = _gate_logs(gate, T, K, log_lik.dtype) if gate is not None else ()
 
     def step(carry, inputs):
         log_pred, last_filt, total = carry
-        ll, real = inputs
+        ll, real, *gate_t = inputs
         joint = log_pred + ll
         log_c = jax.nn.logsumexp(joint)
         filt = joint - log_c
-        pred_next = jnp.where(active, jnp.log(jnp.maximum(jnp.exp(filt) @ trans, tiny)) + shift, NEG_LOG)
+        if gate is None:
+            pred_next = jnp.log(jnp.maximum(jnp.exp(filt) @ trans, tiny)) + shift
+        else:
+            log_end, log_stay = gate_t
+            switched = jnp.log(jnp.maximum(jnp.exp(filt + log_end) @ trans, tiny)) + shift
+            pred_next = jnp.logaddexp(switched, filt + log_stay)
+        pred_next = jnp.where(active, pred_next, NEG_LOG)
         log_pred = jnp.where(real, pred_next, log_pred)
         filt = jnp.where(real, filt, last_filt)
         total = total + jnp.where(real, log_c, 0.0)
         return (log_pred, filt, total), filt
 
     init = (log_init, log_init, jnp.zeros((), log_lik.dtype))
-    (_, _, log_marginal), log_alpha = jax.lax.scan(step, init, (log_lik, mask))
+    (_, _, log_marginal), log_alpha = jax.lax.scan(step, init, (log_lik, mask) + tuple(ends))
     return log_marginal, log_alpha
 
 
-def backward_sample(key, log_trans, log_alpha, mask=None, active=None) -> jax.Array:
+def backward_sample(key, log_trans, log_alpha, mask=None, active=None, gate=None) -> jax.Array:
     """Draw a skill sequence from p(z_{1:T} | x_{1:T}) given the filter's output.
 
     Step t uses the key ``jax.random.fold_in(key, t)``, so a padded trajectory draws the same
@@ -116,6 +150,7 @@ def backward_sample(key, log_trans, log_alpha, mask=None, active=None) -> jax.Ar
         log_alpha: (T, K) filtered log-probabilities from :func:`forward_filter`.
         mask: (T,) bool, real steps (default all).
         active: (K,) bool, as given to :func:`forward_filter`.
+        gate: (T, K) or None, as given to :func:`forward_filter`.
     Returns:
         z: (T,) int32 skills, -1 at masked steps.
     """
@@ -129,19 +164,26 @@ def backward_sample(key, log_trans, log_alpha, mask=None, active=None) -> jax.Ar
     # these are the same draws as categorical with key fold_in(key, t) at step t
     gumbels = jax.vmap(lambda t: jax.random.gumbel(jax.random.fold_in(key, t), (K,), log_alpha.dtype))(jnp.arange(T))
 
+    ends = _gate_logs(gate, T, K, log_alpha.dtype) if gate is not None else ()
+
     def step(z_next, inputs):
-        noise, filt, real = inputs
+        noise, filt, real, *gate_t = inputs
         # z_next == -1 until the last real step has been drawn
-        to_next = jnp.where(z_next >= 0, log_trans[:, jnp.maximum(z_next, 0)], 0.0)
+        zn = jnp.maximum(z_next, 0)
+        into = log_trans[:, zn]
+        if gate is not None:  # the column z_next of the next step's gated matrix
+            log_end, log_stay = gate_t
+            into = jnp.logaddexp(log_end + into, jnp.where(jnp.arange(K) == zn, log_stay, -jnp.inf))
+        to_next = jnp.where(z_next >= 0, into, 0.0)
         z = jnp.argmax(noise + (filt + to_next)).astype(jnp.int32)
         z = jnp.where(real, z, jnp.int32(-1))
         return jnp.where(real, z, z_next), z
 
-    _, z = jax.lax.scan(step, jnp.int32(-1), (gumbels, log_alpha, mask), reverse=True)
+    _, z = jax.lax.scan(step, jnp.int32(-1), (gumbels, log_alpha, mask) + tuple(ends), reverse=True)
     return z
 
 
-def smooth(log_trans, log_alpha, mask=None, active=None) -> jax.Array:
+def smooth(log_trans, log_alpha, mask=None, active=None, gate=None) -> jax.Array:
     """Posterior marginals log p(z_t | x_{1:T}) from the filter's output (a backward pass over
     the filtered probabilities: p(z_t | x) = p(z_t | x_{1:t}) sum_k pi(z_t, k) p(z_{t+1} = k | x)
     / p(z_{t+1} = k | x_{1:t})).
@@ -151,6 +193,7 @@ def smooth(log_trans, log_alpha, mask=None, active=None) -> jax.Array:
         log_alpha: (T, K) filtered log-probabilities from :func:`forward_filter`.
         mask: (T,) bool, real steps (default all).
         active: (K,) bool, as given to :func:`forward_filter`.
+        gate: (T, K) or None, as given to :func:`forward_filter`.
     Returns:
         (T, K) normalised log-probabilities; ``NEG_LOG`` everywhere at masked steps.
     """
@@ -159,22 +202,25 @@ def smooth(log_trans, log_alpha, mask=None, active=None) -> jax.Array:
     mask = jnp.ones(T, dtype=bool) if mask is None else jnp.asarray(mask, dtype=bool)
     _, log_trans = _prepare(None, jnp.asarray(log_trans), active)
 
+    ends = _gate_logs(gate, T, K, log_alpha.dtype) if gate is not None else ()
+
     def step(carry, inputs):
         after, seen = carry  # the next real step's marginals, and whether there is one
-        filt, real = inputs
-        pred = jax.nn.logsumexp(filt[:, None] + log_trans, axis=0)
-        back = jax.nn.logsumexp(log_trans + jnp.maximum(after - pred, NEG_LOG)[None, :], axis=1)
+        filt, real, *gate_t = inputs
+        lt = log_trans if gate is None else _gated_trans(log_trans, *gate_t)
+        pred = jax.nn.logsumexp(filt[:, None] + lt, axis=0)
+        back = jax.nn.logsumexp(lt + jnp.maximum(after - pred, NEG_LOG)[None, :], axis=1)
         post = jnp.where(seen, filt + back, filt)
         post = post - jax.nn.logsumexp(post)
         new = (jnp.where(real, post, after), seen | real)
         return new, jnp.where(real, post, NEG_LOG)
 
     init = (jnp.zeros(K, log_alpha.dtype), jnp.bool_(False))
-    _, out = jax.lax.scan(step, init, (log_alpha, mask), reverse=True)
+    _, out = jax.lax.scan(step, init, (log_alpha, mask) + tuple(ends), reverse=True)
     return out
 
 
-def path_log_prob(log_init, log_trans, log_lik, z, mask=None, active=None) -> jax.Array:
+def path_log_prob(log_init, log_trans, log_lik, z, mask=None, active=None, gate=None) -> jax.Array:
     """log p(z_{1:T}, x_{1:T}) of one skill sequence under the model of :func:`forward_filter`.
 
     Minus the filter's ``log_marginal`` it is the log-probability with which
@@ -182,7 +228,7 @@ def path_log_prob(log_init, log_trans, log_lik, z, mask=None, active=None) -> ja
     near ``NEG_LOG`` (far below any real log-probability), never NaN.
 
     Args:
-        log_init, log_trans, log_lik, mask, active: as for :func:`forward_filter`.
+        log_init, log_trans, log_lik, mask, active, gate: as for :func:`forward_filter`.
         z: (T,) int skills (ignored at masked steps).
     Returns:
         scalar log-probability.
@@ -195,21 +241,30 @@ def path_log_prob(log_init, log_trans, log_lik, z, mask=None, active=None) -> ja
     z = jnp.clip(jnp.asarray(z), 0, K - 1)
     emit = jnp.where(active[z], jnp.take_along_axis(log_lik, z[:, None], axis=1)[:, 0], NEG_LOG)
 
+    # the gate of step t is row t (the filters read it one step ahead)
+    ends = (tuple(jnp.concatenate([x[-1:], x[:-1]]) for x in _gate_logs(gate, T, K, log_lik.dtype))
+            if gate is not None else ())
+
     def step(prev, inputs):
-        zt, e, real = inputs
+        zt, e, real, *gate_t = inputs
         first = prev < 0
-        lp = jnp.where(first, log_init[zt], log_trans[jnp.maximum(prev, 0), zt]) + e
+        pv = jnp.maximum(prev, 0)
+        move = log_trans[pv, zt]
+        if gate is not None:
+            log_end, log_stay = gate_t
+            move = jnp.logaddexp(log_end[pv] + move, jnp.where(pv == zt, log_stay[pv], -jnp.inf))
+        lp = jnp.where(first, log_init[zt], move) + e
         return jnp.where(real, zt, prev), jnp.where(real, lp, 0.0)
 
-    _, terms = jax.lax.scan(step, jnp.int32(-1), (z.astype(jnp.int32), emit, mask))
+    _, terms = jax.lax.scan(step, jnp.int32(-1), (z.astype(jnp.int32), emit, mask) + tuple(ends))
     return jnp.sum(terms)
 
 
-def viterbi(log_init, log_trans, log_lik, mask=None, active=None) -> Tuple[jax.Array, jax.Array]:
+def viterbi(log_init, log_trans, log_lik, mask=None, active=None, gate=None) -> Tuple[jax.Array, jax.Array]:
     """The most probable skill sequence, argmax_z p(z_{1:T}, x_{1:T}).
 
     Args:
-        log_init, log_trans, log_lik, mask, active: as for :func:`forward_filter`.
+        log_init, log_trans, log_lik, mask, active, gate: as for :func:`forward_filter`.
     Returns:
         z: (T,) int32, the path, -1 at masked steps (ties go to the lowest skill index).
         log_prob: scalar, its joint log-probability log p(z, x) (0 when no step is real).
@@ -220,19 +275,20 @@ def viterbi(log_init, log_trans, log_lik, mask=None, active=None) -> Tuple[jax.A
     active, log_trans, log_init = _prepare(jnp.asarray(log_init), jnp.asarray(log_trans), active)
     log_lik = _prepare_lik(log_lik, active)
     identity = jnp.arange(K, dtype=jnp.int32)
+    ends = _gate_logs(gate, T, K, log_lik.dtype) if gate is not None else ()
 
     def forward(carry, inputs):
         # best: max over paths into each skill at the next real step; pointer: where they came from
         best, pointer, last_delta = carry
-        ll, real = inputs
+        ll, real, *gate_t = inputs
         delta = best + ll
-        scores = delta[:, None] + log_trans
+        scores = delta[:, None] + (log_trans if gate is None else _gated_trans(log_trans, *gate_t))
         new = (jnp.max(scores, axis=0), jnp.argmax(scores, axis=0).astype(jnp.int32), delta)
         carry = jax.tree.map(lambda a, b: jnp.where(real, a, b), new, carry)
         return carry, jnp.where(real, pointer, identity)
 
     init = (log_init, identity, jnp.zeros(K, log_lik.dtype))
-    (_, _, last_delta), pointers = jax.lax.scan(forward, init, (log_lik, mask))
+    (_, _, last_delta), pointers = jax.lax.scan(forward, init, (log_lik, mask) + tuple(ends))
 
     def backward(z, pointer):
         return pointer[z], z
@@ -245,7 +301,7 @@ def _axis(x, batched_ndim):
     return None if x is None or jnp.ndim(x) < batched_ndim else 0
 
 
-def batch_forward_filter(log_init, log_trans, log_lik, mask=None, active=None):
+def batch_forward_filter(log_init, log_trans, log_lik, mask=None, active=None, gate=None):
     """:func:`forward_filter` over N trajectories.
 
     Args:
@@ -254,14 +310,15 @@ def batch_forward_filter(log_init, log_trans, log_lik, mask=None, active=None):
         log_lik: (N, T, K).
         mask: (N, T) bool (default all real).
         active: None, (K,) shared or (N, K) per trajectory.
+        gate: None or (N, T, K).
     Returns:
         log_marginal: (N,); log_alpha: (N, T, K).
     """
-    axes = (_axis(log_init, 2), _axis(log_trans, 3), 0, _axis(mask, 2), _axis(active, 2))
-    return jax.vmap(forward_filter, in_axes=axes)(log_init, log_trans, log_lik, mask, active)
+    axes = (_axis(log_init, 2), _axis(log_trans, 3), 0, _axis(mask, 2), _axis(active, 2), _axis(gate, 3))
+    return jax.vmap(forward_filter, in_axes=axes)(log_init, log_trans, log_lik, mask, active, gate)
 
 
-def batch_backward_sample(key, log_trans, log_alpha, mask=None, active=None) -> jax.Array:
+def batch_backward_sample(key, log_trans, log_alpha, mask=None, active=None, gate=None) -> jax.Array:
     """:func:`backward_sample` over N trajectories, with independent keys split from ``key``.
 
     Args:
@@ -270,29 +327,30 @@ def batch_backward_sample(key, log_trans, log_alpha, mask=None, active=None) -> 
         log_alpha: (N, T, K) from :func:`batch_forward_filter`.
         mask: (N, T) bool (default all real).
         active: None, (K,) or (N, K).
+        gate: None or (N, T, K).
     Returns:
         z: (N, T) int32, -1 at masked steps.
     """
     keys = jax.random.split(key, jnp.shape(log_alpha)[0])
-    axes = (0, _axis(log_trans, 3), 0, _axis(mask, 2), _axis(active, 2))
-    return jax.vmap(backward_sample, in_axes=axes)(keys, log_trans, log_alpha, mask, active)
+    axes = (0, _axis(log_trans, 3), 0, _axis(mask, 2), _axis(active, 2), _axis(gate, 3))
+    return jax.vmap(backward_sample, in_axes=axes)(keys, log_trans, log_alpha, mask, active, gate)
 
 
-def batch_smooth(log_trans, log_alpha, mask=None, active=None) -> jax.Array:
+def batch_smooth(log_trans, log_alpha, mask=None, active=None, gate=None) -> jax.Array:
     """:func:`smooth` over N trajectories: log_trans (K, K) or (N, K, K), log_alpha (N, T, K),
-    mask (N, T), active None, (K,) or (N, K). Returns (N, T, K)."""
-    axes = (_axis(log_trans, 3), 0, _axis(mask, 2), _axis(active, 2))
-    return jax.vmap(smooth, in_axes=axes)(log_trans, log_alpha, mask, active)
+    mask (N, T), active None, (K,) or (N, K), gate None or (N, T, K). Returns (N, T, K)."""
+    axes = (_axis(log_trans, 3), 0, _axis(mask, 2), _axis(active, 2), _axis(gate, 3))
+    return jax.vmap(smooth, in_axes=axes)(log_trans, log_alpha, mask, active, gate)
 
 
-def batch_viterbi(log_init, log_trans, log_lik, mask=None, active=None):
+def batch_viterbi(log_init, log_trans, log_lik, mask=None, active=None, gate=None):
     """:func:`viterbi` over N trajectories (arguments as for :func:`batch_forward_filter`).
 
     Returns:
         z: (N, T) int32, -1 at masked steps; log_prob: (N,).
     """
-    axes = (_axis(log_init, 2), _axis(log_trans, 3), 0, _axis(mask, 2), _axis(active, 2))
-    return jax.vmap(viterbi, in_axes=axes)(log_init, log_trans, log_lik, mask, active)
+    axes = (_axis(log_init, 2), _axis(log_trans, 3), 0, _axis(mask, 2), _axis(active, 2), _axis(gate, 3))
+    return jax.vmap(viterbi, in_axes=axes)(log_init, log_trans, log_lik, mask, active, gate)
 
 
 def _one_hot(z, mask, num_states):

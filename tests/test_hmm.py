@@ -7,7 +7,7 @@ import pytest
 from scipy import stats
 from scipy.special import logsumexp
 
-from npbrs.models.hmm import (NEG_LOG, backward_sample, batch_backward_sample, batch_forward_filter, batch_smooth,
+from npbrs.models.hmm import (NEG_LOG, backward_sample, batch_backward_sample, batch_forward_filter, batch_smooth, path_log_prob,
                               batch_viterbi, forward_filter, initial_counts, smooth, transition_counts, viterbi)
 
 
@@ -253,3 +253,101 @@ def test_the_filter_stays_exact_with_rare_transitions_and_peaked_likelihoods():
     log_marginal, log_alpha = forward_filter(log_init, log_trans, log_lik)
     np.testing.assert_allclose(float(log_marginal), total, rtol=1e-12)
     np.testing.assert_allclose(np.exp(log_alpha), np.exp(np.array(alphas)), atol=1e-12)
+
+
+# ----------------------------------------------------------------------------- gated transitions
+def gated_hmm(seed, K, T, zero_diagonal=True):
+    """An HMM whose skills end with a probability that changes from step to step: gate (T, K),
+    the switch matrix with an empty diagonal (a skill that ends is followed by another)."""
+    log_init, log_trans, log_lik = random_hmm(seed, K, T)
+    rng = np.random.default_rng(100 + seed)
+    if zero_diagonal:
+        trans = np.exp(log_trans) * (1 - np.eye(K))
+        log_trans = np.log(trans / trans.sum(1, keepdims=True) + 1e-300)
+    gate = rng.uniform(0.02, 0.98, size=(T, K))
+    gate[rng.uniform(size=(T, K)) < 0.2] = 1.0  # the skill surely ends there
+    return log_init, log_trans, log_lik, gate
+
+
+def gated_path_table(log_init, log_trans, log_lik, gate, active=None):
+    """Every path and its log p(z, x) with A_t = (1 - g_t) I + g_t pi, dense, step by step."""
+    T, K = log_lik.shape
+    act = np.ones(K, bool) if active is None else np.asarray(active)
+    pi = np.exp(log_trans) * act[None, :]
+    pi = pi / pi.sum(1, keepdims=True)
+    p0 = np.exp(log_init) * act
+    p0 = p0 / p0.sum()
+    paths = np.array([p for p in itertools.product(range(K), repeat=T) if all(act[list(p)])])
+    with np.errstate(divide="ignore"):
+        logp = np.log(p0[paths[:, 0]]) + log_lik[np.arange(T), paths].sum(1)
+        for t in range(1, T):
+            A = (1 - gate[t])[:, None] * np.eye(K) + gate[t][:, None] * pi
+            logp += np.log(A[paths[:, t - 1], paths[:, t]])
+    return paths, logp
+
+
+GATED = [(seed, K, T) for seed, (K, T) in enumerate([(2, 1), (2, 5), (3, 4), (3, 5)], start=40)]
+
+
+@pytest.mark.parametrize("seed, K, T", GATED)
+def test_gated_filter_smoother_viterbi_and_path_probability_equal_enumeration(seed, K, T):
+    log_init, log_trans, log_lik, gate = gated_hmm(seed, K, T)
+    paths, logp = gated_path_table(log_init, log_trans, log_lik, gate)
+    total = logsumexp(logp)
+    log_marginal, log_alpha = jax.jit(forward_filter)(log_init, log_trans, log_lik, gate=gate)
+    np.testing.assert_allclose(log_marginal, total, rtol=1e-12)
+    for t in range(T):
+        prefix_paths, prefix_logp = gated_path_table(log_init, log_trans, log_lik[:t + 1], gate[:t + 1])
+        expected = [logsumexp(prefix_logp[prefix_paths[:, t] == k]) for k in range(K)]
+        np.testing.assert_allclose(log_alpha[t], np.array(expected) - logsumexp(prefix_logp), atol=1e-12)
+    post = np.exp(jax.jit(smooth)(log_trans, log_alpha, gate=gate))
+    weights = np.exp(logp - total)
+    expected = np.array([[weights[paths[:, t] == k].sum() for k in range(K)] for t in range(T)])
+    np.testing.assert_allclose(post, expected, atol=1e-12)
+    z, best = jax.jit(viterbi)(log_init, log_trans, log_lik, gate=gate)
+    np.testing.assert_array_equal(z, paths[np.argmax(logp)])
+    np.testing.assert_allclose(best, logp.max(), rtol=1e-12)
+    for j in np.random.default_rng(seed).choice(len(paths), size=min(6, len(paths)), replace=False):
+        np.testing.assert_allclose(path_log_prob(log_init, log_trans, log_lik, paths[j], gate=gate), logp[j],
+                                   rtol=1e-12)
+
+
+@pytest.mark.parametrize("seed, K, T", [(50, 2, 4), (51, 3, 3)])
+def test_gated_backward_sampler_draws_paths_with_their_posterior_probabilities(seed, K, T):
+    # a switch matrix with weight on its diagonal too: the gate's "ends, then draws itself again"
+    log_init, log_trans, log_lik, gate = gated_hmm(seed, K, T, zero_diagonal=False)
+    _, log_alpha = forward_filter(log_init, log_trans, log_lik, gate=gate)
+    n = 20000
+    keys = jax.random.split(jax.random.key(seed), n)
+    z = jax.jit(jax.vmap(lambda k: backward_sample(k, log_trans, log_alpha, gate=gate)))(keys)
+    paths, logp = gated_path_table(log_init, log_trans, log_lik, gate)
+    posterior = np.exp(logp - logsumexp(logp))
+    counts = path_frequencies(z, K)
+    assert stats.chisquare(counts, n * posterior).pvalue > 1e-3
+    assert np.all(np.abs(counts / n - posterior) <= 4.5 * np.sqrt(posterior * (1 - posterior) / n) + 1e-12)
+
+
+def test_gated_filters_skip_padding_inactive_skills_and_batch():
+    log_init, log_trans, log_lik, gate = gated_hmm(60, 3, 5)
+    active = np.array([True, False, True])
+    paths, logp = gated_path_table(log_init, log_trans, log_lik, gate, active)
+    m, a = forward_filter(log_init, log_trans, log_lik, active=active, gate=gate)
+    np.testing.assert_allclose(m, logsumexp(logp), rtol=1e-12)
+    # padded to 8 steps (NaN likelihoods and gates there), beside another trajectory, in a batch
+    lls = np.stack([np.concatenate([log_lik, np.full((3, 3), np.nan)]), np.random.default_rng(2).normal(size=(8, 3))])
+    gates = np.stack([np.concatenate([gate, np.full((3, 3), np.nan)]), np.full((8, 3), 0.3)])
+    mask = np.array([[True] * 5 + [False] * 3, [True] * 8])
+    act = np.stack([active, np.ones(3, bool)])
+    ms, alphas = batch_forward_filter(log_init, log_trans, lls, mask, act, gates)
+    np.testing.assert_allclose(ms[0], m, rtol=1e-12)
+    np.testing.assert_allclose(alphas[0, :5], a, atol=1e-12)
+    post = batch_smooth(log_trans, alphas, mask, act, gates)
+    np.testing.assert_allclose(np.exp(post[0, :5]), np.exp(smooth(log_trans, a, active=active, gate=gate)), atol=1e-12)
+    zs, ps = batch_viterbi(log_init, log_trans, lls, mask, act, gates)
+    np.testing.assert_array_equal(zs[0], np.concatenate([paths[np.argmax(logp)], [-1] * 3]))
+    draws = batch_backward_sample(jax.random.key(0), log_trans, alphas, mask, act, gates)
+    assert np.all(np.asarray(draws[0, 5:]) == -1) and not np.any(np.asarray(draws[0, :5]) == 1)
+    # a gate of ones everywhere is the ungated chain
+    ones = np.ones_like(gate)
+    np.testing.assert_allclose(forward_filter(log_init, log_trans, log_lik, gate=ones)[0],
+                               forward_filter(log_init, log_trans, log_lik)[0], rtol=1e-13)
