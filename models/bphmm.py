@@ -10,6 +10,19 @@ Weak-limit truncation at K = ``max_skills`` slots (all shapes static):
     params_k ~ emission prior                          e.g. reward weights theta_k
     step t of trajectory i ~ emission(params_{z_it})
 
+With state-dependent switching (a :class:`Termination`; ``fit(..., switching="state")``) the
+skills are options with a termination function: skill k *ends* on entering state s with
+probability beta_k(s), and then the next skill is drawn from row k of pi_i without k itself;
+otherwise it continues:
+
+    mu_k ~ Beta(a, b)                                  skill k's typical end probability
+    beta_k(s) | mu_k ~ Beta(c mu_k, c (1 - mu_k))      its end probability in state s
+    z_it | z_i(t-1) = k ~ (1 - beta_k(s_it)) [z = k] + beta_k(s_it) pi~_ik    (pi~: pi_ik without k)
+
+(a trajectory with one skill keeps it). c large makes the ends nearly the same in every state
+(a per-skill sticky HMM); c small lets them follow the states, as when a skill ends once its
+goal is reached. The diagonal of eta then plays no part, so kappa has none either.
+
 The skill sequences z are summed out by the forward filter, which enters the model as one
 ``numpyro.factor``. The MCMC kernel evaluates every acceptance ratio and Gibbs conditional
 with the functions below (``prior_distributions``, ``hmm_parameters``,
@@ -18,7 +31,7 @@ with the functions below (``prior_distributions``, ``hmm_parameters``,
 
 from __future__ import annotations
 
-from typing import Dict, NamedTuple, Optional
+from typing import Dict, NamedTuple, Optional, Tuple
 
 import jax
 import jax.numpy as jnp
@@ -26,10 +39,11 @@ import numpyro
 import numpyro.distributions as dist
 from jax.scipy.special import betaln
 
-from .hmm import batch_forward_filter
+from .hmm import NEG_LOG, batch_forward_filter
 from npbrs.domains.precision import float64_all
 
-__all__ = ["Hyper", "prior_distributions", "hmm_parameters", "eta_gamma_shapes", "eta_from_gammas",
+__all__ = ["Hyper", "Termination", "prior_distributions", "hmm_parameters", "eta_gamma_shapes", "eta_from_gammas",
+           "end_gate", "end_counts", "end_log_prior", "sample_end_means", "sample_ends",
            "log_marginal_likelihoods", "feature_predictive", "predictive_log_likelihoods",
            "bphmm_model", "log_joint_terms",
            "collapsed_feature_log_prob", "collapsed_sequence_log_prob"]
@@ -40,6 +54,100 @@ class Hyper(NamedTuple):
     alpha: jax.Array
     kappa: jax.Array
     gamma: jax.Array
+
+
+class Termination(NamedTuple):
+    """The prior of state-dependent skill ends (see the module docstring): beta_k(s) ~
+    Beta(c mu_k, c (1 - mu_k)), mu_k ~ Beta(*mean_prior). Plain numbers (a static part of a
+    compiled program).
+
+    num_states: S, the MDP's states (the ``states`` of the data index them).
+    concentration: c > 0.
+    mean_prior: (a, b) > 0, the Beta prior of each skill's mean end probability mu_k.
+    """
+
+    num_states: int
+    concentration: float = 2.0
+    mean_prior: Tuple[float, float] = (1.0, 9.0)
+
+
+def end_gate(ends, states, mask):
+    """(N, T, K) each step's end probabilities beta_k(s_it) for the filters' ``gate`` from
+    ``ends`` (K, S) and the data's states (N, T); 1 at padding (not read)."""
+    S = ends.shape[1]
+    gate = jnp.take(ends.T, jnp.clip(states, 0, S - 1), axis=0)  # (N, T, K)
+    return jnp.where(mask[..., None], gate, 1.0)
+
+
+def end_counts(z, mask, states, features, num_states: int):
+    """(ends, stays), each (K, S): how often a step of skill k was followed by another skill
+    (an end) or by k again, counted in the state entered, over the trajectories with at least
+    two skills in their set (a trajectory with one skill cannot end it: its steps say nothing
+    of beta)."""
+    K = features.shape[1]
+    prev, nxt = z[:, :-1], z[:, 1:]
+    real = mask[:, 1:] & mask[:, :-1] & (jnp.sum(features > 0, -1) >= 2)[:, None]
+    index = jnp.clip(prev, 0, K - 1) * num_states + jnp.clip(states[:, 1:], 0, num_states - 1)
+    ended = (real & (nxt != prev)).astype(jnp.float64)
+    stayed = (real & (nxt == prev)).astype(jnp.float64)
+    size = K * num_states
+    ends = jnp.zeros(size).at[index.ravel()].add(ended.ravel()).reshape(K, num_states)
+    stays = jnp.zeros(size).at[index.ravel()].add(stayed.ravel()).reshape(K, num_states)
+    return ends, stays
+
+
+def end_log_prior(ends, mean, term: Termination):
+    """(log p(mu), log p(beta | mu)) of the end probabilities ends (K, S) and means mean (K,)."""
+    a, b = term.mean_prior
+    c = term.concentration
+    lp_mean = jnp.sum(dist.Beta(a, b).log_prob(mean))
+    lp_ends = jnp.sum(dist.Beta(c * mean[:, None], c * (1.0 - mean[:, None])).log_prob(ends))
+    return lp_mean, lp_ends
+
+
+_END_CLIP = 1e-12
+
+
+def sample_ends(key, mean, counts, term: Termination):
+    """beta | mu, counts: Beta(c mu_k + ends_ks, c (1 - mu_k) + stays_ks), (K, S), kept within
+    [1e-12, 1 - 1e-12]; counts: :func:`end_counts`."""
+    ended, stayed = counts
+    c = term.concentration
+    k1, k2 = jax.random.split(key)
+    ga = jax.random.gamma(k1, c * mean[:, None] + ended)
+    gb = jax.random.gamma(k2, c * (1.0 - mean[:, None]) + stayed)
+    return jnp.clip(ga / jnp.maximum(ga + gb, 1e-300), _END_CLIP, 1.0 - _END_CLIP)
+
+
+def _mean_log_target(mean, counts, term: Termination):
+    """log p(mu_k) + log p(counts_k | mu_k) with beta integrated out (a Beta-binomial per
+    state), per skill (K,)."""
+    ended, stayed = counts
+    a, b = term.mean_prior
+    c = term.concentration
+    x, y = c * mean[:, None], c * (1.0 - mean[:, None])
+    seen = (ended + stayed) > 0
+    ll = jnp.sum(jnp.where(seen, betaln(x + ended, y + stayed) - betaln(x, y), 0.0), -1)
+    return ll + dist.Beta(a, b).log_prob(mean)
+
+
+def sample_end_means(key, mean, counts, term: Termination, steps: int = 5, scale: float = 0.5):
+    """mu | counts with beta integrated out: ``steps`` random-walk Metropolis steps on logit mu_k,
+    every skill at once (independent given the counts). Followed by :func:`sample_ends`, it
+    is a draw of (mu, beta) given the skill sequences."""
+    def one(mu, k):
+        k1, k2 = jax.random.split(k)
+        logit = jnp.log(mu) - jnp.log1p(-mu)
+        prop_logit = logit + scale * jax.random.normal(k1, mu.shape)
+        prop = jnp.clip(jax.nn.sigmoid(prop_logit), _END_CLIP, 1.0 - _END_CLIP)
+        # the logit's Jacobian: log mu (1 - mu)
+        log_ratio = (_mean_log_target(prop, counts, term) + jnp.log(prop) + jnp.log1p(-prop)
+                     - _mean_log_target(mu, counts, term) - jnp.log(mu) - jnp.log1p(-mu))
+        accept = jnp.log(jax.random.uniform(k2, mu.shape)) < log_ratio
+        return jnp.where(accept, prop, mu), None
+
+    mean, _ = jax.lax.scan(one, mean, jax.random.split(key, steps))
+    return mean
 
 
 def prior_distributions(num_trajectories: int, max_skills: int, hyper: Hyper) -> Dict:
@@ -60,17 +168,24 @@ def prior_distributions(num_trajectories: int, max_skills: int, hyper: Hyper) ->
     return {"omega": omega, "features": features, "eta": eta}
 
 
-def hmm_parameters(features, eta):
+def hmm_parameters(features, eta, gated: bool = False):
     """Per-trajectory HMM parameters in the form the array filters take.
 
     Args:
         features: (N, K) 0/1 skills each trajectory may use.
         eta: (N, K, K) positive transition weights.
+        gated: the switch matrix of state-dependent ends (the filters' ``gate``): the diagonal
+            left out, except in a trajectory with a single skill (which can only continue).
     Returns:
         log_init (N, K) (zeros: uniform over the active skills), log_trans (N, K, K)
         (log eta, normalised over the active skills by the filters), active (N, K) bool.
     """
-    return jnp.zeros(features.shape, eta.dtype), jnp.log(eta), features > 0
+    log_trans = jnp.log(eta)
+    if gated:
+        K = features.shape[1]
+        alone = jnp.sum(features > 0, -1) < 2
+        log_trans = jnp.where(jnp.eye(K, dtype=bool), jnp.where(alone, 0.0, NEG_LOG)[:, None, None], log_trans)
+    return jnp.zeros(features.shape, eta.dtype), log_trans, features > 0
 
 
 def eta_gamma_shapes(counts, features, hyper):
@@ -94,10 +209,11 @@ def eta_from_gammas(g, total, active):
     return jnp.maximum(jnp.where(active, scaled, g), 1e-300)
 
 
-def log_marginal_likelihoods(features, eta, log_lik, mask):
-    """log p(data_i | f_i, eta_i, params) with the skill sequence summed out, per trajectory (N,)."""
-    log_init, log_trans, active = hmm_parameters(features, eta)
-    log_marg, _ = batch_forward_filter(log_init, log_trans, log_lik, mask, active)
+def log_marginal_likelihoods(features, eta, log_lik, mask, gate=None):
+    """log p(data_i | f_i, eta_i, params) with the skill sequence summed out, per trajectory (N,);
+    ``gate``: (N, T, K) :func:`end_gate` with state-dependent ends, else None."""
+    log_init, log_trans, active = hmm_parameters(features, eta, gate is not None)
+    log_marg, _ = batch_forward_filter(log_init, log_trans, log_lik, mask, active, gate)
     return log_marg
 
 
@@ -112,7 +228,8 @@ def feature_predictive(counts, num_trajectories, alpha):
     return (counts + a) / (num_trajectories + 1.0 + a)
 
 
-def predictive_log_likelihoods(key, log_lik, mask, p_on, hyper: Hyper, num_samples: int, marginals: bool = False):
+def predictive_log_likelihoods(key, log_lik, mask, p_on, hyper: Hyper, num_samples: int, marginals: bool = False,
+                               gate=None):
     """log p(x_i | f, eta, params) of trajectories for ``num_samples`` draws of their skill sets
     and transition weights: f_k ~ Bernoulli(p_on[k]) independently (``feature_predictive`` for a
     new trajectory; 0/1 for a known skill set), eta from its prior (``prior_distributions``);
@@ -125,6 +242,8 @@ def predictive_log_likelihoods(key, log_lik, mask, p_on, hyper: Hyper, num_sampl
         p_on: (K,) or (n, K) probabilities that each skill is in a trajectory's set.
         hyper: the draw's hyperparameters.
         marginals: also return the posterior marginals of the skill sequence.
+        gate: (n, T, K) :func:`end_gate` of the draw's end probabilities at the trajectories'
+            states, with state-dependent ends; else None.
     Returns:
         (num_samples, n) log-likelihoods, one per (f, eta) sample; with ``marginals``, also
         (num_samples, n, T, K) log p(z_t | x, f, eta, params) (``NEG_LOG`` at padding).
@@ -137,9 +256,9 @@ def predictive_log_likelihoods(key, log_lik, mask, p_on, hyper: Hyper, num_sampl
     eta = jnp.maximum(prior_distributions(n, K, hyper)["eta"].sample(k_eta, (num_samples,)), 1e-300)
 
     def one(f, e):
-        log_init, log_trans, active = hmm_parameters(f, e)
-        log_marg, log_alpha = batch_forward_filter(log_init, log_trans, log_lik, mask, active)
-        return log_marg, (batch_smooth(log_trans, log_alpha, mask, active) if marginals else None)
+        log_init, log_trans, active = hmm_parameters(f, e, gate is not None)
+        log_marg, log_alpha = batch_forward_filter(log_init, log_trans, log_lik, mask, active, gate)
+        return log_marg, (batch_smooth(log_trans, log_alpha, mask, active, gate) if marginals else None)
 
     log_marg, post = jax.vmap(one)(features, eta)
     log_marg = jnp.where(jnp.sum(features, -1) > 0, log_marg, -jnp.inf)
@@ -204,7 +323,7 @@ def _hyper_value(name, value, hyperpriors):
 
 
 def bphmm_model(data, emission, max_skills: int, alpha=1.0, kappa=10.0, gamma=1.0,
-                hyperpriors: Optional[Dict] = None):
+                hyperpriors: Optional[Dict] = None, termination: Optional[Termination] = None):
     """The BP-HMM joint density as a NumPyro model.
 
     Args:
@@ -214,6 +333,8 @@ def bphmm_model(data, emission, max_skills: int, alpha=1.0, kappa=10.0, gamma=1.
         alpha, kappa, gamma: hyperparameter values (used when not sampled).
         hyperpriors: optional {"alpha" | "kappa" | "gamma": (shape, rate)} Gamma hyperpriors;
             a named hyperparameter becomes a sample site.
+        termination: a :class:`Termination` for state-dependent ends (sites ``end_mean`` (K,)
+            and ``ends`` (K, S)); None: the sticky BP-HMM.
     """
     N = data.states.shape[0]
     K = max_skills
@@ -223,19 +344,30 @@ def bphmm_model(data, emission, max_skills: int, alpha=1.0, kappa=10.0, gamma=1.
     omega = numpyro.sample("omega", priors["omega"])
     features = numpyro.sample("features", priors["features"](omega))
     eta = numpyro.sample("eta", priors["eta"])
+    gate = None
+    if termination is not None:
+        a, b = termination.mean_prior
+        c, S = termination.concentration, termination.num_states
+        mean = numpyro.sample("end_mean", dist.Beta(jnp.full((K,), a), b).to_event(1))
+        shape = jnp.ones((1, S))
+        ends = numpyro.sample("ends", dist.Beta(c * mean[:, None] * shape, c * (1.0 - mean[:, None]) * shape).to_event(2))
+        gate = end_gate(ends, data.states, data.mask)
     params = emission.sample_params(K)
     log_lik, _ = emission.log_likelihoods(params, data, emission.init_cache(K))
-    numpyro.factor("log_likelihood", jnp.sum(log_marginal_likelihoods(features, eta, log_lik, data.mask)))
+    numpyro.factor("log_likelihood", jnp.sum(log_marginal_likelihoods(features, eta, log_lik, data.mask, gate)))
 
 
 def log_joint_terms(omega, features, eta, params, log_marginals, hyper: Hyper, emission,
-                    hyperpriors: Optional[Dict] = None, valid=None):
+                    hyperpriors: Optional[Dict] = None, valid=None, ends=None, end_mean=None,
+                    termination: Optional[Termination] = None):
     """The model's log density split into its terms, from already computed marginals.
 
     The kernel uses this to avoid recomputing emission log-likelihoods; a test checks that the
     sum equals ``numpyro.infer.util.log_density(bphmm_model, ...)``. ``valid`` (N,) bool: the
     trajectories that are data; the others (padding to a shape bucket, no steps) are left out
     of the feature and transition-weight terms, so the sum is the density of the real ones.
+    With a ``termination``, ``ends`` (K, S) and ``end_mean`` (K,) add the terms "end_mean" and
+    "ends" (``log_marginals`` must then come from the gated filter).
     """
     N, K = features.shape
     priors = prior_distributions(N, K, hyper)
@@ -247,6 +379,8 @@ def log_joint_terms(omega, features, eta, params, log_marginals, hyper: Hyper, e
         "params": jnp.sum(emission.log_prior(params)),
         "log_likelihood": jnp.sum(log_marginals),
     }
+    if termination is not None:
+        terms["end_mean"], terms["ends"] = end_log_prior(ends, end_mean, termination)
     if hyperpriors:
         for name, (shape, rate) in hyperpriors.items():
             terms[name] = dist.Gamma(shape, rate).log_prob(getattr(hyper, name))

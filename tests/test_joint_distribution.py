@@ -276,7 +276,7 @@ MUTATIONS = {
     "birth_death_log_p0": ("npbrs.inference.sampler.birth_death", "birth = (log_p0 - log_q", "birth = (- log_q"),  # 0.11
     # split-merge: the reverse move's transition weights, log p(eta) - log q(eta) (0.046)
     "split_merge_reverse_eta": ("npbrs.inference.sampler.split_merge", "- _eta_log_p_over_q(eta, _eta_counts(alloc_rev, "
-                                "features, mask), features, involved, hyper))", ")"),
+                                "features, mask, gated), features, involved, hyper))", ")"),
 }
 
 _MUTANT = """

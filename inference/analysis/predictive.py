@@ -24,13 +24,13 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from npbrs.models.bphmm import Hyper, feature_predictive, predictive_log_likelihoods
+from npbrs.models.bphmm import Hyper, end_gate, feature_predictive, predictive_log_likelihoods
 from npbrs.models.emissions import Emission, HMMData
 from npbrs.domains.precision import float64_all
 
 __all__ = ["HeldOut", "SkillProbabilities", "log_predictive", "pointwise_log_likelihood", "segment"]
 
-_NOT_PARAMS = ("features", "skill_steps", "alpha", "kappa", "gamma")
+_NOT_PARAMS = ("features", "skill_steps", "alpha", "kappa", "gamma", "ends", "end_mean")
 
 
 class HeldOut(NamedTuple):
@@ -203,16 +203,16 @@ def _draw_moments(result, mdp, demos, idx, num_samples, seed, emission, leave_on
     draws = _each_draw(samples, params_all, hyper_fixed, idx, seed, C)
     if marginals:
         def marginal_draws():
-            for c, j, key, params, f, hyper in draws:
+            for c, j, key, params, f, hyper, ends in draws:
                 p_on = f if own_features else feature_predictive(f.sum(0), others, float(hyper.alpha))
-                lm, post = one_draw_marginals(key, params, jnp.asarray(p_on, jnp.float64), hyper, data)
+                lm, post = one_draw_marginals(key, params, jnp.asarray(p_on, jnp.float64), hyper, data, ends)
                 yield c, j, np.asarray(lm), np.asarray(post)
         return marginal_draws()
     out = np.empty((C, len(idx), 2, len(demos.lengths)))
-    for c, j, key, params, f, hyper in draws:
+    for c, j, key, params, f, hyper, ends in draws:
         # a fitted trajectory's own row is left out of the popularity counts
         counts = jnp.asarray(f.sum(0) - f if leave_one_out else f.sum(0), jnp.float64)
-        out[c, j] = np.asarray(one_draw(key, params, counts, hyper, data))
+        out[c, j] = np.asarray(one_draw(key, params, counts, hyper, data, ends))
     return out
 
 
@@ -222,31 +222,36 @@ _lse = jax.scipy.special.logsumexp
 # compiled per emission structure and shapes: the emission (its MDP's arrays), the draw and the
 # demonstrations are arguments, so every draw, run and data set of the same shapes shares one
 @partial(jax.jit, static_argnames="num_samples")
-def _one_draw(emission, key, params, counts, hyper, data, *, num_samples, others):
+def _one_draw(emission, key, params, counts, hyper, data, ends, *, num_samples, others):
     K = counts.shape[-1]
     log_lik, _ = emission.log_likelihoods(params, data, emission.init_cache(K))
     p_on = feature_predictive(counts, others, hyper.alpha)
-    lm = predictive_log_likelihoods(key, log_lik, data.mask, p_on, hyper, num_samples)  # (M, n)
+    gate = None if ends is None else end_gate(ends, data.states, data.mask)
+    lm = predictive_log_likelihoods(key, log_lik, data.mask, p_on, hyper, num_samples, gate=gate)  # (M, n)
     return jnp.stack([_lse(lm, axis=0), _lse(2 * lm, axis=0)]) - jnp.log(num_samples)
 
 
 @partial(jax.jit, static_argnames="num_samples")
-def _one_draw_marginals(emission, key, params, p_on, hyper, data, *, num_samples):
+def _one_draw_marginals(emission, key, params, p_on, hyper, data, ends, *, num_samples):
     K = p_on.shape[-1]
     log_lik, _ = emission.log_likelihoods(params, data, emission.init_cache(K))
-    lm, post = predictive_log_likelihoods(key, log_lik, data.mask, p_on, hyper, num_samples, marginals=True)
+    gate = None if ends is None else end_gate(ends, data.states, data.mask)
+    lm, post = predictive_log_likelihoods(key, log_lik, data.mask, p_on, hyper, num_samples, marginals=True,
+                                          gate=gate)
     return _lse(lm, axis=0), _lse(lm[..., None, None] + post, axis=0)
 
 
 def _each_draw(samples, params_all, hyper_fixed, idx, seed, C):
-    """(chain, index in idx, key, emission parameters, features (N, K), Hyper) of every chosen draw."""
+    """(chain, index in idx, key, emission parameters, features (N, K), Hyper, ends (K, S) or None)
+    of every chosen draw."""
     keys = jax.random.split(jax.random.PRNGKey(seed), C * len(idx)).reshape(C, len(idx), -1)
     for c in range(C):
         for j, d in enumerate(idx):
             params = {k: jnp.asarray(v[c, d]) for k, v in params_all.items()}
             hyper = Hyper(*(jnp.float64(samples[n][c, d] if n in samples else hyper_fixed[n])
                             for n in ("alpha", "kappa", "gamma")))
-            yield c, j, keys[c, j], params, samples["features"][c, d], hyper
+            ends = jnp.asarray(samples["ends"][c, d]) if "ends" in samples else None
+            yield c, j, keys[c, j], params, samples["features"][c, d], hyper, ends
 
 
 def _summarise(moments: np.ndarray, num_samples: int, demos) -> HeldOut:

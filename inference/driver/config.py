@@ -22,6 +22,9 @@ A TOML variant (every key optional; these are the defaults)::
     value = 10.0
     shape = 2.0
     rate = 0.2
+    # switching = "sticky"     # or "state": skills end with a probability per state entered
+    # end_concentration = 2.0  # ... beta_k(s) ~ Beta(c mu_k, c (1 - mu_k)), c this
+    # end_mean = [1.0, 9.0]    # ... mu_k ~ Beta(a, b)
 
     [sampler]
     chains = 4
@@ -242,17 +245,36 @@ class Hyperparameter:
 @dataclass
 class PriorConfig:
     """BP-HMM hyperparameters: IBP mass ``alpha``, stickiness ``kappa`` (0 allowed when fixed),
-    transition concentration ``gamma``; each a number (fixed) or a :class:`Hyperparameter`."""
+    transition concentration ``gamma``; each a number (fixed) or a :class:`Hyperparameter`.
+
+    ``switching``: "sticky" (the paper's BP-HMM: a skill continues with a probability of its
+    trajectory's, wherever the agent is) or "state" (skills are options that end with a
+    probability per state entered, beta_k(s) ~ Beta(c mu_k, c (1 - mu_k)), mu_k ~ Beta(a, b):
+    ``end_concentration`` c, ``end_mean`` (a, b); see ``npbrs.models.bphmm``)."""
 
     alpha: Union[float, Hyperparameter] = 1.0
     kappa: Union[float, Hyperparameter] = 10.0
     gamma: Union[float, Hyperparameter] = 1.0
+    switching: str = "sticky"
+    end_concentration: float = 2.0
+    end_mean: Any = (1.0, 9.0)
 
     NAMES = ("alpha", "kappa", "gamma")
+    SWITCHING = ("sticky", "state")
+    KEYS = NAMES + ("switching", "end_concentration", "end_mean")
 
     def __post_init__(self):
         for name in self.NAMES:
             setattr(self, name, Hyperparameter.parse(f"prior.{name}", getattr(self, name), allow_zero=name == "kappa"))
+        if self.switching not in self.SWITCHING:
+            raise ValueError(f"prior.switching: expected one of {', '.join(map(repr, self.SWITCHING))}, "
+                             f"got {_describe(self.switching)}")
+        self.end_concentration = _number("prior.end_concentration", self.end_concentration, positive=True)
+        mean = self.end_mean
+        if not isinstance(mean, (list, tuple)) or len(mean) != 2:
+            raise ValueError(f"prior.end_mean: expected (a, b), the Beta prior of each skill's mean end "
+                             f"probability, got {_describe(mean)}")
+        self.end_mean = tuple(_number(f"prior.end_mean[{i}]", v, positive=True) for i, v in enumerate(mean))
 
     @property
     def hyperpriors(self) -> Dict[str, tuple]:
@@ -262,11 +284,15 @@ class PriorConfig:
     @classmethod
     def from_dict(cls, data) -> "PriorConfig":
         data = _table("prior", data)
-        _known("prior", data, cls.NAMES)
+        _known("prior", data, cls.KEYS)
         return cls(**data)
 
     def to_dict(self) -> dict:
-        return {n: getattr(self, n).to_data() for n in self.NAMES}
+        out = {n: getattr(self, n).to_data() for n in self.NAMES}
+        if self.switching != "sticky":  # the sticky BP-HMM's descriptions stay as they were
+            out.update(switching=self.switching, end_concentration=self.end_concentration,
+                       end_mean=list(self.end_mean))
+        return out
 
 
 @dataclass

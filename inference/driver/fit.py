@@ -33,6 +33,7 @@ import numpy as np
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
 from npbrs.domains.demos import Demonstrations
+from npbrs.models.bphmm import Termination
 from npbrs.models.emissions import Emission, HMMData, get_emission_class
 
 from npbrs.domains.precision import float64_all
@@ -126,6 +127,9 @@ def resolve_config(config=None, **overrides) -> ModelConfig:
         data["emission"]["options"] = dict(options)
     if overrides.get("max_skills") is not None:
         data["max_skills"] = overrides.pop("max_skills")
+    switching = overrides.pop("switching", None)
+    if switching is not None:
+        data["prior"]["switching"] = switching
     hyperpriors = overrides.pop("hyperpriors", None)
     for name in PriorConfig.NAMES:
         value = overrides.pop(name, None)
@@ -397,19 +401,23 @@ _COMPILED_MAX = 4
 DEFAULT_GREEDY_TRIALS = {"greedy_merge": 1, "greedy_split": 1}
 
 
-def _compiled(cfg: ModelConfig, em: Emission, em_key: str, demos: Demonstrations, multiple: int = 1) -> _Compiled:
+def _compiled(cfg: ModelConfig, em: Emission, em_key: str, demos: Demonstrations, multiple: int = 1,
+              num_states: int = 0) -> _Compiled:
     """The kernel of this model and data, reused when the same model is fitted again (its
     compiled sweep is the expensive part of a short run); ``multiple``: pad the trajectories to
     a multiple of it (the devices that shard them)."""
     prior, sampler = cfg.prior, cfg.sampler
     key = json.dumps([em_key, demos.fingerprint(), cfg.max_skills, prior.to_dict(), sampler.init_skills,
-                      sampler.init_window, sampler.moves, sampler.warmup, sampler.bucket, multiple], sort_keys=True)
+                      sampler.init_window, sampler.moves, sampler.warmup, sampler.bucket, multiple, num_states],
+                     sort_keys=True)
     if key in _COMPILED:
         _COMPILED.move_to_end(key)
         return _COMPILED[key]
     kwargs = dict(alpha=prior.alpha.value, kappa=prior.kappa.value, gamma=prior.gamma.value,
                   hyperpriors=prior.hyperpriors or None, init_skills=sampler.init_skills,
                   init_window=sampler.init_window, moves=dict(sampler.moves))
+    if prior.switching == "state":
+        kwargs["termination"] = Termination(int(num_states), prior.end_concentration, prior.end_mean)
     data = _pad_trajectories(HMMData.from_demonstrations(demos, bucket=sampler.bucket), multiple)
     kernel = BPHMMKernel(em, data, cfg.max_skills, **kwargs)
     entry = _Compiled(kernel, tuple(prior.hyperpriors))
@@ -651,7 +659,7 @@ def fit(mdp, demos: Demonstrations, config: Union[ModelConfig, dict, str, os.Pat
         bucket: Optional[bool] = None, max_samples: Optional[int] = None, target_rhat: Optional[float] = None,
         time_budget: Optional[float] = None, init_segmentation=None, progress_bar: bool = True, checkpoint_path=None,
         checkpoint_every: Optional[int] = None, resume: bool = False, mesh: Optional[Mesh] = None,
-        devices=None, grow: bool = False) -> FitResult:
+        devices=None, grow: bool = False, switching: Optional[str] = None) -> FitResult:
     """Segment demonstrations into skills.
 
     The model and sampler come from ``config`` (defaults: :class:`ModelConfig`); the keyword
@@ -720,6 +728,10 @@ def fit(mdp, demos: Demonstrations, config: Union[ModelConfig, dict, str, os.Pat
             (64) slots; the result is the last fit's, with ``truncation`` recording each fit's
             slots, skills and saturation. Without it such a run warns (``UserWarning``) and says
             how to refit. Not with ``checkpoint_path``.
+        switching: "sticky" (the paper's BP-HMM, the default) or "state": skills end with a
+            probability that depends on the state entered (options with a termination
+            function, sampled; see :class:`~npbrs.inference.driver.config.PriorConfig`), as when
+            a skill ends once its goal is reached.
     Returns:
         a :class:`~npbrs.inference.driver.results.FitResult`.
     Raises:
@@ -778,13 +790,14 @@ def saturation(result: FitResult):
 def _fit(mdp, demos, config, *, emission, emission_options, num_chains, num_samples, num_warmup, max_skills, seed,
          chain_method, alpha, kappa, gamma, hyperpriors, init_skills, init_window, moves, bucket, max_samples,
          target_rhat, time_budget, init_segmentation, progress_bar, checkpoint_path, checkpoint_every, resume, mesh,
-         devices) -> FitResult:
+         devices, switching) -> FitResult:
     use_compilation_cache()
     cfg = resolve_config(config, emission=emission, emission_options=emission_options, num_chains=num_chains,
                          num_samples=num_samples, num_warmup=num_warmup, max_skills=max_skills, seed=seed,
                          chain_method=chain_method, alpha=alpha, kappa=kappa, gamma=gamma, hyperpriors=hyperpriors,
                          init_skills=init_skills, init_window=init_window, moves=moves, bucket=bucket,
-                         max_samples=max_samples, target_rhat=target_rhat, time_budget=time_budget)
+                         max_samples=max_samples, target_rhat=target_rhat, time_budget=time_budget,
+                         switching=switching)
     if not isinstance(demos, Demonstrations):
         raise ValueError(f"demos must be npbrs.domains.Demonstrations, got {type(demos).__name__}")
     demos.validate(mdp)
@@ -820,7 +833,7 @@ def _fit(mdp, demos, config, *, emission, emission_options, num_chains, num_samp
             raise ValueError(f"devices must be a number, a list of jax.Device or 'all', got {devices!r}")
         devices = jax.devices()
     method, mesh = _chain_method(sampler.chain_method, C, mesh, devices)
-    compiled = _compiled(cfg, em, em_key, demos, _trajectory_devices(mesh))
+    compiled = _compiled(cfg, em, em_key, demos, _trajectory_devices(mesh), int(mdp.num_states))
     kernel = compiled.kernel
     z0 = None
     if init_segmentation is not None:

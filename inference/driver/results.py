@@ -108,8 +108,10 @@ def _padded(rows, pad=-1) -> np.ndarray:
 def _site_dims(name: str, shape, param_sites) -> list:
     if name == "features":
         return ["trajectory", "skill"]
-    if name == "skill_steps":
+    if name in ("skill_steps", "end_mean"):
         return ["skill"]
+    if name == "ends":
+        return ["skill", "state"]
     if name in param_sites and len(shape) >= 1:
         return ["skill"] + [f"{name}_dim_{i}" for i in range(len(shape) - 1)]
     return [f"{name}_dim_{i}" for i in range(len(shape))]

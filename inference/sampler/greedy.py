@@ -121,7 +121,7 @@ class _Proposal(NamedTuple):
 
 def _merge_proposal(key, state: MoveState, data, j) -> _Proposal:
     """Merge skill j into the used skill under whose parameters its steps are likeliest."""
-    features, _, z, params, log_lik = state
+    features, z, params, log_lik = state.features, state.z, state.params, state.log_lik
     K = features.shape[1]
     onehot = jax.nn.one_hot(z, K, dtype=jnp.float64) * data.mask[..., None]
     used = jnp.sum(onehot, axis=(0, 1)) > 0
@@ -142,7 +142,7 @@ def _merge_proposal(key, state: MoveState, data, j) -> _Proposal:
 def _split_proposal(key, state: MoveState, emission, data, anchors, num_blocks) -> _Proposal:
     """Split the skill of anchor a between it and a free slot, anchor b going to the slot, by
     the split-merge move's sequential allocation."""
-    features, _, z, params, _ = state
+    features, z, params = state.features, state.z, state.params
     mask = data.mask
     ia, ta, ib, tb = anchors
     k1 = z[ia, ta]
@@ -173,7 +173,7 @@ def _keep_if_better(prop: _Proposal, state: MoveState, emission, data, hyper):
     """Score a proposal by the change of :func:`merge_score` (the three log evidences by one
     ``fit_evidence`` call), give its two slots their new parameters, and keep it when the score
     rises: (state, :class:`GreedyInfo`)."""
-    features, _, z, params, log_lik = state
+    features, z, params, log_lik = state.features, state.z, state.params, state.log_lik
     fits, log_ev = emission.fit_evidence(data, prop.w, prop.init)
     parts_minus_whole = log_ev[0] + log_ev[1] - log_ev[2]
     structure = (_structure_log_prob(hyper, data.mask, prop.z, prop.features)

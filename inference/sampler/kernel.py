@@ -11,6 +11,12 @@ One sweep (jitted whole, static shapes: K = ``max_skills`` slots with an active 
 4. emission parameters with the emission's own move given the steps assigned to each skill;
 5. optionally alpha, kappa, gamma by random-walk Metropolis on log scale.
 
+With state-dependent ends (``termination``; ``npbrs.models.bphmm.Termination``) every filter
+of steps 1-2 (and of the moves, which hold the ends fixed) uses the ends' gate, eta's
+conditional counts the switches only, and step 3 also draws each skill's mean end
+probability mu_k given z with the ends integrated out (random-walk Metropolis on its logit),
+then the ends beta_k(s) from their Beta conditional.
+
 Every density used here is one of the model's own (``npbrs.models.bphmm``).
 """
 
@@ -26,8 +32,9 @@ import numpyro.distributions as dist
 from numpyro.infer.mcmc import MCMCKernel
 
 from npbrs.domains.pytree import Pytree
-from npbrs.models.bphmm import (Hyper, bphmm_model, eta_from_gammas, eta_gamma_shapes, hmm_parameters, log_joint_terms,
-                                log_marginal_likelihoods)
+from npbrs.models.bphmm import (Hyper, Termination, bphmm_model, end_counts, end_gate, eta_from_gammas,
+                                eta_gamma_shapes, hmm_parameters, log_joint_terms, log_marginal_likelihoods,
+                                sample_end_means, sample_ends)
 from npbrs.models.mcmc import metropolis_accept
 from npbrs.models.emissions import Emission, EmissionInfo, HMMData
 from npbrs.models.hmm import batch_backward_sample, batch_forward_filter, transition_counts
@@ -47,6 +54,8 @@ class BPHMMState(NamedTuple):
     """State of one chain of the BP-HMM sampler.
 
     step: sweeps done. num_warmup: sweeps of warmup (adaptation, no best-state tracking). rng_key: the chain's key. omega (K,), features (N, K) 0/1, eta (N, K, K),
+    ends (K, S) and end_mean (K,): state-dependent end probabilities and their means (None
+    without them),
     params: emission parameters {site: (K, ...)}, cache: emission cache, hyper: Hyper,
     z (N, T) skill sequences (-1 on padding), log_lik (N, T, K), log_marginals (N,),
     log_joint: the model's log density, num_skills: skills used by z, num_switches: mean
@@ -81,6 +90,8 @@ class BPHMMState(NamedTuple):
     best_z: jax.Array
     best_params: Dict[str, jax.Array]
     best_features: jax.Array
+    ends: Any = None
+    end_mean: Any = None
 
 
 def skill_weights(z, mask, K):
@@ -122,14 +133,20 @@ class BPHMMKernel(MCMCKernel, Pytree):
             split trials per sweep there (the emission also needs ``fit_point``),
             "greedy_from": that fraction of warmup, in [0, 1)}; the defaults (every move off):
             :data:`npbrs.inference.sampler.options.MOVE_DEFAULTS`.
+        termination: a :class:`~npbrs.models.bphmm.Termination`: skills end with a probability
+            that depends on the state entered (sampled); None: the sticky BP-HMM.
     """
 
     sample_field = "params"
 
     def __init__(self, emission: Emission, data: HMMData, max_skills: int, alpha=1.0, kappa=10.0,
                  gamma=1.0, hyperpriors: Optional[Dict] = None, init_skills: Optional[int] = None,
-                 init_window: int = 25, sample_features: bool = True, moves: Optional[Dict] = None):
+                 init_window: int = 25, sample_features: bool = True, moves: Optional[Dict] = None,
+                 termination: Optional[Termination] = None):
         self.emission = emission
+        self.termination = None if termination is None else Termination(
+            int(termination.num_states), float(termination.concentration),
+            tuple(float(x) for x in termination.mean_prior))
         self.data = data
         self.max_skills = int(max_skills)
         self.hyper0 = Hyper(jnp.float64(alpha), jnp.float64(kappa), jnp.float64(gamma))
@@ -153,12 +170,13 @@ class BPHMMKernel(MCMCKernel, Pytree):
     @property
     def model(self):
         return partial(bphmm_model, self.data, self.emission, self.max_skills, *self.hyper0,
-                       hyperpriors=self.hyperpriors or None)
+                       hyperpriors=self.hyperpriors or None, termination=self.termination)
 
     @property
     def default_fields(self):
+        ends = ("ends", "end_mean") if self.termination is not None else ()
         return ("params", "log_joint", "num_skills", "num_switches", "features", "accept", "birth_accept",
-                "split_accept", "greedy_merges", "greedy_splits")
+                "split_accept", "greedy_merges", "greedy_splits") + ends
 
     def get_diagnostics_str(self, state):
         return f"log joint {float(state.log_joint):.1f}, skills {int(state.num_skills)}"
@@ -225,13 +243,21 @@ class BPHMMKernel(MCMCKernel, Pytree):
         trajectory, so a padded run's draws of the real trajectories are the unpadded run's."""
         return jnp.any(self.data.mask, axis=1)
 
+    def gate(self, state: BPHMMState):
+        """(N, T, K) every step's end probabilities under ``state``'s ends (the filters' gate),
+        or None without state-dependent ends."""
+        if self.termination is None:
+            return None
+        return end_gate(state.ends, self.data.states, self.data.mask)
+
     def _finish(self, state: BPHMMState) -> BPHMMState:
         """Recompute likelihoods, the log joint and the summaries of ``state``."""
         K = self.max_skills
         log_lik, cache = self.emission.log_likelihoods(state.params, self.data, state.cache)
-        log_marg = log_marginal_likelihoods(state.features, state.eta, log_lik, self.data.mask)
+        log_marg = log_marginal_likelihoods(state.features, state.eta, log_lik, self.data.mask, self.gate(state))
         terms = log_joint_terms(state.omega, state.features, state.eta, state.params, log_marg, state.hyper,
-                                self.emission, self.hyperpriors or None, valid=self._valid)
+                                self.emission, self.hyperpriors or None, valid=self._valid, ends=state.ends,
+                                end_mean=state.end_mean, termination=self.termination)
         log_joint = sum(terms.values())
         num_skills, num_switches = _label_invariant(state.z, self.data.mask, K)
         return state._replace(cache=cache, log_lik=log_lik, log_marginals=log_marg, log_joint=log_joint,
@@ -261,6 +287,9 @@ class BPHMMKernel(MCMCKernel, Pytree):
             features = (jnp.sum(weights, axis=1) > 0).astype(jnp.float64)
         hyper = self.hyper0
         eta, omega = self._sample_eta_omega(keys[3], z, features, hyper)
+        ends = end_mean = None
+        if self.termination is not None:
+            end_mean, ends = self._sample_ends(keys[5], z, features, jnp.full((K,), self._prior_end_mean))
         zero = jnp.float64(0.0)
         state = BPHMMState(
             step=jnp.int32(0), num_warmup=jnp.asarray(num_warmup, jnp.int32), rng_key=keys[4], omega=omega,
@@ -269,8 +298,22 @@ class BPHMMKernel(MCMCKernel, Pytree):
             log_lik=jnp.zeros((N, T, K)), log_marginals=jnp.zeros(N), log_joint=zero,
             num_skills=jnp.int32(0), num_switches=zero, accept=zero, birth_accept=zero, split_accept=zero,
             greedy_merges=jnp.int32(0), greedy_splits=jnp.int32(0), best_log_joint=jnp.float64(-jnp.inf), best_z=z,
-            best_params=params, best_features=features)
+            best_params=params, best_features=features, ends=ends, end_mean=end_mean)
         return self._finish(state)
+
+    @property
+    def _prior_end_mean(self):
+        a, b = self.termination.mean_prior
+        return a / (a + b)
+
+    def _sample_ends(self, key, z, features, end_mean):
+        """(mu, beta) | z: the skills' mean end probabilities by Metropolis with the ends
+        integrated out, then the ends (K, S) from their Beta conditional."""
+        term = self.termination
+        counts = end_counts(z, self.data.mask, self.data.states, features, term.num_states)
+        k1, k2 = jax.random.split(key)
+        end_mean = sample_end_means(k1, end_mean, counts, term)
+        return end_mean, sample_ends(k2, end_mean, counts, term)
 
     def sample_eta(self, key, z, features, hyper):
         """A draw of the transition weights eta (N, K, K) from their conditional given the skill
@@ -296,7 +339,10 @@ class BPHMMKernel(MCMCKernel, Pytree):
         it; it is small next to the filtering.)
         """
         N, K = features.shape
-        shape_g, shape_total, active = eta_gamma_shapes(transition_counts(z, self.data.mask, K), features, hyper)
+        counts = transition_counts(z, self.data.mask, K)
+        if self.termination is not None:  # with state-dependent ends only the switches inform eta
+            counts = jnp.where(jnp.eye(K, dtype=bool), 0, counts)
+        shape_g, shape_total, active = eta_gamma_shapes(counts, features, hyper)
         valid = self._valid
         m = jnp.sum(jnp.where(valid[:, None], features, 0.0), axis=0)
         n = jnp.sum(valid).astype(m.dtype)
@@ -319,14 +365,16 @@ class BPHMMKernel(MCMCKernel, Pytree):
         sweep carries them); otherwise they are filtered too."""
         return self._feature_logits_and_marginals(state, features, k, current)[0]
 
-    def _feature_logits_and_marginals(self, state: BPHMMState, features, k, current=None):
-        """(logits (N,), log marginals with f_ik = 1 (N,), with f_ik = 0 (N,))."""
+    def _feature_logits_and_marginals(self, state: BPHMMState, features, k, current=None, gate=None):
+        """(logits (N,), log marginals with f_ik = 1 (N,), with f_ik = 0 (N,)); ``gate``: the
+        state's :meth:`gate` when known."""
         off = features.at[:, k].set(0.0)
+        gate = self.gate(state) if gate is None else gate
         if current is None:
-            current = log_marginal_likelihoods(features, state.eta, state.log_lik, self.data.mask)
+            current = log_marginal_likelihoods(features, state.eta, state.log_lik, self.data.mask, gate)
         is_on = features[:, k] > 0
         flipped = features.at[:, k].set(jnp.where(is_on, 0.0, 1.0))
-        lm_flip = log_marginal_likelihoods(flipped, state.eta, state.log_lik, self.data.mask)
+        lm_flip = log_marginal_likelihoods(flipped, state.eta, state.log_lik, self.data.mask, gate)
         lm_on, lm_off = jnp.where(is_on, current, lm_flip), jnp.where(is_on, lm_flip, current)
         # a trajectory must keep at least one skill (to emit its steps: one without steps, padding
         # to a shape bucket, may have none, or its features would weigh on omega)
@@ -334,7 +382,7 @@ class BPHMMKernel(MCMCKernel, Pytree):
         prior = dist.Bernoulli(probs=state.omega[k])
         return (lm_on + prior.log_prob(1.0)) - (lm_off + prior.log_prob(0.0)), lm_on, lm_off
 
-    def _sample_features(self, key, state: BPHMMState) -> jax.Array:
+    def _sample_features(self, key, state: BPHMMState, gate=None) -> jax.Array:
         """Gibbs on every f_ik with z summed out; skills in turn, trajectories at once
         (given omega, the trajectories' features are conditionally independent). The log
         marginals of the current features are carried from skill to skill (they start as the
@@ -345,7 +393,7 @@ class BPHMMKernel(MCMCKernel, Pytree):
         def one_skill(carry, k_key):
             features, current = carry
             k, key = k_key
-            logit, lm_on, lm_off = self._feature_logits_and_marginals(state, features, k, current)
+            logit, lm_on, lm_off = self._feature_logits_and_marginals(state, features, k, current, gate)
             new = jax.random.bernoulli(key, jax.nn.sigmoid(logit))
             return (features.at[:, k].set(new.astype(features.dtype)), jnp.where(new, lm_on, lm_off)), None
 
@@ -364,9 +412,10 @@ class BPHMMKernel(MCMCKernel, Pytree):
         mask = self.data.mask
         key, k_feat, k_bd, k_z, k_eta, k_em, k_hyp, k_sm = jax.random.split(state.rng_key, 8)
         k_gm = jax.random.fold_in(k_sm, 1)
-        features = self._sample_features(k_feat, state) if self.sample_features else state.features
+        gate = self.gate(state)  # the ends are held fixed until step 3
+        features = self._sample_features(k_feat, state, gate) if self.sample_features else state.features
         # the moves' state (``npbrs.inference.sampler.state``): each move maps it to a new one
-        moved = MoveState.of(state)._replace(features=features)
+        moved = MoveState.of(state, gate)._replace(features=features)
         blocks = min(self.moves["blocks"], N)  # refits of a split's allocation (split-merge, greedy splits)
         step, num_warmup = (state.step, state.num_warmup) if clock is None else clock
         if self.moves["start"]:
@@ -397,9 +446,9 @@ class BPHMMKernel(MCMCKernel, Pytree):
                 return ops, jnp.mean(accepted.astype(jnp.float64))
 
             moved, births = gated(births_run, moved, births)
-        log_init, log_trans, active = hmm_parameters(moved.features, state.eta)
-        _, log_alpha = batch_forward_filter(log_init, log_trans, moved.log_lik, mask, active)
-        moved = moved._replace(z=batch_backward_sample(k_z, log_trans, log_alpha, mask, active))
+        log_init, log_trans, active = hmm_parameters(moved.features, state.eta, gate is not None)
+        _, log_alpha = batch_forward_filter(log_init, log_trans, moved.log_lik, mask, active, gate)
+        moved = moved._replace(z=batch_backward_sample(k_z, log_trans, log_alpha, mask, active, gate))
         splits = jnp.zeros(())
         if self.moves["split_merge"]:
             run = trials(partial(split_merge, num_blocks=blocks), k_sm, self.moves["split_merge"])
@@ -427,6 +476,10 @@ class BPHMMKernel(MCMCKernel, Pytree):
         features, z, params = moved.features, moved.z, moved.params
         # eta | z, F and omega | F are conditionally independent: one block
         eta, omega = self._sample_eta_omega(k_eta, z, features, state.hyper)
+        ends = {}
+        if self.termination is not None:
+            end_mean, new_ends = self._sample_ends(jax.random.fold_in(k_eta, 1), z, features, state.end_mean)
+            ends = dict(ends=new_ends, end_mean=end_mean)
         weights = skill_weights(z, mask, K)
         # the clock, not the state's step: under vectorised chains a batched flag would make
         # the emission's warmup-only work (e.g. the reward's Fisher preconditioner) run always
@@ -443,7 +496,7 @@ class BPHMMKernel(MCMCKernel, Pytree):
         accept = jnp.asarray(info.accept, jnp.float64)
         new = state._replace(rng_key=key, omega=omega, features=features, eta=eta, params=params, cache=cache,
                              z=z, accept=jnp.mean(accept), birth_accept=births, split_accept=splits,
-                             **greedy_kept)
+                             **greedy_kept, **ends)
         if self.hyperpriors:
             new = new._replace(hyper=self.sample_hyperparameters(k_hyp, new))
         new = self._finish(new)

@@ -213,10 +213,13 @@ def allocate(emission, data, z_m, f_m, k1, k2, anchors, order, init_one, num_blo
     return z, fits
 
 
-def _eta_counts(z_alloc, f, mask):
-    """Transition counts (N, K, K) of an allocation in the active columns of F."""
+def _eta_counts(z_alloc, f, mask, gated=False):
+    """Transition counts (N, K, K) of an allocation in the active columns of F; ``gated``
+    (state-dependent ends): the switches only, as in the kernel's conditional (a skill that
+    continues says nothing of eta there)."""
     K = f.shape[1]
-    return jnp.where((f > 0)[:, None, :], transition_counts(z_alloc, mask, K), 0).astype(jnp.float64)
+    counts = jnp.where((f > 0)[:, None, :], transition_counts(z_alloc, mask, K), 0).astype(jnp.float64)
+    return jnp.where(jnp.eye(K, dtype=bool), 0.0, counts) if gated else counts
 
 
 def _draw_eta(key, eta, counts, f, involved, hyper):
@@ -353,8 +356,8 @@ def _log_ratio(current: MoveState, proposed: MoveState, emission, data, hyper, a
     allocation's transition counts ``counts_fwd``; the reverse move's density is computed here,
     from the proposed state and its skill sequences. ``lm_new``: the proposed state's clamped log
     marginals (N,), when known."""
-    features, eta, z, params, log_lik = current
-    new_f, new_eta, new_z, new_params, new_log_lik = proposed
+    features, eta, z, params, log_lik, gate = current
+    new_f, new_eta, new_z, new_params, new_log_lik, _ = proposed
     mask = data.mask
     real = jnp.any(mask, axis=1)
     split_proposal, merge_proposal = proposals
@@ -363,11 +366,12 @@ def _log_ratio(current: MoveState, proposed: MoveState, emission, data, hyper, a
     new_labels = (k1, jnp.where(is_split, k2, k1))
     # the trajectories whose transition weights the move redraws: those that use k1 or k2
     involved = ((features[:, k1] > 0) | (features[:, k2] > 0)) & real
-    li_o, lt_o, act_o = hmm_parameters(features, eta)
-    lm_old, _ = batch_forward_filter(li_o, lt_o, _clamp(log_lik, anchors, old_labels), mask, act_o)
+    gated = gate is not None  # the ends' gate is the same in both states
+    li_o, lt_o, act_o = hmm_parameters(features, eta, gated)
+    lm_old, _ = batch_forward_filter(li_o, lt_o, _clamp(log_lik, anchors, old_labels), mask, act_o, gate)
     if lm_new is None:
-        li_n, lt_n, act_n = hmm_parameters(new_f, new_eta)
-        lm_new, _ = batch_forward_filter(li_n, lt_n, _clamp(new_log_lik, anchors, new_labels), mask, act_n)
+        li_n, lt_n, act_n = hmm_parameters(new_f, new_eta, gated)
+        lm_new, _ = batch_forward_filter(li_n, lt_n, _clamp(new_log_lik, anchors, new_labels), mask, act_n, gate)
 
     # the reverse move, computed from the proposed state and its skill sequences
     def reverse_of_split(_):  # a merge of the proposed split state
@@ -384,7 +388,7 @@ def _log_ratio(current: MoveState, proposed: MoveState, emission, data, hyper, a
             + jnp.sum(emission.log_prior(new_two)) - jnp.sum(emission.log_prior(current_two))
             + lq_rev - lq_fwd
             + _eta_log_p_over_q(new_eta, counts_fwd, new_f, involved, hyper)
-            - _eta_log_p_over_q(eta, _eta_counts(alloc_rev, features, mask), features, involved, hyper))
+            - _eta_log_p_over_q(eta, _eta_counts(alloc_rev, features, mask, gated), features, involved, hyper))
 
 
 def propose_split_merge(key, state: MoveState, emission, data, hyper, anchors, num_blocks: int = 2):
@@ -393,7 +397,7 @@ def propose_split_merge(key, state: MoveState, emission, data, hyper, anchors, n
     ratio leaves out the anchors' choice (which :func:`split_merge` adds)."""
     K = state.features.shape[1]
     mask = data.mask
-    features, eta, z, params, log_lik = state
+    features, eta, z, params, log_lik, gate = state
     ia, ta, ib, tb = anchors
     k_slot, k_order, k_feat, k_prop, k_prior, k_z, k_eta = jax.random.split(key, 7)
     k1 = z[ia, ta]
@@ -428,14 +432,14 @@ def propose_split_merge(key, state: MoveState, emission, data, hyper, anchors, n
     # transition weights of the trajectories that use k1 or k2: redrawn from their
     # conditional given the move's allocation (the merged labels, or the split's)
     involved = ((features[:, k1] > 0) | (features[:, k2] > 0)) & real
-    counts_fwd = _eta_counts(alloc_fwd, new_f, mask)  # one count for the draw and its density
+    counts_fwd = _eta_counts(alloc_fwd, new_f, mask, gate is not None)  # one count for the draw and its density
     new_eta = _draw_eta(k_eta, eta, counts_fwd, new_f, involved, hyper)
     # skill sequences: redrawn given the proposed state with the anchors clamped
     new_labels = (k1, jnp.where(is_split, k2, k1))
-    li_n, lt_n, act_n = hmm_parameters(new_f, new_eta)
-    lm_new, alpha_new = batch_forward_filter(li_n, lt_n, _clamp(new_log_lik, anchors, new_labels), mask, act_n)
-    new_z = batch_backward_sample(k_z, lt_n, alpha_new, mask, act_n)
-    proposed = MoveState(new_f, new_eta, new_z, new_params, new_log_lik)
+    li_n, lt_n, act_n = hmm_parameters(new_f, new_eta, gate is not None)
+    lm_new, alpha_new = batch_forward_filter(li_n, lt_n, _clamp(new_log_lik, anchors, new_labels), mask, act_n, gate)
+    new_z = batch_backward_sample(k_z, lt_n, alpha_new, mask, act_n, gate)
+    proposed = MoveState(new_f, new_eta, new_z, new_params, new_log_lik, gate)
 
     log_ratio = _log_ratio(state, proposed, emission, data, hyper, anchors, k1, k2, is_split, proposals, lq_fwd,
                            counts_fwd, lm_new)
@@ -472,7 +476,7 @@ def split_merge_log_ratio(current: MoveState, proposed: MoveState, emission, dat
         return merge_proposal(z, current_two, new_two, None)[1], jnp.where(z == k2, k1, z)
 
     lq_fwd, alloc_fwd = jax.lax.cond(is_split, forward_split, forward_merge, None)
-    counts_fwd = _eta_counts(alloc_fwd, proposed.features, data.mask)
+    counts_fwd = _eta_counts(alloc_fwd, proposed.features, data.mask, proposed.gate is not None)
     return _log_ratio(current, proposed, emission, data, hyper, anchors, k1, k2, is_split, proposals, lq_fwd,
                       counts_fwd)
 

@@ -11,7 +11,7 @@ a public function of the current and the proposed state (``birth_death_log_ratio
 
 from __future__ import annotations
 
-from typing import Dict, NamedTuple
+from typing import Dict, NamedTuple, Optional
 
 import jax
 
@@ -32,8 +32,10 @@ class MoveState(NamedTuple):
     z: jax.Array
     params: Dict[str, jax.Array]
     log_lik: jax.Array
+    gate: Optional[jax.Array] = None
 
     @classmethod
-    def of(cls, state) -> "MoveState":
-        """The moves' part of a state with these fields (e.g. the kernel's ``BPHMMState``)."""
-        return cls(*(getattr(state, name) for name in cls._fields))
+    def of(cls, state, gate=None) -> "MoveState":
+        """The moves' part of a state with these fields (e.g. the kernel's ``BPHMMState``), and
+        the ``gate`` given."""
+        return cls(*(getattr(state, name) for name in cls._fields[:-1]), gate)

@@ -1,0 +1,181 @@
+"""State-dependent skill ends (``switching="state"``): the counts, the conditionals of the ends
+and their means against a direct computation or quadrature, the kernel's log joint against the
+NumPyro model's, the features' conditional and eta's, and the fit's use of them."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from numpyro.infer.util import log_density
+from scipy import stats
+from scipy.special import betaln
+
+from npbrs.inference.sampler.kernel import BPHMMKernel
+from npbrs.models.bphmm import (Termination, end_counts, end_gate, hmm_parameters, sample_end_means, sample_ends)
+from npbrs.models.emissions import HMMData, PolicyEmission
+from npbrs.models.hmm import forward_filter, path_log_prob
+
+S, A = 5, 3
+
+
+def ragged_data(seed=0, N=6, T=30, pad=True):
+    rng = np.random.default_rng(seed)
+    states = rng.integers(0, S, (N, T))
+    actions = rng.integers(0, A, (N, T))
+    mask = np.arange(T)[None, :] < rng.integers(T // 2, T + 1, N)[:, None]
+    if pad:
+        mask[-1] = False  # a padding trajectory
+    return HMMData(jnp.asarray(states, jnp.int32), jnp.asarray(actions, jnp.int32), jnp.asarray(mask))
+
+
+def test_end_counts_equal_a_loop_over_steps_leaving_out_one_skill_trajectories():
+    data = ragged_data()
+    rng = np.random.default_rng(1)
+    N, T = data.mask.shape
+    K = 4
+    z = np.where(data.mask, rng.integers(0, K, (N, T)), -1)
+    features = rng.integers(0, 2, (N, K)).astype(float)
+    features[:, 0] = 1.0
+    features[2] = [0, 1, 0, 0]  # one skill only: its steps say nothing of the ends
+    z[2] = np.where(data.mask[2], 1, -1)
+    ends, stays = (np.asarray(x) for x in end_counts(jnp.asarray(z), data.mask, data.states, jnp.asarray(features), S))
+    e_ref, s_ref = np.zeros((K, S)), np.zeros((K, S))
+    for i in range(N):
+        if features[i].sum() < 2:
+            continue
+        for t in range(1, T):
+            if data.mask[i, t]:
+                k, s = z[i, t - 1], int(data.states[i, t])
+                (s_ref if z[i, t] == k else e_ref)[k, s] += 1
+    np.testing.assert_array_equal(ends, e_ref)
+    np.testing.assert_array_equal(stays, s_ref)
+
+
+def test_the_gate_reads_each_steps_state():
+    data = ragged_data()
+    ends = jnp.asarray(np.random.default_rng(2).uniform(size=(3, S)))
+    gate = np.asarray(end_gate(ends, data.states, data.mask))
+    i, t = 1, 4
+    np.testing.assert_array_equal(gate[i, t], np.asarray(ends)[:, int(data.states[i, t])])
+    assert np.all(gate[~np.asarray(data.mask)] == 1.0)
+
+
+TERM = Termination(num_states=S, concentration=3.0, mean_prior=(2.0, 5.0))
+
+
+def test_the_end_means_conditional_equals_quadrature():
+    # counts of two skills over the states: one that ends often in state 0 only, one never seen
+    ended = jnp.asarray([[6.0, 0, 1, 0, 0], [0, 0, 0, 0, 0]])
+    stayed = jnp.asarray([[2.0, 9, 7, 0, 3], [0, 0, 0, 0, 0]])
+    c, (a, b) = TERM.concentration, TERM.mean_prior
+    grid = np.linspace(1e-6, 1 - 1e-6, 20001)
+
+    def log_post(k):
+        x, y = c * grid[:, None], c * (1 - grid[:, None])
+        e, s = np.asarray(ended[k]), np.asarray(stayed[k])
+        ll = np.sum(betaln(x + e, y + s) - betaln(x, y), -1)
+        return ll + stats.beta.logpdf(grid, a, b)
+
+    draws = jax.jit(jax.vmap(lambda key: sample_end_means(key, jnp.full(2, 0.3), (ended, stayed), TERM, steps=60)))(
+        jax.random.split(jax.random.PRNGKey(0), 4000))
+    draws = np.asarray(draws)
+    for k in range(2):
+        w = np.exp(log_post(k) - log_post(k).max())
+        w /= w.sum()
+        mean, sd = np.sum(w * grid), np.sqrt(np.sum(w * grid ** 2) - np.sum(w * grid) ** 2)
+        # independent chains (60 steps from one start each): the mean within 4.5 standard errors
+        assert abs(draws[:, k].mean() - mean) < 4.5 * sd / np.sqrt(len(draws)), (k, draws[:, k].mean(), mean)
+        assert abs(draws[:, k].std() - sd) < 0.1 * sd
+        cdf = np.cumsum(w)
+        assert stats.kstest(draws[:, k], lambda x: np.interp(x, grid, cdf)).pvalue > 1e-3
+
+
+def test_the_ends_conditional_is_their_beta():
+    ended = jnp.asarray([[6.0, 0, 1, 0, 0]])
+    stayed = jnp.asarray([[2.0, 9, 7, 0, 3]])
+    mean = jnp.asarray([0.2])
+    draws = np.asarray(jax.vmap(lambda k: sample_ends(k, mean, (ended, stayed), TERM))(
+        jax.random.split(jax.random.PRNGKey(1), 20000)))[:, 0]
+    c = TERM.concentration
+    for s in range(S):
+        ref = stats.beta(c * 0.2 + float(ended[0, s]), c * 0.8 + float(stayed[0, s]))
+        assert stats.kstest(draws[:, s], ref.cdf).pvalue > 1e-3
+
+
+def test_gated_parameters_keep_a_one_skill_trajectory_and_leave_the_diagonal_out():
+    eta = jnp.asarray(np.random.default_rng(3).gamma(1.0, size=(2, 3, 3)))
+    features = jnp.asarray([[1.0, 1.0, 1.0], [0.0, 1.0, 0.0]])
+    log_init, log_trans, active = hmm_parameters(features, eta, gated=True)
+    gate = jnp.full((4, 3), 0.4)
+    lik = jnp.zeros((4, 3))
+    # a one-skill trajectory never switches: its likelihood is 1 whatever the gate
+    np.testing.assert_allclose(forward_filter(log_init[1], log_trans[1], lik, None, active[1], gate)[0], 0.0,
+                               atol=1e-12)
+    # in the other, staying costs 1 - gate and a switch gate * (the row without the diagonal)
+    row = np.asarray(eta[0, 0, 1:]) / np.asarray(eta[0, 0, 1:]).sum()
+    z = jnp.asarray([0, 0, 1, 1])
+    lp = path_log_prob(log_init[0], log_trans[0], lik, z, None, active[0], gate)
+    np.testing.assert_allclose(lp, np.log(1 / 3) + np.log(0.6) + np.log(0.4 * row[0]) + np.log(0.6), rtol=1e-12)
+
+
+# ----------------------------------------------------------------------------------- the kernel
+@pytest.fixture(scope="module")
+def kernel_and_state():
+    data = ragged_data(4, N=5, T=25, pad=False)  # (the model has no notion of padding trajectories)
+    kernel = BPHMMKernel(PolicyEmission(S, A), data, max_skills=4, kappa=5.0,
+                         termination=Termination(S, 2.0, (1.0, 4.0)))
+    state = kernel.init(jax.random.PRNGKey(0), 0, None, (), {})
+    return kernel, state
+
+
+def model_log_density(kernel, state, **overrides):
+    params = {"omega": state.omega, "features": state.features, "eta": state.eta, "ends": state.ends,
+              "end_mean": state.end_mean, **state.params}
+    params.update(overrides)
+    return float(jax.jit(lambda p: log_density(kernel.model, (), {}, p)[0])(params))
+
+
+def test_the_kernels_log_joint_with_ends_equals_the_numpyro_models(kernel_and_state):
+    kernel, state = kernel_and_state
+    sweep = jax.jit(kernel.sweep)
+    for _ in range(3):
+        np.testing.assert_allclose(float(state.log_joint), model_log_density(kernel, state), rtol=1e-10)
+        state = sweep(state)
+    assert state.ends.shape == (4, S) and state.end_mean.shape == (4,)
+
+
+def test_the_feature_conditional_with_ends_equals_the_model_density_ratio(kernel_and_state):
+    kernel, state = kernel_and_state
+    F = np.asarray(state.features)
+    logits = np.asarray(jax.jit(lambda st: kernel.feature_logits(st, st.features, 1))(state))
+    for i in range(F.shape[0]):
+        on_f, off_f = F.copy(), F.copy()
+        on_f[i, 1], off_f[i, 1] = 1.0, 0.0
+        if off_f[i].sum() == 0:
+            continue
+        on = model_log_density(kernel, state, features=jnp.asarray(on_f))
+        off = model_log_density(kernel, state, features=jnp.asarray(off_f))
+        np.testing.assert_allclose(logits[i], on - off, rtol=1e-8, atol=1e-8)
+
+
+def test_eta_learns_from_the_switches_only(kernel_and_state):
+    kernel, state = kernel_and_state
+    K = kernel.max_skills
+    features = state.features.at[0].set(jnp.ones(K))
+    # trajectory 0 stays in skill 0 for long runs and always switches 0 -> 2
+    T = state.z.shape[1]
+    z = state.z.at[0].set(jnp.where(kernel.data.mask[0], jnp.where(jnp.arange(T) % 8 < 6, 0, 2), -1))
+    draws = jax.jit(jax.vmap(lambda k: kernel.sample_eta(k, z, features, state.hyper)))(
+        jax.random.split(jax.random.PRNGKey(5), 4000))
+    eta = np.asarray(draws)[:, 0, 0]  # row 0 of trajectory 0
+    off = eta[:, 1:] / eta[:, 1:].sum(-1, keepdims=True)  # the switch distribution without the diagonal
+    from npbrs.models.hmm import transition_counts
+
+    n02 = int(transition_counts(z, kernel.data.mask, K)[0, 0, 2])
+    gamma = float(state.hyper.gamma)
+    expected = (gamma + n02) / (3 * gamma + n02)  # Dirichlet(gamma + counts) over skills 1, 2, 3
+    assert abs(off[:, 1].mean() - expected) < 4.5 * off[:, 1].std() / np.sqrt(len(off))
+    # the diagonal is not counted (the stays say nothing of it): Dirichlet(gamma + kappa, gamma + counts)
+    share = eta[:, 0] / eta.sum(-1)
+    prior_share = (gamma + float(state.hyper.kappa)) / (K * gamma + float(state.hyper.kappa) + n02)
+    assert abs(share.mean() - prior_share) < 4.5 * share.std() / np.sqrt(len(share))
