@@ -281,13 +281,19 @@ def collapsed_feature_log_prob(features, alpha, valid=None):
     return jnp.sum(betaln(m + a, N - m + 1.0) - betaln(a, 1.0))
 
 
-def collapsed_sequence_log_prob(z, mask, features, kappa, gamma):
+def collapsed_sequence_log_prob(z, mask, features, kappa, gamma, gate=None):
     """log p(z_i | f_i) with the transition weights eta_i integrated out, per trajectory (N,).
 
     Given f_i, row j of pi_i is Dirichlet(gamma + kappa [j == k], k active) (normalised
     Gamma weights), so each row contributes a Dirichlet-multinomial term of its transition
     counts; the first skill is uniform over the active ones. A sequence that uses an
     inactive skill has probability 0 (-inf).
+
+    With state-dependent ends, ``gate`` (N, T, K) (:func:`end_gate` of the ends, held fixed):
+    log p(z_i | f_i, ends), each step of a trajectory with two skills or more contributing
+    log (1 - beta) when its skill continues and log beta when it ends, and the switches'
+    Dirichlet-multinomial over the other active skills (Dirichlet(gamma), the diagonal left
+    out).
 
     Args:
         z: (N, T) skills (-1 or anything at masked steps); mask: (N, T) bool;
@@ -303,10 +309,21 @@ def collapsed_sequence_log_prob(z, mask, features, kappa, gamma):
     counts = transition_counts(z, mask, K).astype(jnp.float64)  # (N, K, K)
     conc = gamma + kappa * jnp.eye(K)
     pair = active[:, :, None] & active[:, None, :]
+    ends = 0.0
+    if gate is not None:
+        pair = pair & ~jnp.eye(K, dtype=bool)
+        counts = jnp.where(jnp.eye(K, dtype=bool), 0.0, counts)
+        prev, nxt = jnp.clip(z[:, :-1], 0, K - 1), z[:, 1:]
+        g = jnp.clip(jnp.take_along_axis(gate[:, 1:], prev[..., None], axis=-1)[..., 0], 1e-300, 1.0)
+        step = jnp.where(nxt == prev, jnp.log1p(-jnp.minimum(g, 1.0 - 1e-16)), jnp.log(g))
+        several = jnp.sum(active, -1) >= 2
+        ends = jnp.where(several, jnp.sum(jnp.where(mask[:, 1:] & mask[:, :-1], step, 0.0), -1), 0.0)
     c = jnp.where(pair, conc, 0.0)
-    row = (gammaln(jnp.maximum(jnp.sum(c, -1), 1e-300)) - gammaln(jnp.sum(c, -1) + jnp.sum(counts, -1))
+    c_row = jnp.sum(c, -1)
+    row = (gammaln(jnp.maximum(c_row, 1e-300)) - gammaln(jnp.maximum(c_row + jnp.sum(counts, -1), 1e-300))
            + jnp.sum(jnp.where(pair, gammaln(c + counts) - gammaln(jnp.where(pair, c, 1.0)), 0.0), -1))
-    trans = jnp.sum(jnp.where(active, row, 0.0), -1)
+    row = jnp.where(c_row > 0, row, 0.0)  # (gated: a single skill's row has no switch to make)
+    trans = jnp.sum(jnp.where(active, row, 0.0), -1) + ends
     has_steps = jnp.any(mask, -1)
     n_active = jnp.sum(active, -1)
     init = jnp.where(has_steps, -jnp.log(jnp.maximum(n_active, 1)), 0.0)

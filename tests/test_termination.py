@@ -179,3 +179,30 @@ def test_eta_learns_from_the_switches_only(kernel_and_state):
     share = eta[:, 0] / eta.sum(-1)
     prior_share = (gamma + float(state.hyper.kappa)) / (K * gamma + float(state.hyper.kappa) + n02)
     assert abs(share.mean() - prior_share) < 4.5 * share.std() / np.sqrt(len(share))
+
+
+@pytest.mark.parametrize("active", [(1, 1, 1), (1, 0, 1), (0, 1, 0)])
+def test_the_collapsed_sequence_probability_with_ends_sums_to_one_and_matches_monte_carlo(active):
+    import itertools
+
+    from npbrs.models.bphmm import collapsed_sequence_log_prob
+
+    K, T = 3, 5
+    rng = np.random.default_rng(7)
+    gate = jnp.asarray(rng.uniform(0.05, 0.95, (1, T, K)))
+    f = jnp.asarray([active], jnp.float64)
+    kappa, gamma = 4.0, 0.7
+    zs = np.array([p for p in itertools.product(range(K), repeat=T) if all(np.asarray(active)[list(p)])])
+    mask = jnp.ones((len(zs), T), bool)
+    lp = np.asarray(collapsed_sequence_log_prob(jnp.asarray(zs), mask, jnp.repeat(f, len(zs), 0), kappa, gamma,
+                                                jnp.repeat(gate, len(zs), 0)))
+    np.testing.assert_allclose(np.exp(lp).sum(), 1.0, rtol=1e-10)
+    # against the gated chain averaged over eta's prior (Monte Carlo), for a few sequences
+    M = 100000
+    eta = jnp.asarray(rng.gamma(gamma + kappa * np.eye(K), 1.0, (M, K, K)))
+    log_init, log_trans, act = hmm_parameters(jnp.repeat(f, M, 0), eta, gated=True)
+    for j in rng.choice(len(zs), size=min(4, len(zs)), replace=False):
+        paths = jax.vmap(lambda li, lt, a: path_log_prob(li, lt, jnp.zeros((T, K)), jnp.asarray(zs[j]), None, a,
+                                                         gate[0]))(log_init, log_trans, act)
+        p = np.exp(np.asarray(paths))
+        assert abs(p.mean() - np.exp(lp[j])) < 4.5 * p.std() / np.sqrt(M) + 1e-12, (zs[j], p.mean(), np.exp(lp[j]))

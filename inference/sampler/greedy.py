@@ -76,24 +76,26 @@ class GreedyInfo(NamedTuple):
     gain: jax.Array
 
 
-def merge_score(emission, data, hyper, features, z, init=None):
+def merge_score(emission, data, hyper, features, z, init=None, gate=None):
     """log p(x, z, F) up to a constant: the log joint given the skill sequences with eta,
     omega and each used skill's parameters integrated out (the parameters by
-    ``emission.fit_evidence``, fits started at ``init`` (K, ...) when given). The moves keep
-    a change when it raises this score; they compute only the terms that change."""
+    ``emission.fit_evidence``, fits started at ``init`` (K, ...) when given); ``gate``: the
+    ends' (N, T, K) with state-dependent ends (then given the ends). The moves keep a change
+    when it raises this score; they compute only the terms that change."""
     K = features.shape[1]
     onehot = jax.nn.one_hot(z, K, dtype=jnp.float64) * data.mask[..., None]
     _, log_ev = emission.fit_evidence(data, onehot, init)
     used = jnp.sum(onehot, axis=(0, 1)) > 0
-    return jnp.sum(jnp.where(used, log_ev, 0.0)) + _structure_log_prob(hyper, data.mask, z, features)
+    return jnp.sum(jnp.where(used, log_ev, 0.0)) + _structure_log_prob(hyper, data.mask, z, features, gate)
 
 
-def _structure_log_prob(hyper, mask, z, features):
+def _structure_log_prob(hyper, mask, z, features, gate=None):
     """log p(z | F) + log p(F), eta and omega integrated out (trajectories without steps,
-    padding, left out)."""
+    padding, left out); with state-dependent ends, given the ends' ``gate`` (the moves hold
+    the ends fixed)."""
     valid = jnp.any(mask, axis=1)
-    return (jnp.sum(jnp.where(valid, collapsed_sequence_log_prob(z, mask, features, hyper.kappa, hyper.gamma), 0.0))
-            + collapsed_feature_log_prob(features, hyper.alpha, valid))
+    seq = collapsed_sequence_log_prob(z, mask, features, hyper.kappa, hyper.gamma, gate)
+    return jnp.sum(jnp.where(valid, seq, 0.0)) + collapsed_feature_log_prob(features, hyper.alpha, valid)
 
 
 class _Proposal(NamedTuple):
@@ -176,8 +178,8 @@ def _keep_if_better(prop: _Proposal, state: MoveState, emission, data, hyper):
     features, z, params, log_lik = state.features, state.z, state.params, state.log_lik
     fits, log_ev = emission.fit_evidence(data, prop.w, prop.init)
     parts_minus_whole = log_ev[0] + log_ev[1] - log_ev[2]
-    structure = (_structure_log_prob(hyper, data.mask, prop.z, prop.features)
-                 - _structure_log_prob(hyper, data.mask, z, features))
+    structure = (_structure_log_prob(hyper, data.mask, prop.z, prop.features, state.gate)
+                 - _structure_log_prob(hyper, data.mask, z, features, state.gate))
     gain = jnp.where(prop.merging, -parts_minus_whole, parts_minus_whole) + structure
     prior = emission.sample_prior_one(prop.prior_key)
     # a merge: the whole's fit, then a prior draw; a split: the two parts' fits
