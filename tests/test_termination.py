@@ -206,3 +206,17 @@ def test_the_collapsed_sequence_probability_with_ends_sums_to_one_and_matches_mo
                                                          gate[0]))(log_init, log_trans, act)
         p = np.exp(np.asarray(paths))
         assert abs(p.mean() - np.exp(lp[j])) < 4.5 * p.std() / np.sqrt(M) + 1e-12, (zs[j], p.mean(), np.exp(lp[j]))
+
+
+def test_the_switching_options_round_trip_and_bad_ones_are_named():
+    from npbrs.inference.driver.config import ModelConfig, PriorConfig
+    from npbrs.inference.driver.fit import resolve_config
+
+    cfg = resolve_config({"prior": {"end_concentration": 0.5, "end_mean": [2, 3]}}, switching="state")
+    assert cfg.prior.switching == "state" and cfg.prior.end_concentration == 0.5 and cfg.prior.end_mean == (2.0, 3.0)
+    assert ModelConfig.from_toml_string(cfg.to_toml()) == cfg
+    assert "switching" not in ModelConfig().to_dict()["prior"]  # the sticky default's description is unchanged
+    for bad, what in [({"switching": "sometimes"}, "prior.switching"), ({"end_concentration": 0}, "end_concentration"),
+                      ({"end_mean": [1.0]}, "prior.end_mean")]:
+        with pytest.raises(ValueError, match=what):
+            PriorConfig.from_dict(bad)

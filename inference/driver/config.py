@@ -289,9 +289,9 @@ class PriorConfig:
 
     def to_dict(self) -> dict:
         out = {n: getattr(self, n).to_data() for n in self.NAMES}
-        if self.switching != "sticky":  # the sticky BP-HMM's descriptions stay as they were
-            out.update(switching=self.switching, end_concentration=self.end_concentration,
-                       end_mean=list(self.end_mean))
+        ends = dict(switching=self.switching, end_concentration=self.end_concentration, end_mean=list(self.end_mean))
+        if ends != dict(switching="sticky", end_concentration=2.0, end_mean=[1.0, 9.0]):
+            out.update(ends)  # (the default sticky BP-HMM's descriptions stay as they were)
         return out
 
 
