@@ -198,6 +198,11 @@ def test_fit_errors_name_what_is_wrong(demo, tmp_path):
     code, _, err = run_main(["fit", out / "demos.npz", "--domain", "highway", "--config", out / "config.toml",
                              "--max-samples", "8", "-o", tmp_path / "x.nc"])
     assert code == 2 and "sampler.max_samples" in err and "at least 2 chains" in err, err
+    # --switching reaches fit's configuration (a bad prior of the ends is named there)
+    (tmp_path / "ends.toml").write_text('[prior]\nend_concentration = -1.0\n')
+    code, _, err = run_main(["fit", out / "demos.npz", "--domain", "highway", "--config", tmp_path / "ends.toml",
+                             "--switching", "state", "-o", tmp_path / "x.nc"])
+    assert code == 2 and "prior.end_concentration" in err, err
     code, _, err = run_main(["report", tmp_path / "missing.nc"])
     assert code == 2 and "missing.nc" in err
     assert not (tmp_path / "x.nc").exists()

@@ -72,6 +72,9 @@ def _add_fit(sub):
     p.add_argument("--grow", action="store_true",
                    help="while every skill slot is in use in most draws, refit with twice the slots from the "
                         "run's segmentation (up to 64; fit's grow=True; no checkpoints then)")
+    p.add_argument("--switching", choices=("sticky", "state"),
+                   help="how skills end: 'sticky' (the paper's BP-HMM) or 'state' (each skill ends with a "
+                        "probability per state entered, as when it ends at its goal; overrides the config)")
     p.add_argument("-o", "--output", required=True, help="the run file to write (.nc)")
     p.add_argument("--init-from", metavar="RUN", help="start every chain from the segmentation of a saved run (.nc)")
     p.add_argument("--resume", action="store_true", help="continue from the output's checkpoint if there is one")
@@ -121,7 +124,7 @@ def fit_command(args) -> int:
                      progress_bar=not args.no_progress, checkpoint_path=checkpoint,
                      checkpoint_every=args.checkpoint_every or None, resume=args.resume, init_segmentation=init,
                      devices=args.devices, max_samples=args.max_samples, target_rhat=args.target_rhat,
-                     time_budget=args.time_budget, grow=args.grow)
+                     time_budget=args.time_budget, grow=args.grow, switching=args.switching)
     except (OSError, ValueError) as e:  # a missing or unreadable --config among them
         message = str(e)
         if args.config and message.startswith("emission.options") and os.fspath(args.config) not in message:
