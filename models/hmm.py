@@ -112,8 +112,13 @@ def forward_filter(log_init, log_trans, log_lik, mask=None, active=None, gate=No
     trans = jnp.exp(log_trans - shift)
     tiny = jnp.finfo(log_lik.dtype).tiny
     # with a gate: p(z_t+1 = j) = sum_k p_k g_k pi_kj + p_j (1 - g_j), the skills that end
-    # through the matrix product, those that continue added in log space
-    ends = _gate_logs(gate, T, K, log_lik.dtype) if gate is not None else ()
+    # through the matrix product, those that continue added in the same column scaling
+    # (exp(-shift): a column's largest entry is at least exp(-700) short of inactive ones)
+    ends = ()
+    if gate is not None:
+        end_next = jnp.exp(_gate_logs(gate, T, K, log_lik.dtype)[0])
+        ends = (end_next, 1.0 - end_next)
+        unshift = jnp.where(active, jnp.exp(-jnp.maximum(shift, -700.0)), 0.0)
 
     def step(carry, inputs):
         log_pred, last_filt, total = carry
@@ -124,9 +129,9 @@ def forward_filter(log_init, log_trans, log_lik, mask=None, active=None, gate=No
         if gate is None:
             pred_next = jnp.log(jnp.maximum(jnp.exp(filt) @ trans, tiny)) + shift
         else:
-            log_end, log_stay = gate_t
-            switched = jnp.log(jnp.maximum(jnp.exp(filt + log_end) @ trans, tiny)) + shift
-            pred_next = jnp.logaddexp(switched, filt + log_stay)
+            end, stay = gate_t
+            p = jnp.exp(filt)
+            pred_next = jnp.log(jnp.maximum((p * end) @ trans + p * stay * unshift, tiny)) + shift
         pred_next = jnp.where(active, pred_next, NEG_LOG)
         log_pred = jnp.where(real, pred_next, log_pred)
         filt = jnp.where(real, filt, last_filt)
