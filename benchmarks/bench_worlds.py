@@ -23,6 +23,10 @@ reports per world:
 
     python benchmarks/bench_worlds.py --json benchmarks/results/bench_worlds.json
         [--worlds tabular_grid,labyrinth] [--quick] [--seed 0] [--note "what ran, how"]
+        [--fit-options '{"switching": "state"}']
+
+``--fit-options`` (JSON) gives the fitted model's ``fit`` keyword arguments (for a model variant
+measured the same way: the single-reward comparison keeps the defaults); the JSON records them.
 
 It prints a markdown table and writes the JSON at PATH (top-level keys: ``meta`` and one per
 world) and the markdown next to it (PATH with the suffix ``.md``). Rows of worlds already in
@@ -76,7 +80,7 @@ def _finite(x):
     return x if np.isfinite(x) else None
 
 
-def run_world(name: str, seed: int, quick: bool) -> dict:
+def run_world(name: str, seed: int, quick: bool, options: dict = None) -> dict:
     """Generate one world, fit it with the defaults and with one reward, and measure."""
     from npbrs.domains.worlds import WORLDS
     from npbrs.inference import fit
@@ -91,7 +95,7 @@ def run_world(name: str, seed: int, quick: bool) -> dict:
     oracle = world.oracle()
 
     start = time.perf_counter()
-    result = fit(mdp, demos, progress_bar=False, **fit_options)
+    result = fit(mdp, demos, progress_bar=False, **{**fit_options, **(options or {})})
     wall = time.perf_counter() - start
     peak = _peak_mb()
     print(f"[{_now()}] {name}: default fit {wall:.0f} s, {result.num_skills} skills", flush=True)
@@ -142,6 +146,7 @@ def run_world(name: str, seed: int, quick: bool) -> dict:
         "heldout_steps": heldout.num_steps,
         "world_params": {k: (list(v) if isinstance(v, tuple) else v) for k, v in world.params.items()},
         "fit_config": result.config,
+        "fit_options": options or {},
         "finished": _now(),
         "load_after": os.getloadavg()[0],
         "quick": quick,
@@ -155,7 +160,9 @@ def _fmt(x, spec):
 
 
 def markdown(rows: dict, meta: dict) -> str:
-    lines = ["# npbrs with `fit`'s defaults on the benchmark worlds", "",
+    options = sorted({json.dumps(r.get("fit_options") or {}, sort_keys=True) for r in rows.values()})
+    variant = "" if options == ["{}"] else f" and `{'; '.join(options)}`"
+    lines = [f"# npbrs with `fit`'s defaults{variant} on the benchmark worlds", "",
              f"Run {meta.get('started', '?')} to {meta.get('finished', '?')} on {meta.get('machine', '?')}. "
              + UNKNOWN_LOAD, ""] + ([meta["run_note"], ""] if meta.get("run_note") else []) + [
              f"World seed {meta.get('seed', '?')}; JAX {meta.get('jax', '?')}, NumPyro {meta.get('numpyro', '?')}.", "",
@@ -206,11 +213,19 @@ def main(argv=None):
     parser.add_argument("--seed", type=int, default=0, help="the worlds' seed (default 0)")
     parser.add_argument("--note", help="a line about this run (what library version, what load), kept in the "
                                        "JSON's meta and printed under the markdown's heading")
+    parser.add_argument("--fit-options", default="{}", metavar="JSON",
+                        help="fit's keyword arguments for the fitted model, e.g. '{\"switching\": \"state\"}'")
     parser.add_argument("--child", metavar="WORLD", help=argparse.SUPPRESS)  # one world in this process
     args = parser.parse_args(argv)
+    try:
+        options = json.loads(args.fit_options)
+    except json.JSONDecodeError as e:
+        parser.error(f"--fit-options: not JSON ({e})")
+    if not isinstance(options, dict):
+        parser.error("--fit-options: expected a JSON object of fit's keyword arguments")
 
     if args.child:
-        row = run_world(args.child, args.seed, args.quick)
+        row = run_world(args.child, args.seed, args.quick, options)
         with open(args.json, "w") as f:
             json.dump(row, f)
         return 0
@@ -234,7 +249,7 @@ def main(argv=None):
         with tempfile.TemporaryDirectory() as tmp:
             out = os.path.join(tmp, "row.json")
             command = [sys.executable, os.path.abspath(__file__), "--child", name, "--json", out,
-                       "--seed", str(args.seed)] + (["--quick"] if args.quick else [])
+                       "--seed", str(args.seed), "--fit-options", json.dumps(options)] + (["--quick"] if args.quick else [])
             start = time.perf_counter()
             code = subprocess.call(command)
             if code != 0 or not os.path.exists(out):
