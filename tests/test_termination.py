@@ -247,3 +247,10 @@ def test_a_fit_with_state_dependent_ends_finds_where_the_planted_skills_end(tmp_
     assert again.model_config.prior.switching == "state"
     held = again.log_predictive(world.mdp, world.heldout, num_samples=4, num_draws=4)
     assert np.isfinite(held.per_step)
+    # the skills as options terminate as the run's ends say (their posterior mean per skill)
+    from npbrs.inference.analysis.diagnostics import relabelled_draws
+
+    options = again.options(world.mdp)
+    draws = relabelled_draws(again, "ends").reshape((-1, again.num_skills, S))
+    for k, option in enumerate(options):
+        np.testing.assert_allclose(option.termination, np.nanmean(draws[:, k], axis=0), rtol=1e-12)

@@ -122,9 +122,21 @@ def skill_options(result, mdp, demos=None, *, prior_strength: float = 2.0, rewar
         labels = result.segment(mdp, demos, emission=emission).labels
     demos.validate(mdp)
     em = _emission_in(result, mdp, emission)
-    return estimate_options(demos.states, labels, skill_policies(result, mdp, rewards=rewards, emission=em),
-                            skill_policies(result, mdp, greedy=True, rewards=rewards, emission=em),
-                            prior_strength=prior_strength)
+    options = estimate_options(demos.states, labels, skill_policies(result, mdp, rewards=rewards, emission=em),
+                               skill_policies(result, mdp, greedy=True, rewards=rewards, emission=em),
+                               prior_strength=prior_strength)
+    if "ends" in result.samples:  # a run with state-dependent ends: the model's own termination
+        import dataclasses
+
+        from .diagnostics import relabelled_draws
+
+        draws = relabelled_draws(result, "ends")  # (C, D, K, S), NaN where a draw lacks the skill
+        flat = draws.reshape((-1,) + draws.shape[2:])
+        seen = ~np.isnan(flat).any(-1)  # (CD, K)
+        mean = np.where(seen[..., None], flat, 0.0).sum(0) / np.maximum(seen.sum(0), 1)[:, None]
+        options = [dataclasses.replace(o, termination=mean[k]) if seen[:, k].any() else o
+                   for k, o in enumerate(options)]
+    return options
 
 
 float64_all(globals())  # npbrs.domains.precision: float64 inside, the user's setting outside

@@ -358,7 +358,8 @@ class FitResult:
         Boltzmann and greedy policy), estimated from the run's best segmentation of its
         demonstrations, or from the most probable skills of ``demos`` (:meth:`segment`); see
         :mod:`npbrs.domains.options` for how; the policies are those of :meth:`policies` with
-        ``rewards``. Returns a list of
+        ``rewards``. A run with state-dependent ends (``switching="state"``) gives each option
+        the posterior mean of its skill's ends instead of the counts' estimate. Returns a list of
         :class:`~npbrs.domains.options.Option`, one per skill, in the order of ``segmentation``."""
         from ..analysis.skills import skill_options
 
