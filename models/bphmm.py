@@ -67,7 +67,7 @@ class Termination(NamedTuple):
     """
 
     num_states: int
-    concentration: float = 2.0
+    concentration: float = 8.0
     mean_prior: Tuple[float, float] = (1.0, 9.0)
 
 

@@ -9,7 +9,9 @@ them (0.97); rooms' three skills partly (0.69 against the oracle's 0.97; fits wi
 gave 0.73 and 0.69); the labyrinth's three skills are found, but labelled little better than by
 its most common skill alone (0.70; seeds 1 and 2: 0.65 and 0.55; the oracle 0.91; see
 ``benchmarks/results/worlds-probes/`` for why: the start and the mixing, and switching that
-depends on the state, which the BP-HMM lacks). A fit with one skill slot scores each world's
+depends on the state, which the sticky BP-HMM lacks; ``switching="state"`` has it, and
+``tests/test_termination.py`` checks that a fit with it finds where the small labyrinth's skills
+end). A fit with one skill slot scores each world's
 most common skill's share and fails all three."""
 
 import numpy as np

@@ -23,7 +23,7 @@ A TOML variant (every key optional; these are the defaults)::
     shape = 2.0
     rate = 0.2
     # switching = "sticky"     # or "state": skills end with a probability per state entered
-    # end_concentration = 2.0  # ... beta_k(s) ~ Beta(c mu_k, c (1 - mu_k)), c this
+    # end_concentration = 8.0  # ... beta_k(s) ~ Beta(c mu_k, c (1 - mu_k)), c this
     # end_mean = [1.0, 9.0]    # ... mu_k ~ Beta(a, b)
 
     [sampler]
@@ -256,7 +256,7 @@ class PriorConfig:
     kappa: Union[float, Hyperparameter] = 10.0
     gamma: Union[float, Hyperparameter] = 1.0
     switching: str = "sticky"
-    end_concentration: float = 2.0
+    end_concentration: float = 8.0
     end_mean: Any = (1.0, 9.0)
 
     NAMES = ("alpha", "kappa", "gamma")
@@ -290,7 +290,7 @@ class PriorConfig:
     def to_dict(self) -> dict:
         out = {n: getattr(self, n).to_data() for n in self.NAMES}
         ends = dict(switching=self.switching, end_concentration=self.end_concentration, end_mean=list(self.end_mean))
-        if ends != dict(switching="sticky", end_concentration=2.0, end_mean=[1.0, 9.0]):
+        if ends != dict(switching="sticky", end_concentration=8.0, end_mean=[1.0, 9.0]):
             out.update(ends)  # (the default sticky BP-HMM's descriptions stay as they were)
         return out
 
