@@ -257,3 +257,15 @@ def test_a_fit_with_state_dependent_ends_finds_where_the_planted_skills_end(tmp_
     draws = relabelled_draws(again, "ends").reshape((-1, again.num_skills, S))
     for k, option in enumerate(options):
         np.testing.assert_allclose(option.termination, np.nanmean(draws[:, k], axis=0), rtol=1e-12)
+
+
+def test_a_state_ends_fit_too_large_to_keep_its_draws_is_refused_before_compiling():
+    from npbrs.domains.gridworld import open_gridworld
+    from npbrs.inference import fit
+
+    mdp = open_gridworld(400)  # 160,000 states
+    from npbrs.domains import Demonstrations
+
+    demos = Demonstrations([np.array([0, 1, 2])], [np.array([0, 0, 0])])
+    with pytest.raises(ValueError, match="switching='state' keeps each draw's end probabilities"):
+        fit(mdp, demos, switching="state", num_samples=200, progress_bar=False)

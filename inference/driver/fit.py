@@ -774,6 +774,9 @@ def fit(mdp, demos: Demonstrations, config: Union[ModelConfig, dict, str, os.Pat
         return result
 
 
+#: ``switching="state"``: the most memory (bytes) the kept draws of the end probabilities may take
+ENDS_MEMORY_LIMIT = 4 * 2 ** 30
+
 #: ``fit(grow=True)``: the most skill slots it grows to, and the share of the sampling draws that
 #: must use every slot for it to grow
 GROW_LIMIT = 64
@@ -833,6 +836,14 @@ def _fit(mdp, demos, config, *, emission, emission_options, num_chains, num_samp
             raise ValueError(f"devices must be a number, a list of jax.Device or 'all', got {devices!r}")
         devices = jax.devices()
     method, mesh = _chain_method(sampler.chain_method, C, mesh, devices)
+    if cfg.prior.switching == "state":
+        # every kept draw holds the ends, (K, S) per chain
+        kept = C * max(S, sampler.max_samples or 0) * cfg.max_skills * int(mdp.num_states) * 8
+        if kept > ENDS_MEMORY_LIMIT:
+            raise ValueError(f"switching='state' keeps each draw's end probabilities, {cfg.max_skills} skills x "
+                             f"{mdp.num_states} states: {kept / 2 ** 30:.1f} GiB for {C} chains x "
+                             f"{max(S, sampler.max_samples or 0)} draws, over the {ENDS_MEMORY_LIMIT / 2 ** 30:.0f} "
+                             "GiB npbrs allows; keep fewer draws (num_samples) or chains, or use switching='sticky'")
     compiled = _compiled(cfg, em, em_key, demos, _trajectory_devices(mesh), int(mdp.num_states))
     kernel = compiled.kernel
     z0 = None
