@@ -234,8 +234,10 @@ def test_a_fit_with_state_dependent_ends_finds_where_the_planted_skills_end(tmp_
     # c = 2: the default c = 8 shrinks each state's end towards the skill's mean more (it scored
     # held-out trajectories better on the full-size worlds), and with 80 short trajectories the
     # entrance's end then stays near 0.2
+    # (no greedy moves: they are most of a fit's compile time, and the ends do not need them here)
     result = fit(world.mdp, world.demos, {"prior": {"end_concentration": 2.0}}, num_chains=1, num_warmup=100,
-                 num_samples=100, seed=0, progress_bar=False, switching="state")
+                 num_samples=100, seed=0, progress_bar=False, switching="state",
+                 moves={"greedy_merge": 0, "greedy_split": 0})
     K, S = result.config["max_skills"], world.mdp.num_states
     assert np.shape(result.samples["ends"]) == (1, 100, K, S)
     ends = np.asarray(result.samples["ends"])[0].mean(0)  # (K, S) posterior means
