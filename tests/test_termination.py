@@ -2,6 +2,8 @@
 and their means against a direct computation or quadrature, the kernel's log joint against the
 NumPyro model's, the features' conditional and eta's, and the fit's use of them."""
 
+import os
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -259,6 +261,16 @@ def test_a_fit_with_state_dependent_ends_finds_where_the_planted_skills_end(tmp_
     draws = relabelled_draws(again, "ends").reshape((-1, again.num_skills, S))
     for k, option in enumerate(options):
         np.testing.assert_allclose(option.termination, np.nanmean(draws[:, k], axis=0), rtol=1e-12)
+    # and the report's plots show them
+    from npbrs.inference.cli.main import save_plots
+
+    (tmp_path / "plots").mkdir()
+    paths = save_plots(again, tmp_path / "plots")
+    assert os.path.getsize(paths["skill ends"]) > 1000
+    from npbrs.inference.analysis.plots import plot_skill_ends
+
+    with pytest.raises(ValueError, match="probabilities"):
+        plot_skill_ends(np.full((2, 3), 1.5), tmp_path / "bad.png")
 
 
 def test_a_state_ends_fit_too_large_to_keep_its_draws_is_refused_before_compiling():

@@ -305,6 +305,38 @@ def plot_trace(result, path) -> None:
     _save(fig, path)
 
 
+def plot_skill_ends(ends, path, skill_names: Optional[Sequence[str]] = None, title: Optional[str] = None) -> None:
+    """Heat map of each skill's end probability in each state (a run with state-dependent ends:
+    its skills' termination functions), skills in rows, states in columns.
+
+    Args:
+        ends: (K, S) probabilities (e.g. posterior means, ``skill_ends``).
+        path: the PNG file to write.
+        skill_names: K names (default "skill 0", ...).
+        title: optional title.
+    """
+    from matplotlib.figure import Figure
+
+    ends = np.asarray(ends, dtype=np.float64)
+    if ends.ndim != 2 or not np.all(np.isfinite(ends)) or np.any(ends < 0) or np.any(ends > 1):
+        raise ValueError(f"ends must be (K, S) probabilities, got shape {ends.shape}")
+    K, S = ends.shape
+    names = [f"skill {k}" for k in range(K)] if skill_names is None else [str(s) for s in skill_names]
+    if len(names) != K:
+        raise ValueError(f"{len(names)} skill names for {K} skills")
+    fig = Figure(figsize=(min(14.0, max(5.0, 2.0 + 0.06 * S)), 1.2 + 0.45 * K), dpi=100)
+    ax = fig.subplots()
+    image = ax.imshow(ends, aspect="auto", interpolation="nearest", cmap="viridis", vmin=0.0, vmax=1.0)
+    ax.set_yticks(np.arange(K))
+    ax.set_yticklabels(names)
+    ax.set_xlabel("state entered")
+    fig.colorbar(image, ax=ax, label="end probability")
+    if title:
+        ax.set_title(title)
+    fig.tight_layout()
+    _save(fig, path)
+
+
 def plot_skill_rewards(theta, feature_names: Sequence[str], path, skill_names: Optional[Sequence[str]] = None,
                        title: Optional[str] = None, interval=None, colours: Optional[Sequence] = None) -> None:
     """Bar chart of each skill's reward weights over the features.

@@ -17,7 +17,7 @@ from typing import List
 import numpy as np
 from npbrs.domains.precision import float64_all
 
-__all__ = ["skill_policies", "skill_options", "skill_parameters", "REWARDS"]
+__all__ = ["skill_policies", "skill_options", "skill_parameters", "skill_ends", "REWARDS"]
 
 
 def _emission_in(result, mdp, emission):
@@ -128,15 +128,25 @@ def skill_options(result, mdp, demos=None, *, prior_strength: float = 2.0, rewar
     if "ends" in result.samples:  # a run with state-dependent ends: the model's own termination
         import dataclasses
 
-        from .diagnostics import relabelled_draws
-
-        draws = relabelled_draws(result, "ends")  # (C, D, K, S), NaN where a draw lacks the skill
-        flat = draws.reshape((-1,) + draws.shape[2:])
-        seen = ~np.isnan(flat).any(-1)  # (CD, K)
-        mean = np.where(seen[..., None], flat, 0.0).sum(0) / np.maximum(seen.sum(0), 1)[:, None]
-        options = [dataclasses.replace(o, termination=mean[k]) if seen[:, k].any() else o
-                   for k, o in enumerate(options)]
+        mean, seen = skill_ends(result)
+        options = [dataclasses.replace(o, termination=mean[k]) if seen[k] else o for k, o in enumerate(options)]
     return options
+
+
+def skill_ends(result):
+    """A run with state-dependent ends (``switching="state"``): each found skill's posterior mean
+    end probability per state, (K, S), every chain's skills matched to the run's
+    (:func:`~npbrs.inference.analysis.diagnostics.relabelled_draws`), and (K,) whether any draw
+    holds the skill (rows of skills that none holds are 0)."""
+    from .diagnostics import relabelled_draws
+
+    if "ends" not in result.samples:
+        raise ValueError("the run has no end probabilities (it was fitted with switching='sticky')")
+    draws = relabelled_draws(result, "ends")  # (C, D, K, S), NaN where a draw lacks the skill
+    flat = draws.reshape((-1,) + draws.shape[2:])
+    seen = ~np.isnan(flat).any(-1)  # (CD, K)
+    mean = np.where(seen[..., None], flat, 0.0).sum(0) / np.maximum(seen.sum(0), 1)[:, None]
+    return mean, seen.any(0)
 
 
 float64_all(globals())  # npbrs.domains.precision: float64 inside, the user's setting outside

@@ -184,11 +184,12 @@ def report_command(args) -> int:
 
 def save_plots(result, directory, skill_names=None) -> dict:
     """A run's trace, segmentation (against the true skills when known) and, for rewards,
-    skill reward plots as PNG files in ``directory``; returns {plot: path}."""
+    skill reward plots, and for a run with state-dependent ends its skills' end probabilities,
+    as PNG files in ``directory``; returns {plot: path}."""
     from ..analysis import plots
 
     paths = {name: os.path.join(directory, f"{name.replace(' ', '_')}.png")
-             for name in ("trace", "segmentation", "skill rewards")}
+             for name in ("trace", "segmentation", "skill rewards", "skill ends")}
     plots.plot_trace(result, paths["trace"])
     true = result.demos.skills if result.demos is not None else None
     styles = plots.plot_segmentation(true, {"npbrs": result.segmentation}, paths["segmentation"],
@@ -199,6 +200,13 @@ def save_plots(result, directory, skill_names=None) -> dict:
                                  colours=colours, title="reward weights: posterior mean and 90% interval")
     else:
         del paths["skill rewards"]
+    if "ends" in result.samples:
+        from ..analysis.skills import skill_ends
+
+        plots.plot_skill_ends(skill_ends(result)[0], paths["skill ends"], skill_names=skill_names,
+                              title="end probability on entering each state: posterior mean")
+    else:
+        del paths["skill ends"]
     return paths
 
 
