@@ -63,11 +63,16 @@ def _prepare(log_init, log_trans, active):
     return out
 
 
-def _gate_logs(gate, T, K, dtype):
-    """(log gate, log (1 - gate)) of the *next* step at each step, (T, K) each: a gate's rows
-    shifted up by one (the last row, which nothing reads, is 1: the skill ends)."""
+def _next_gate(gate, T, K, dtype):
+    """The gate of the *next* step at each step, (T, K): a gate's rows shifted up by one (the
+    last row, which nothing reads, is 1: the skill ends), kept within [tiny, 1]."""
     gate = jnp.clip(jnp.asarray(gate, dtype), jnp.finfo(dtype).tiny, 1.0)
-    nxt = jnp.concatenate([gate[1:], jnp.ones((1, K), dtype)], axis=0)
+    return jnp.concatenate([gate[1:], jnp.ones((1, K), dtype)], axis=0)
+
+
+def _gate_logs(gate, T, K, dtype):
+    """(log gate, log (1 - gate)) of the next step at each step, (T, K) each (:func:`_next_gate`)."""
+    nxt = _next_gate(gate, T, K, dtype)
     return jnp.log(nxt), jnp.log1p(-nxt)
 
 
@@ -116,7 +121,7 @@ def forward_filter(log_init, log_trans, log_lik, mask=None, active=None, gate=No
     # (exp(-shift): a column's largest entry is at least exp(-700) short of inactive ones)
     ends = ()
     if gate is not None:
-        end_next = jnp.exp(_gate_logs(gate, T, K, log_lik.dtype)[0])
+        end_next = _next_gate(gate, T, K, log_lik.dtype)
         ends = (end_next, 1.0 - end_next)
         unshift = jnp.where(active, jnp.exp(-jnp.maximum(shift, -700.0)), 0.0)
 

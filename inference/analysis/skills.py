@@ -59,7 +59,6 @@ def skill_parameters(result, rewards: str = "mean") -> dict:
     (:func:`~npbrs.inference.analysis.diagnostics.relabelled_draws`; ``"mean"``; a skill that no draw
     of a site holds keeps the best draw's value; integer sites such as subgoal states keep
     the best draw's)."""
-    from .diagnostics import relabelled_draws
 
     if rewards not in REWARDS:
         raise ValueError(f"unknown rewards {rewards!r}; expected one of {REWARDS}")
@@ -71,13 +70,23 @@ def skill_parameters(result, rewards: str = "mean") -> dict:
         if best.dtype.kind != "f" or site not in result.samples:
             out[site] = best
             continue
-        draws = relabelled_draws(result, site)  # (C, D, K, ...), NaN where a draw lacks the skill
-        flat = draws.reshape((-1,) + draws.shape[2:])
-        seen = ~np.isnan(flat).reshape(flat.shape[0], flat.shape[1], -1).any(-1)  # (CD, K)
-        total = np.where(seen.reshape(seen.shape + (1,) * (flat.ndim - 2)), flat, 0.0).sum(0)
-        count = seen.sum(0).reshape((-1,) + (1,) * (flat.ndim - 2))
-        out[site] = np.where(count > 0, total / np.maximum(count, 1), best)
+        mean, seen = _relabelled_mean(result, site)
+        out[site] = np.where(seen.reshape((-1,) + (1,) * (mean.ndim - 1)), mean, best)
     return out
+
+
+def _relabelled_mean(result, site):
+    """A site's posterior mean per found skill, (K, ...), every chain's skills matched to the
+    run's (:func:`~npbrs.inference.analysis.diagnostics.relabelled_draws`), and (K,) whether any
+    draw holds the skill (0 where none does)."""
+    from .diagnostics import relabelled_draws
+
+    draws = relabelled_draws(result, site)  # (C, D, K, ...), NaN where a draw lacks the skill
+    flat = draws.reshape((-1,) + draws.shape[2:])
+    seen = ~np.isnan(flat).reshape(flat.shape[0], flat.shape[1], -1).any(-1)  # (CD, K)
+    total = np.where(seen.reshape(seen.shape + (1,) * (flat.ndim - 2)), flat, 0.0).sum(0)
+    count = seen.sum(0).reshape((-1,) + (1,) * (flat.ndim - 2))
+    return total / np.maximum(count, 1), seen.any(0)
 
 
 def skill_policies(result, mdp, *, greedy: bool = False, rewards: str = "mean", emission=None) -> np.ndarray:
@@ -138,15 +147,9 @@ def skill_ends(result):
     end probability per state, (K, S), every chain's skills matched to the run's
     (:func:`~npbrs.inference.analysis.diagnostics.relabelled_draws`), and (K,) whether any draw
     holds the skill (rows of skills that none holds are 0)."""
-    from .diagnostics import relabelled_draws
-
     if "ends" not in result.samples:
         raise ValueError("the run has no end probabilities (it was fitted with switching='sticky')")
-    draws = relabelled_draws(result, "ends")  # (C, D, K, S), NaN where a draw lacks the skill
-    flat = draws.reshape((-1,) + draws.shape[2:])
-    seen = ~np.isnan(flat).any(-1)  # (CD, K)
-    mean = np.where(seen[..., None], flat, 0.0).sum(0) / np.maximum(seen.sum(0), 1)[:, None]
-    return mean, seen.any(0)
+    return _relabelled_mean(result, "ends")
 
 
 float64_all(globals())  # npbrs.domains.precision: float64 inside, the user's setting outside

@@ -48,7 +48,8 @@ A TOML variant (every key optional; these are the defaults)::
 The moves' defaults are in one table, ``npbrs.inference.sampler.options.MOVE_DEFAULTS`` (every
 move off), which the kernel reads too; ``fit`` turns the warmup's greedy moves on where the
 configuration does not set them (``npbrs.inference.driver.fit.default_moves``). This module is
-plain data: it imports that table and its check, never the kernel.
+plain data: it imports that table and its check, and the ends prior's defaults
+(``npbrs.models.bphmm.Termination``), never the kernel.
 """
 
 from __future__ import annotations
@@ -59,6 +60,7 @@ from dataclasses import dataclass, field
 from typing import Any, Dict, Optional, Union
 
 from npbrs.domains.files import atomic_write
+from npbrs.models.bphmm import Termination
 
 from ..sampler.options import check_moves
 
@@ -256,8 +258,8 @@ class PriorConfig:
     kappa: Union[float, Hyperparameter] = 10.0
     gamma: Union[float, Hyperparameter] = 1.0
     switching: str = "sticky"
-    end_concentration: float = 8.0
-    end_mean: Any = (1.0, 9.0)
+    end_concentration: float = Termination._field_defaults["concentration"]
+    end_mean: Any = Termination._field_defaults["mean_prior"]
 
     NAMES = ("alpha", "kappa", "gamma")
     SWITCHING = ("sticky", "state")
@@ -289,9 +291,10 @@ class PriorConfig:
 
     def to_dict(self) -> dict:
         out = {n: getattr(self, n).to_data() for n in self.NAMES}
-        ends = dict(switching=self.switching, end_concentration=self.end_concentration, end_mean=list(self.end_mean))
-        if ends != dict(switching="sticky", end_concentration=8.0, end_mean=[1.0, 9.0]):
-            out.update(ends)  # (the default sticky BP-HMM's descriptions stay as they were)
+        keys = ("switching", "end_concentration", "end_mean")
+        ends = {k: getattr(self, k) for k in keys}
+        if ends != {k: getattr(PriorConfig, k) for k in keys}:
+            out.update(ends, end_mean=list(self.end_mean))  # (a default sticky description stays as it was)
         return out
 
 
