@@ -25,6 +25,10 @@ An emission model supplies everything that depends on what a skill *is*:
   ``tune_every``: expensive warmup-only tuning of the move (e.g. a preconditioner), which the
   sampler runs before ``update`` in the first warmup sweep and every ``tune_every`` warmup
   sweeps after it, never in the sampling sweeps.
+- ``redraw_unused`` (an integer class attribute, 1 by default): the sweeps between the prior
+  redraws of unused skills' parameters that ``fit`` asks the sampler for
+  (``moves["redraw_unused"]``: in between they are kept, also an exact move); more than 1 where a
+  new draw's likelihoods are expensive (a soft Bellman solve from a cold start).
 
 A new emission model implements this protocol and registers itself with
 :func:`register_emission`; the sampler needs no change.
@@ -98,6 +102,8 @@ class Emission(Pytree):
     """Base class of emission models (see the module docstring for the protocol)."""
 
     name: str = "emission"
+    #: the sweeps between prior redraws of unused skills' parameters that ``fit`` asks for
+    redraw_unused: int = 1
 
     def sample_params(self, K: int) -> Dict[str, jax.Array]:
         raise NotImplementedError

@@ -430,6 +430,17 @@ def fit_reward(solver: SoftSolver, counts, theta0, v0, prior_scale=PRIOR_SCALE, 
         ok = (count > 0) & (jnp.sum(g * d, -1) < 0)
         return jnp.where(ok[:, None], d, fallback)
 
+    def shrink(alpha, f_new, f, slope):
+        """The next trial step of a backtracking line search after ``alpha`` failed: the
+        minimiser of the quadratic through f, the slope and f_new, safeguarded to [0.1, 0.5]
+        alpha (Nocedal and Wright, section 3.5). A first step of the prior's scale from near
+        an optimum (a warm-started refit) overshoots by orders of magnitude: halving alone
+        spent all of its backtracks there and failed."""
+        curvature = f_new - f - slope * alpha
+        quad = -slope * alpha ** 2 / (2.0 * jnp.where(curvature > 0, curvature, 1.0))
+        quad = jnp.where(jnp.isfinite(f_new) & (curvature > 0), quad, 0.1 * alpha)
+        return jnp.clip(quad, 0.1 * alpha, 0.5 * alpha)
+
     def cond(c):
         return jnp.any(~c["done"])
 
@@ -466,7 +477,7 @@ def fit_reward(solver: SoftSolver, counts, theta0, v0, prior_scale=PRIOR_SCALE, 
         converged = done_step & (jnp.abs(jnp.sum(g * d, -1)) <= noise * (1.0 + jnp.abs(f)))
         done = c["done"] | (steps >= num_steps) | (failures >= 2) | converged
         return dict(theta=theta, f=f, g=g, ll=ll, V=V, S=Sh, Y=Yh, rho=rho, count=count, newest=slot, d=d,
-                    alpha=jnp.where(done_step, 1.0, 0.5 * c["alpha"]),
+                    alpha=jnp.where(done_step, 1.0, shrink(c["alpha"], f_new, c["f"], slope)),
                     backtracks=jnp.where(done_step, 0, c["backtracks"] + live), steps=steps,
                     evals=c["evals"] + live, failures=failures, done=done)
 

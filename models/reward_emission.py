@@ -269,6 +269,9 @@ class RewardEmission(Emission):
 
     # warmup sweeps between refreshes of the preconditioner (see :meth:`tune`)
     tune_every = 10
+    # sweeps between prior redraws of unused skills in ``fit`` (a redraw's likelihoods are cold
+    # solves: on the highway they took half of a sweep when redrawn every sweep)
+    redraw_unused = 5
 
     def tune(self, params, cache, data, weights):
         """The MALA preconditioner from the Fisher information at the skills' current weights:

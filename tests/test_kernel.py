@@ -188,3 +188,28 @@ def test_hyperparameter_moves_sample_their_full_conditionals(name):
     se = sd / np.sqrt(len(xs) / 10)
     assert abs(xs.mean() - mean) < 5 * se, (xs.mean(), mean, se)
     assert abs(xs.std() - sd) < 0.1 * sd, (xs.std(), sd)
+
+
+def test_unused_skills_are_redrawn_from_the_prior_on_schedule_and_kept_in_between():
+    """moves["redraw_unused"] = 3: a sweep whose clock is not a multiple of 3 keeps the
+    parameters of the skills without steps exactly (their likelihoods then need no new
+    solve), a sweep at a multiple of 3 redraws them as the default kernel does in every sweep
+    (the same draws: the schedule only keeps); skills with steps move in every sweep. (The
+    schedule's exactness: test_posterior.py, "redraw_every_3".)"""
+    data, _ = planted_policy_data()
+    plain = BPHMMKernel(PolicyEmission(4, 3), data, max_skills=6, kappa=5.0, init_skills=2)
+    sched = BPHMMKernel(PolicyEmission(4, 3), data, max_skills=6, kappa=5.0, init_skills=2,
+                        moves={"redraw_unused": 3})
+    state = plain.init(jax.random.PRNGKey(1), 0, None, (), {})
+    for step, redraw in ((1, False), (3, True), (4, False)):
+        s = state._replace(step=jnp.int32(step))
+        a, b = jax.jit(plain.sweep)(s), jax.jit(sched.sweep)(s)
+        np.testing.assert_array_equal(a.z, b.z)
+        used = np.asarray(jnp.any((a.z[..., None] == jnp.arange(6)) & data.mask[..., None], axis=(0, 1)))
+        assert used.any() and (~used).any()
+        old, new_a, new_b = (np.asarray(x.params["policy"]) for x in (s, a, b))
+        np.testing.assert_array_equal(new_b[used], new_a[used])  # the update's own draws
+        assert not np.allclose(new_a[~used], old[~used])  # the default: a prior draw every sweep
+        np.testing.assert_array_equal(new_b[~used], new_a[~used] if redraw else old[~used])
+    with pytest.raises(ValueError, match="redraw_unused"):
+        BPHMMKernel(PolicyEmission(4, 3), data, max_skills=6, moves={"redraw_unused": 0})

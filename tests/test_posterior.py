@@ -65,12 +65,14 @@ def exact_joint_states():
 
 
 @pytest.mark.parametrize("moves", [{}, {"birth_death": 2, "window": (1, 3)},
+                                   # unused skills' parameters redrawn every third sweep, kept in between
+                                   {"redraw_unused": 3},
                                    # the split-merge trial alone is checked exactly below (a faster, sharper
                                    # test); in the sampler, and all moves together, with -m slow
                                    pytest.param({"split_merge": 2, "blocks": 2}, marks=pytest.mark.slow),
                                    pytest.param({"split_merge": 1, "blocks": 1, "birth_death": 1, "window": (1, 3)},
                                                 marks=pytest.mark.slow)],
-                         ids=["gibbs", "birth_death_padded", "split_merge", "all_moves"])
+                         ids=["gibbs", "birth_death_padded", "redraw_every_3", "split_merge", "all_moves"])
 def test_sampler_visits_segmentations_in_proportion_to_their_posterior(moves):
     """(The birth-death case runs on the data padded as to a shape bucket, ``fit(bucket=True)``:
     an extra trajectory without steps and an extra masked step, whose births and deaths the move

@@ -432,8 +432,12 @@ def default_moves(cfg: ModelConfig, emission: Emission) -> ModelConfig:
     there is more than one skill slot: ``DEFAULT_GREEDY_TRIALS`` merge trials per sweep if the
     emission has ``fit_evidence``, split trials if it also has ``fit_point``, from the kernel's
     ``MOVE_DEFAULTS["greedy_from"]`` x warmup on (unless ``greedy_from`` is set; see
-    ``npbrs.inference.sampler.greedy``). The run's configuration records them."""
+    ``npbrs.inference.sampler.greedy``), and the emission's ``redraw_unused`` (sweeps between
+    prior redraws of unused skills' parameters) where it is above the kernel's 1. The run's
+    configuration records them."""
     moves = dict(cfg.sampler.moves)
+    if int(getattr(emission, "redraw_unused", 1)) > 1:
+        moves.setdefault("redraw_unused", int(emission.redraw_unused))
     if cfg.max_skills >= 2 and emission.supports_greedy_merge():
         moves.setdefault("greedy_merge", DEFAULT_GREEDY_TRIALS["greedy_merge"])
         if emission.supports_split_merge():

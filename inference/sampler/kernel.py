@@ -131,7 +131,11 @@ class BPHMMKernel(MCMCKernel, Pytree):
             off; the emission needs ``fit_evidence``; see ``npbrs.inference.sampler.greedy``:
             not an MCMC move, so it never runs in the sampling sweeps), "greedy_split": greedy
             split trials per sweep there (the emission also needs ``fit_point``),
-            "greedy_from": that fraction of warmup, in [0, 1)}; the defaults (every move off):
+            "greedy_from": that fraction of warmup, in [0, 1), "redraw_unused": the sweeps
+            between prior redraws of the parameters of skills without steps (their exact
+            conditional; kept as they are in between, also exact: a redraw's likelihoods cost
+            new solves for the reward emission, half of a sweep's time on the highway)}; the
+            defaults (every move off, a redraw every sweep):
             :data:`npbrs.inference.sampler.options.MOVE_DEFAULTS`.
         termination: a :class:`~npbrs.models.bphmm.Termination`: skills end with a probability
             that depends on the state entered (sampled); None: the sticky BP-HMM.
@@ -493,6 +497,14 @@ class BPHMMKernel(MCMCKernel, Pytree):
         if not isinstance(info, EmissionInfo):
             raise TypeError(f"the {self.emission.name!r} emission's update returned {type(info).__name__} as its "
                             "info; it must return (params, cache, npbrs.models.emissions.EmissionInfo(accept=...))")
+        every = self.moves["redraw_unused"]
+        if every > 1:
+            # a skill without steps has its prior as conditional: the update's prior draw every
+            # ``every`` sweeps (the clock's, shared by vectorised chains), and between those the
+            # parameters as they are (also exact), whose likelihoods need no new solve
+            keep = ~jnp.any(weights > 0, axis=(0, 1)) & (step % every != 0)
+            params = jax.tree.map(lambda new, old: jnp.where(keep.reshape((-1,) + (1,) * (new.ndim - 1)), old, new),
+                                  params, moved.params)
         accept = jnp.asarray(info.accept, jnp.float64)
         new = state._replace(rng_key=key, omega=omega, features=features, eta=eta, params=params, cache=cache,
                              z=z, accept=jnp.mean(accept), birth_accept=births, split_accept=splits,

@@ -14,9 +14,11 @@ __all__ = ["MOVE_DEFAULTS", "check_moves"]
 #: off): trials per sweep of ``birth_death``, ``split_merge``, ``greedy_merge`` and
 #: ``greedy_split``; ``window``, the (min, max) steps of a birth's window; ``blocks``, refits of a
 #: split's sequential allocation; ``start``, the sweep from which the moves run;
-#: ``greedy_from``, the fraction of warmup from which the greedy moves run.
+#: ``greedy_from``, the fraction of warmup from which the greedy moves run; ``redraw_unused``, the
+#: sweeps between prior redraws of the parameters of skills without steps (1: every sweep; in
+#: between they are kept as they are).
 MOVE_DEFAULTS = {"birth_death": 0, "window": (10, 50), "split_merge": 0, "blocks": 2, "start": 0,
-                 "greedy_merge": 0, "greedy_split": 0, "greedy_from": 0.75}
+                 "greedy_merge": 0, "greedy_split": 0, "greedy_from": 0.75, "redraw_unused": 1}
 
 
 def check_moves(moves) -> dict:
@@ -31,6 +33,8 @@ def check_moves(moves) -> dict:
             raise ValueError(f"moves.{name} must be a number of trials >= 0, got {out[name]!r}")
     if not isinstance(out["blocks"], int) or isinstance(out["blocks"], bool) or out["blocks"] < 1:
         raise ValueError(f"moves.blocks must be an integer >= 1, got {out['blocks']!r}")
+    if not isinstance(out["redraw_unused"], int) or isinstance(out["redraw_unused"], bool) or out["redraw_unused"] < 1:
+        raise ValueError(f"moves.redraw_unused must be a number of sweeps >= 1, got {out['redraw_unused']!r}")
     if not isinstance(out["start"], int) or isinstance(out["start"], bool) or out["start"] < 0:
         raise ValueError(f"moves.start must be a sweep number >= 0, got {out['start']!r}")
     g = out["greedy_from"]
