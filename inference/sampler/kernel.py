@@ -35,7 +35,7 @@ from npbrs.domains.pytree import Pytree
 from npbrs.models.bphmm import (Hyper, Termination, bphmm_model, end_counts, end_gate, eta_from_gammas,
                                 eta_gamma_shapes, hmm_parameters, log_joint_terms, log_marginal_likelihoods,
                                 sample_end_means, sample_ends)
-from npbrs.models.mcmc import metropolis_accept
+from npbrs.models.mcmc import metropolis_accept, select
 from npbrs.models.emissions import Emission, EmissionInfo, HMMData
 from npbrs.models.hmm import batch_backward_sample, batch_forward_filter, transition_counts
 
@@ -503,8 +503,7 @@ class BPHMMKernel(MCMCKernel, Pytree):
             # ``every`` sweeps (the clock's, shared by vectorised chains), and between those the
             # parameters as they are (also exact), whose likelihoods need no new solve
             keep = ~jnp.any(weights > 0, axis=(0, 1)) & (step % every != 0)
-            params = jax.tree.map(lambda new, old: jnp.where(keep.reshape((-1,) + (1,) * (new.ndim - 1)), old, new),
-                                  params, moved.params)
+            params = select(keep, moved.params, params)
         accept = jnp.asarray(info.accept, jnp.float64)
         new = state._replace(rng_key=key, omega=omega, features=features, eta=eta, params=params, cache=cache,
                              z=z, accept=jnp.mean(accept), birth_accept=births, split_accept=splits,
