@@ -106,6 +106,35 @@ def test_factored_next_value_operator_equals_successor_gather(name):
     np.testing.assert_allclose(sparse, direct, atol=1e-12)
 
 
+@pytest.mark.parametrize("transpose", [False, True])
+def test_the_policy_operator_folds_shared_successors_and_equals_the_dense_matrix(transpose):
+    from npbrs.domains.solvers import _Columns, successor_union
+
+    mdp, P = random_mdp(4, S=12, A=4)
+    S, A, B = mdp.successors.shape
+    union, slot = successor_union(mdp.successors, mdp.probs)
+    used = mdp.probs > 0
+    s, a, b = np.nonzero(used)
+    # every used (state, action, slot) points at its successor among the state's distinct ones,
+    # and each state's distinct successors are exactly the union of its actions'
+    np.testing.assert_array_equal(union[slot[a, b, s], s], mdp.successors[s, a, b])
+    for state in range(S):
+        assert set(union[:, state]) == set(mdp.successors[state][used[state]])
+    op = _Columns(mdp, "sparse")
+    assert op._union is not None and op._union.shape[0] == union.shape[0] < A * B  # the folded form is used
+    rng = np.random.default_rng(5)
+    pi = rng.random((A, 3, S))
+    pi /= pi.sum(0)
+    x = rng.normal(size=(3, S))
+    P_pi = np.einsum("aks,sat->kst", pi, P)
+    expected = np.einsum("kst,ks->kt", P_pi, x) if transpose else np.einsum("kst,kt->ks", P_pi, x)
+    folded = op.policy(tuple(jnp.asarray(p) for p in pi), transpose)(jnp.asarray(x))
+    np.testing.assert_allclose(folded, expected, atol=1e-13)
+    op._union = None  # the per-action form, used where actions share no successors
+    per_action = op.policy(tuple(jnp.asarray(p) for p in pi), transpose)(jnp.asarray(x))
+    np.testing.assert_allclose(per_action, expected, atol=1e-13)
+
+
 def test_hard_solver_greedy_policy_is_the_best_of_all_deterministic_policies():
     rng = np.random.default_rng(7)
     S, A, gamma = 3, 2, 0.9
