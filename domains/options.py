@@ -31,7 +31,7 @@ from typing import List, NamedTuple, Optional, Sequence
 import numpy as np
 from .precision import float64_all
 
-__all__ = ["Option", "OptionRun", "estimate_options", "termination_counts", "run_option"]
+__all__ = ["Option", "OptionRun", "estimate_options", "termination_counts", "arrival_counts", "run_option"]
 
 
 @dataclass(frozen=True, eq=False)
@@ -81,19 +81,41 @@ class Option:
         return bool(rng.random() < self.termination[self._state(state)])
 
 
+def arrival_counts(labels, states, mask, num_states: int, num_skills: int):
+    """(stops, goes), each (K, S): how often a step of skill k was followed by another skill
+    (the skill stopped) or by k again (it went on), counted in the state arrived in (see the
+    module). labels, states: (N, T) int arrays; mask: (N, T) bool, the steps that count (a step
+    t >= 1 counts when it and step t - 1 are both in the mask). Works on NumPy or JAX arrays,
+    inside ``jit`` too: the sampler's conditional of state-dependent ends
+    (:func:`npbrs.models.bphmm.end_counts`) counts with it."""
+    import jax.numpy as jnp
+
+    K, S = num_skills, num_states
+    prev, now = labels[:, :-1], labels[:, 1:]
+    real = mask[:, 1:] & mask[:, :-1]
+    index = (jnp.clip(prev, 0, K - 1) * S + jnp.clip(states[:, 1:], 0, S - 1)).ravel()
+    stopped = (real & (now != prev)).astype(jnp.float64).ravel()
+    went = (real & (now == prev)).astype(jnp.float64).ravel()
+    stops = jnp.zeros(K * S).at[index].add(stopped).reshape(K, S)
+    goes = jnp.zeros(K * S).at[index].add(went).reshape(K, S)
+    return stops, goes
+
+
 def termination_counts(states: Sequence[np.ndarray], labels: Sequence[np.ndarray], num_states: int,
                        num_skills: int):
-    """Arrival counts of every skill in every state: (stops, goes), each (K, S) (see the module)."""
-    stops = np.zeros((num_skills, num_states))
-    goes = np.zeros((num_skills, num_states))
+    """Arrival counts of every skill in every state: (stops, goes), each (K, S) (see the module),
+    for ragged trajectories: per trajectory, its states and skill labels."""
+    states, labels = list(states), list(labels)
     for i, (s, z) in enumerate(zip(states, labels)):
-        s, z = np.asarray(s, np.int64), np.asarray(z, np.int64)
-        if s.shape != z.shape:
+        if np.shape(s) != np.shape(z):
             raise ValueError(f"trajectory {i}: {len(s)} states but {len(z)} skill labels")
-        prev, arrive, now = z[:-1], s[1:], z[1:]
-        np.add.at(stops, (prev[now != prev], arrive[now != prev]), 1.0)
-        np.add.at(goes, (prev[now == prev], arrive[now == prev]), 1.0)
-    return stops, goes
+    N, T = len(states), max([len(s) for s in states], default=0)
+    padded_states, padded_labels = np.zeros((N, max(T, 1)), np.int64), np.zeros((N, max(T, 1)), np.int64)
+    mask = np.zeros((N, max(T, 1)), bool)
+    for i, (s, z) in enumerate(zip(states, labels)):
+        padded_states[i, :len(s)], padded_labels[i, :len(z)], mask[i, :len(s)] = s, z, True
+    stops, goes = arrival_counts(padded_labels, padded_states, mask, num_states, num_skills)
+    return np.asarray(stops), np.asarray(goes)
 
 
 def estimate_options(states: Sequence[np.ndarray], labels: Sequence[np.ndarray], policies, greedy,

@@ -40,6 +40,7 @@ import numpyro.distributions as dist
 from jax.scipy.special import betaln
 
 from .hmm import NEG_LOG, batch_forward_filter
+from npbrs.domains.options import arrival_counts
 from npbrs.domains.precision import float64_all
 
 __all__ = ["Hyper", "Termination", "prior_distributions", "hmm_parameters", "eta_gamma_shapes", "eta_from_gammas",
@@ -83,17 +84,9 @@ def end_counts(z, mask, states, features, num_states: int):
     """(ends, stays), each (K, S): how often a step of skill k was followed by another skill
     (an end) or by k again, counted in the state entered, over the trajectories with at least
     two skills in their set (a trajectory with one skill cannot end it: its steps say nothing
-    of beta)."""
-    K = features.shape[1]
-    prev, nxt = z[:, :-1], z[:, 1:]
-    real = mask[:, 1:] & mask[:, :-1] & (jnp.sum(features > 0, -1) >= 2)[:, None]
-    index = jnp.clip(prev, 0, K - 1) * num_states + jnp.clip(states[:, 1:], 0, num_states - 1)
-    ended = (real & (nxt != prev)).astype(jnp.float64)
-    stayed = (real & (nxt == prev)).astype(jnp.float64)
-    size = K * num_states
-    ends = jnp.zeros(size).at[index.ravel()].add(ended.ravel()).reshape(K, num_states)
-    stays = jnp.zeros(size).at[index.ravel()].add(stayed.ravel()).reshape(K, num_states)
-    return ends, stays
+    of beta). The counting is the options' (:func:`npbrs.domains.options.arrival_counts`)."""
+    two_or_more = jnp.sum(features > 0, -1) >= 2
+    return arrival_counts(z, states, mask & two_or_more[:, None], num_states, features.shape[1])
 
 
 def end_log_prior(ends, mean, term: Termination):
