@@ -340,10 +340,11 @@ def fisher_information(solver: SoftSolver, theta, counts, v0=None, temperature: 
     def log_pi(t):
         return _solve_policy(solver, t, v0, temperature)[0]
 
-    pi = jnp.exp(log_pi(theta))
-    # the D tangent solves batched (vmap), not unrolled: a program of one solve's size for any D
+    # the D tangent solves batched (vmap), not unrolled: a program of one solve's size for any D;
+    # the policy is the jvp's primal, which does not depend on the direction (one solve, not two)
     basis = jnp.broadcast_to(jnp.eye(D, dtype=theta.dtype)[:, None, :], (D, K, D))
-    J = jax.vmap(lambda e: jax.jvp(log_pi, (theta,), (e,))[1], out_axes=-1)(basis)  # (K, S, A, D)
+    log_p, J = jax.vmap(lambda e: jax.jvp(log_pi, (theta,), (e,)), out_axes=(None, -1))(basis)  # J (K, S, A, D)
+    pi = jnp.exp(log_p)
     n = jnp.sum(counts, axis=-1)
     mean = jnp.einsum("ksa,ksad->ksd", pi, J)
     return jnp.einsum("ks,ksa,ksad,ksae->kde", n, pi, J, J) - jnp.einsum("ks,ksd,kse->kde", n, mean, mean)
