@@ -9,7 +9,7 @@ from pathlib import Path
 import jax
 import jax.numpy as jnp
 
-from conftest import CACHE_ENV, check_fresh_cache, map_count
+from conftest import CACHE_ENV, LONGEST_FIRST, check_fresh_cache, map_count
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -55,3 +55,14 @@ def test_the_code_passes_the_linter():
     assert os.path.exists(ruff), "ruff is missing: it is in the test extras (pip install -e '.[test]')"
     proc = subprocess.run([ruff, "check", "--no-cache", "."], cwd=ROOT, capture_output=True, text=True, timeout=120)
     assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-2000:]
+
+
+def test_the_files_scheduled_first_exist_and_the_workers_keep_their_order():
+    """conftest.py's LONGEST_FIRST names test files (a renamed file would silently lose its
+    place), and pytest's options keep xdist from reordering the files by their test counts."""
+    folder = Path(__file__).resolve().parent
+    missing = [name for name in LONGEST_FIRST if not (folder / name).is_file()]
+    assert not missing, f"conftest.LONGEST_FIRST names files that do not exist: {missing}"
+    assert len(set(LONGEST_FIRST)) == len(LONGEST_FIRST)
+    text = (folder.parent / "pyproject.toml").read_text()
+    assert "--dist loadfile" in text and "--no-loadscope-reorder" in text
