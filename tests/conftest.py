@@ -100,16 +100,33 @@ def pytest_configure(config):
         raise pytest.UsageError(problem)
 
 
-# The test files that take longest from an empty compilation cache, longest first (seconds of
-# one worker on this project's 2-core machine, 2026-12-03). The suite runs each file in one of two
-# pytest-xdist workers, taking files in collection order (``--no-loadscope-reorder`` in
-# ``addopts``; xdist would otherwise order them by their number of tests, which left one worker
-# alone with a long file at the end for a minute or two): starting with the long ones balances
-# the two. Files not named here follow in their usual order.
-LONGEST_FIRST = ("test_worlds_recovery.py", "test_termination.py", "test_reward_emission.py",
-                 "test_notebooks.py", "test_reward_fit.py", "test_greedy.py", "test_joint_distribution.py",
-                 "test_posterior.py", "test_cli.py", "test_devices.py", "test_runs.py", "test_kernel.py",
-                 "test_reward.py", "test_split_merge.py", "test_grow.py", "test_reward_mala.py")
+# The test files that take longest from an empty compilation cache, longest first, with the
+# seconds one worker spent in each in a cold run on this project's 2-core machine (2026-12-03,
+# ``NPBRS_TEST_COMPILE_LOG``; module fixtures estimated from ``--durations``). The suite runs each
+# file in one of two pytest-xdist workers, taking files in collection order
+# (``--no-loadscope-reorder`` in ``addopts``: xdist would otherwise order them by their number of
+# tests, which put the three-test file of default fits, the longest, near the end). Starting
+# with the long ones balances the two workers (they finished 14 s apart). Files not named here
+# follow in their usual order.
+LONGEST_FIRST = ("test_worlds_recovery.py",  # 162
+                 "test_termination.py",  # 137
+                 "test_reward_emission.py",  # 83
+                 "test_notebooks.py",  # 71 (its fixture: two notebook kernels at once)
+                 "test_greedy.py",  # 64
+                 "test_reward_fit.py",  # 50
+                 "test_reward.py",  # 44
+                 "test_reward_mala.py",  # 42
+                 "test_joint_distribution.py",  # 39
+                 "test_split_merge.py",  # 37
+                 "test_kernel.py",  # 33
+                 "test_devices.py",  # 30 (its fixture: a four-device subprocess)
+                 "test_runs.py",  # 27
+                 "test_posterior.py",  # 25
+                 "test_cli.py",  # 24
+                 "test_hmm.py",  # 24
+                 "test_subgoal.py",  # 20
+                 "test_grow.py",  # 19
+                 "test_autoregressive.py")  # 18
 
 
 def pytest_collection_modifyitems(session, config, items):
