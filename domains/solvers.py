@@ -56,6 +56,7 @@ _METHODS_SOFT = ("newton", "vi")
 _METHODS_HARD = ("policy", "vi")
 _KINDS = ("auto", "sparse", "dense", "factored")
 _MAX_UNROLLED_GATHERS = 32
+_MAX_FOLD_TERMS = 256
 
 
 class SolveResult(NamedTuple):
@@ -99,7 +100,10 @@ class _Columns(Pytree):
             self._succ = jnp.asarray(np.transpose(mdp.successors[:, :, used], (1, 2, 0)))
             self._prob = jnp.asarray(np.transpose(mdp.probs[:, :, used], (1, 2, 0)))
             union, slot = successor_union(mdp.successors[:, :, used], mdp.probs[:, :, used])
-            if union.shape[0] < A * int(np.sum(used)):  # fewer gathers per policy application
+            slots = A * int(np.sum(used))
+            # folded where that saves gathers, and while the fold's terms (one per distinct
+            # successor and (action, slot)) keep the program small
+            if union.shape[0] < slots and union.shape[0] * slots <= _MAX_FOLD_TERMS:
                 self._union, self._slot = jnp.asarray(union), jnp.asarray(slot)
         elif kind == "dense":
             self._P = jnp.asarray(np.transpose(mdp.dense_transitions(), (1, 0, 2)))  # (A, S, S')
@@ -143,7 +147,6 @@ class _Columns(Pytree):
         transposed = jax.linear_transpose(self._fn, jnp.zeros(cols[0].shape, cols[0].dtype))
         return transposed(jnp.stack(cols, -1))[0]
 
-
     def policy(self, pi, transpose: bool = False) -> Callable:
         """x -> P_pi x = sum_a pi_a E[x](., a) (or x -> P_pi^T x) for x (K, S), with pi a tuple
         of A arrays (K, S).
@@ -182,15 +185,14 @@ def successor_union(successors, probs) -> Tuple[np.ndarray, np.ndarray]:
     the probability is 0).
     """
     S, A, B = successors.shape
-    index = np.int32 if S < 2 ** 31 - 1 else np.int64
-    key = np.where(probs > 0, successors, -1).reshape(S, A * B).astype(index)  # -1: unused
+    key = np.where(probs > 0, successors, -1).reshape(S, A * B).astype(np.int32)  # -1: unused
     ordered = np.sort(key, axis=1)
     first = np.ones(ordered.shape, bool)
     first[:, 1:] = ordered[:, 1:] != ordered[:, :-1]
     first &= ordered >= 0
     rank = np.cumsum(first, axis=1, dtype=np.int32) - 1  # each distinct successor's row
     U = int(rank[:, -1].max()) + 1
-    union = np.empty((U, S), index)
+    union = np.empty((U, S), np.int32)
     union[:] = ordered[np.arange(S), np.argmax(first, axis=1)]  # a state with fewer repeats its first
     for c in range(A * B):  # (column by column: no temporaries of S x A x B indices)
         rows = np.flatnonzero(first[:, c])
@@ -198,7 +200,7 @@ def successor_union(successors, probs) -> Tuple[np.ndarray, np.ndarray]:
     slot = np.zeros((A * B, S), np.int8 if U < 128 else np.int32)
     for u in range(U - 1, -1, -1):  # (a state's repeated first successor maps to row 0)
         slot[(key.T == union[u]) & (key.T >= 0)] = u
-    return union.astype(np.int32), slot.reshape(A, B, S)
+    return union, slot.reshape(A, B, S)
 
 
 def next_value_operator(mdp, kind: str = "auto") -> Callable:

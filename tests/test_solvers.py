@@ -110,7 +110,7 @@ def test_factored_next_value_operator_equals_successor_gather(name):
 def test_the_policy_operator_folds_shared_successors_and_equals_the_dense_matrix(transpose):
     from npbrs.domains.solvers import _Columns, successor_union
 
-    mdp, P = random_mdp(4, S=12, A=4)
+    mdp, P = random_mdp(4, S=12, A=4, density=0.15)
     S, A, B = mdp.successors.shape
     union, slot = successor_union(mdp.successors, mdp.probs)
     used = mdp.probs > 0
@@ -130,7 +130,10 @@ def test_the_policy_operator_folds_shared_successors_and_equals_the_dense_matrix
     expected = np.einsum("kst,ks->kt", P_pi, x) if transpose else np.einsum("kst,kt->ks", P_pi, x)
     folded = op.policy(tuple(jnp.asarray(p) for p in pi), transpose)(jnp.asarray(x))
     np.testing.assert_allclose(folded, expected, atol=1e-13)
-    op._union = None  # the per-action form, used where actions share no successors
+    # a denser MDP's fold would hold too many terms (distinct successors x (action, slot)):
+    # it keeps the per-action form, as does an MDP whose actions share no successors
+    assert _Columns(random_mdp(4, S=12, A=4, density=0.4)[0], "sparse")._union is None
+    op._union = None  # the per-action form
     per_action = op.policy(tuple(jnp.asarray(p) for p in pi), transpose)(jnp.asarray(x))
     np.testing.assert_allclose(per_action, expected, atol=1e-13)
 
