@@ -22,7 +22,9 @@ process of its own (so that its peak memory is its own), and reports
 
 - ``build_s``: building the world; ``first_call_s``: the first solve from V = 0, compilation
   included (no persistent compilation cache: what a new process pays; this is the "cold" solve
-  of ``solve_1e6_cold_s``);
+  of ``solve_1e6_cold_s``; ``solve_1e6_compiled_s`` is the compiled solve from V = 0, the other
+  reading of "cold". ``--skills 1`` measures one reward table alone:
+  ``results/bench_scale_states_k1.json``);
 - ``solve_s``: the same solve again, compiled (the median of ``--repeats``; ``solve_runs_s``
   all of them);
 - ``warm_start_s``: a solve after the rewards change by a relative 1e-3, started from the
