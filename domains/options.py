@@ -28,7 +28,9 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import List, NamedTuple, Optional, Sequence
 
+import jax.numpy as jnp
 import numpy as np
+
 from .precision import float64_all
 
 __all__ = ["Option", "OptionRun", "estimate_options", "termination_counts", "arrival_counts", "run_option"]
@@ -88,8 +90,6 @@ def arrival_counts(labels, states, mask, num_states: int, num_skills: int):
     t >= 1 counts when it and step t - 1 are both in the mask). Works on NumPy or JAX arrays,
     inside ``jit`` too: the sampler's conditional of state-dependent ends
     (:func:`npbrs.models.bphmm.end_counts`) counts with it."""
-    import jax.numpy as jnp
-
     K, S = num_skills, num_states
     prev, now = labels[:, :-1], labels[:, 1:]
     real = mask[:, 1:] & mask[:, :-1]
@@ -109,9 +109,8 @@ def termination_counts(states: Sequence[np.ndarray], labels: Sequence[np.ndarray
     for i, (s, z) in enumerate(zip(states, labels)):
         if np.shape(s) != np.shape(z):
             raise ValueError(f"trajectory {i}: {len(s)} states but {len(z)} skill labels")
-    N, T = len(states), max([len(s) for s in states], default=0)
-    padded_states, padded_labels = np.zeros((N, max(T, 1)), np.int64), np.zeros((N, max(T, 1)), np.int64)
-    mask = np.zeros((N, max(T, 1)), bool)
+    N, T = len(states), max([len(s) for s in states], default=1)
+    padded_states, padded_labels, mask = np.zeros((N, T), np.int64), np.zeros((N, T), np.int64), np.zeros((N, T), bool)
     for i, (s, z) in enumerate(zip(states, labels)):
         padded_states[i, :len(s)], padded_labels[i, :len(z)], mask[i, :len(s)] = s, z, True
     stops, goes = arrival_counts(padded_labels, padded_states, mask, num_states, num_skills)
