@@ -39,6 +39,7 @@ differently) is about log w - D log s - d^2 / (2 s^2) instead of -d^2 / 2.
 
 from __future__ import annotations
 
+import math
 from typing import Optional
 
 import jax
@@ -55,9 +56,14 @@ from .reward import (count_log_likelihood_and_values, count_table, fisher_inform
                      step_log_likelihoods)
 from npbrs.domains.precision import float64_all
 
-__all__ = ["RewardEmission", "SingleRewardEmission"]
+__all__ = ["RewardEmission", "SingleRewardEmission", "auto_prior_scale"]
 
 _UPDATES = ("mala", "map")
+# prior_scale="auto" (the default): sigma = AUTO_SCALE for up to AUTO_SCALE_FEATURES weights (the
+# paper's domains: 3 and 4 features), and beyond them sigma^2 D held at AUTO_SCALE^2 x
+# AUTO_SCALE_FEATURES (sigma = 20 / sqrt(D)): one weight per state wants a far narrower prior
+# (benchmarks/NOTES.md, "The reward prior's scale for one weight per state")
+AUTO_SCALE, AUTO_SCALE_FEATURES = 10.0, 4
 _STARTS = ("auto", "draw", "fit")
 # start="auto" starts each skill at its IRL fit when the reward has more weights than this (one
 # weight per state: a draw around the fit in that many dimensions lands far below it), and draws
@@ -66,13 +72,30 @@ _STARTS = ("auto", "draw", "fit")
 START_FIT_FEATURES = 16
 
 
+def auto_prior_scale(num_features: int) -> float:
+    """The reward prior's sigma for ``prior_scale="auto"``: ``AUTO_SCALE`` (10) for up to
+    ``AUTO_SCALE_FEATURES`` (4) weights, then sigma = 10 sqrt(4 / D), which keeps the prior's
+    expected |theta|^2 = D sigma^2 at 400 however many weights there are.
+
+    With one weight per state, a skill's Occam factor grows with its prior variance per
+    visited state: at sigma 10 the four-room world's true skills lose to lumped multi-goal
+    rewards along every path of single moves, at sigma 1-2 they do not (``benchmarks/NOTES.md``)."""
+    D = int(num_features)
+    if D < 1:
+        raise ValueError(f"num_features must be at least 1, got {num_features!r}")
+    return AUTO_SCALE * math.sqrt(min(1.0, AUTO_SCALE_FEATURES / D))
+
+
 @register_emission("reward")
 class RewardEmission(Emission):
     """Boltzmann policies of linear rewards (maximum-entropy IRL).
 
     Args:
         mdp: the TabularMDP (its features define the rewards).
-        prior_scale: sigma of the Gaussian prior on reward weights (see npbrs.models.reward).
+        prior_scale: sigma of the Gaussian prior on reward weights (see npbrs.models.reward), or
+            "auto" (default): :func:`auto_prior_scale` of the number of features, 10 for up to 4
+            features (the paper's domains) and 20 / sqrt(D) beyond (one weight per state: 1.96
+            for the 104 cells of the four-room world).
         temperature: inverse temperature tau of the Boltzmann policy, pi ~ exp(tau Q); the
             rewards are tau * phi . theta (tau = 1: folded into theta).
         discount: the discount of the skills' soft value iteration (default: the MDP's).
@@ -106,7 +129,7 @@ class RewardEmission(Emission):
             fourth skill in 2 of 10 (``benchmarks/results/worlds-probes/``).
     """
 
-    def __init__(self, mdp, prior_scale: float = 10.0, temperature: float = 1.0, discount: Optional[float] = None,
+    def __init__(self, mdp, prior_scale="auto", temperature: float = 1.0, discount: Optional[float] = None,
                  update: str = "mala", mala_steps: int = 3, step_size: float = 0.5, target_accept: float = 0.6,
                  map_steps: int = 5, fit_steps: int = 20, refit_steps: int = 3, proposal_inflation: float = 1.5,
                  solver_options: Optional[dict] = None, epsilon: float = 0.0, proposal_broad_weight: float = 0.1,
@@ -115,6 +138,10 @@ class RewardEmission(Emission):
             raise ValueError(f"unknown start {start!r}; expected one of {_STARTS}")
         if update not in _UPDATES:
             raise ValueError(f"unknown reward update {update!r}; expected one of {_UPDATES}")
+        if isinstance(prior_scale, str):
+            if prior_scale != "auto":
+                raise ValueError(f"prior_scale must be a positive number or 'auto', got {prior_scale!r}")
+            prior_scale = auto_prior_scale(mdp.num_features)
         for name, value in [("prior_scale", prior_scale), ("temperature", temperature), ("step_size", step_size),
                             ("proposal_inflation", proposal_inflation), ("proposal_broad_scale", proposal_broad_scale)]:
             if not (np.isfinite(value) and value > 0):

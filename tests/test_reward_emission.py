@@ -55,6 +55,36 @@ def test_reward_emission_follows_the_protocol():
         RewardEmission(dom.mdp, epsilon=1.0)
 
 
+
+def test_the_default_prior_scale_is_10_for_a_few_features_and_narrows_with_one_weight_per_state():
+    from npbrs.domains.highway import FEATURE_NAMES as HIGHWAY_FEATURES
+    from npbrs.domains.quadcopter import FEATURE_NAMES as QUADCOPTER_FEATURES
+    from npbrs.domains.worlds import labyrinth_mdp, rooms_mdp
+    from npbrs.models.reward_emission import auto_prior_scale
+
+    # the paper's domains (4 and 3 features) keep sigma 10, so their tables' draws are unchanged
+    assert len(HIGHWAY_FEATURES) == 4 and len(QUADCOPTER_FEATURES) == 3
+    assert auto_prior_scale(3) == auto_prior_scale(4) == 10.0
+    assert RewardEmission(gridworld(size=3).mdp).prior_scale == 10.0
+    # one weight per state: sigma^2 D held at 400 (the four rooms' 104 cells: 1.96)
+    for mdp in (rooms_mdp(), labyrinth_mdp()):
+        D = mdp.num_features
+        assert D == mdp.num_states > 100
+        em = RewardEmission(mdp)
+        np.testing.assert_allclose(em.prior_scale, 20.0 / np.sqrt(D), rtol=1e-12)
+        assert RewardEmission(mdp, prior_scale="auto").prior_scale == em.prior_scale
+        assert em.describe()["prior_scale"] == em.prior_scale  # the run records the number used
+        assert RewardEmission(mdp, prior_scale=10.0).prior_scale == 10.0  # a number is kept as given
+        # the prior the sampler uses is that sigma
+        theta = jnp.ones((2, D))
+        np.testing.assert_allclose(float(jnp.sum(em.log_prior({"theta": theta}))),
+                                   2 * D * (-0.5 * np.log(2 * np.pi) - np.log(em.prior_scale))
+                                   - 0.5 * 2 * D / em.prior_scale ** 2, rtol=1e-10)
+    np.testing.assert_allclose(auto_prior_scale(104), 1.9612, atol=1e-4)
+    for bad in ("wide", 0.0, -1.0):
+        with pytest.raises(ValueError, match="prior_scale"):
+            RewardEmission(rooms_mdp(), prior_scale=bad)
+
 def one_state_mdp():
     # one state, two actions, phi(s, a) = [a == 1]: pi(1) = sigmoid(theta), a logistic regression
     return TabularMDP.from_dense(np.ones((1, 2, 1)), features=np.array([[[0.0], [1.0]]]), discount=0.5)

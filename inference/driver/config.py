@@ -13,7 +13,7 @@ A TOML variant (every key optional; these are the defaults)::
     name = "reward"            # or "subgoal", "autoregressive", "single", "policy", a registered name
 
     [emission.options]         # keyword options of the emission's from_mdp
-    # prior_scale = 10.0
+    # prior_scale = "auto"
 
     [prior]
     alpha = 1.0                # a fixed value ...
