@@ -77,6 +77,15 @@ jax.config.update("jax_compilation_cache_dir", os.path.join(_cache, _worker) if 
 jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.5)
 jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
 
+# ArviZ 0.23 writes a once-a-day stamp file at import through a temporary file of a fixed name:
+# on a day's first import (a fresh machine, CI) two workers collecting test files that import it
+# race, and one worker's collection fails with FileNotFoundError. The controller imports it here,
+# before it starts the workers (they then find today's stamp), and every process through npbrs's
+# retrying import (npbrs.inference.arviz_import).
+from npbrs.inference.arviz_import import arviz  # noqa: E402
+
+arviz()
+
 
 def check_fresh_cache(environ, cache_dir) -> str:
     """Why this test run may not start under CI, or "" if it may: CI must name its own

@@ -49,7 +49,10 @@ def convergence(result, var_names=LABEL_INVARIANT):
     """
     import logging
 
-    import arviz as az
+    from ..arviz_import import arviz
+
+
+    az = arviz()
 
     idata = _idata(result)
     logger = logging.getLogger("arviz")

@@ -270,10 +270,12 @@ def plot_trace(result, path) -> None:
             holding those variables in its posterior).
         path: the PNG file to write.
     """
-    import arviz as az
     from matplotlib.figure import Figure
 
+    from ..arviz_import import arviz
     from ..driver.results import LABEL_INVARIANT
+
+    az = arviz()
 
     data = result.to_arviz() if hasattr(result, "to_arviz") else result
     chains = int(data.posterior.sizes["chain"])

@@ -119,7 +119,9 @@ def segment_command(args) -> int:
 
 
 def compare_command(args) -> int:
-    import arviz as az
+    from ..arviz_import import arviz
+
+    az = arviz()
 
     from ..driver.runs import load
 

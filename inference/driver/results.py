@@ -60,7 +60,10 @@ def label_invariant_diagnostic(stats: Dict[str, np.ndarray], which: str = "rhat"
     import logging
     import warnings
 
-    import arviz as az
+    from ..arviz_import import arviz
+
+
+    az = arviz()
 
     if which not in ("rhat", "ess"):
         raise ValueError(f"which must be 'rhat' or 'ess', got {which!r}")
@@ -396,9 +399,11 @@ class FitResult:
     def to_arviz(self):
         """ArviZ InferenceData: draws, label-invariant sample stats, the best segmentation and
         the run's description (the layout of saved runs: see the module docstring)."""
-        import arviz as az
         import xarray as xr
 
+        from ..arviz_import import arviz
+
+        az = arviz()
         C, D = np.shape(self.stats["log_joint"])
         chain_draw = {"chain": np.arange(C), "draw": np.arange(D)}
         sites = set(self.skill_params)

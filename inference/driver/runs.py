@@ -41,7 +41,9 @@ CHECKPOINT_FORMAT, CHECKPOINT_VERSION = "npbrs-checkpoint", 1
 # ------------------------------------------------------------------------------ saved runs
 def load_run(path) -> FitResult:
     """Read a run written by ``FitResult.save`` back into a FitResult."""
-    import arviz as az
+    from ..arviz_import import arviz
+
+    az = arviz()
 
     if not os.path.exists(path):
         raise FileNotFoundError(f"no run file {path}")
