@@ -213,3 +213,30 @@ def test_unused_skills_are_redrawn_from_the_prior_on_schedule_and_kept_in_betwee
         np.testing.assert_array_equal(new_b[~used], new_a[~used] if redraw else old[~used])
     with pytest.raises(ValueError, match="redraw_unused"):
         BPHMMKernel(PolicyEmission(4, 3), data, max_skills=6, moves={"redraw_unused": 0})
+
+
+def test_a_sticky_start_sweeps_with_a_scaled_kappa_in_early_warmup_only():
+    """moves["sticky_start"] = 10: the first warmup sweep is a plain kernel's sweep with kappa x
+    10 (the same draws), except that the state keeps the model's kappa and reports the log joint
+    under it; at mid-warmup the factor has fallen to 1, and in the sampling sweeps the option
+    changes nothing."""
+    data, _ = planted_policy_data()
+    sticky = BPHMMKernel(PolicyEmission(4, 3), data, max_skills=4, kappa=5.0, moves={"sticky_start": 10.0})
+    plain = BPHMMKernel(PolicyEmission(4, 3), data, max_skills=4, kappa=5.0)
+    scaled = BPHMMKernel(PolicyEmission(4, 3), data, max_skills=4, kappa=50.0)
+    state = plain.init(jax.random.PRNGKey(3), 8, None, (), {})
+    sweep = jax.jit(sticky.sweep)
+    first, reference = sweep(state), jax.jit(scaled.sweep)(state._replace(hyper=state.hyper._replace(kappa=50.0)))
+    for name in ("z", "eta", "features", "omega"):
+        np.testing.assert_array_equal(getattr(first, name), getattr(reference, name))
+    assert float(first.hyper.kappa) == 5.0
+    np.testing.assert_allclose(first.log_joint, plain._finish(first).log_joint, rtol=1e-12)
+    assert not np.allclose(first.log_joint, reference.log_joint)  # kappa 50's would differ
+    # half-way (sweep 4 of 8 warmup sweeps) and in sampling (sweep 8): a plain sweep
+    for step in (4, 8):
+        s = state._replace(step=jnp.int32(step))
+        a, b = sweep(s), jax.jit(plain.sweep)(s)
+        for name in ("z", "eta", "log_joint"):
+            np.testing.assert_array_equal(getattr(a, name), getattr(b, name))
+    with pytest.raises(ValueError, match="sticky_start"):
+        BPHMMKernel(PolicyEmission(4, 3), data, max_skills=4, moves={"sticky_start": 0.5})

@@ -134,7 +134,12 @@ class BPHMMKernel(MCMCKernel, Pytree):
             "greedy_from": that fraction of warmup, in [0, 1), "redraw_unused": the sweeps
             between prior redraws of the parameters of skills without steps (their exact
             conditional; kept as they are in between, also exact: a redraw's likelihoods cost
-            new solves for the reward emission, half of a sweep's time on the highway)}; the
+            new solves for the reward emission, half of a sweep's time on the highway),
+            "sticky_start": a factor f >= 1 (1: off) on a fixed kappa in the first half of warmup,
+            falling linearly from f at the first sweep to 1 at mid-warmup (``benchmarks/NOTES.md``:
+            long segments while the skills form keep one-hot rewards' search from over-switched
+            modes; not an MCMC move, so the sampling sweeps and the log joint keep the model's
+            kappa; no effect when kappa is sampled)}; the
             defaults (every move off, a redraw every sweep):
             :data:`npbrs.inference.sampler.options.MOVE_DEFAULTS`.
         termination: a :class:`~npbrs.models.bphmm.Termination`: skills end with a probability
@@ -414,6 +419,16 @@ class BPHMMKernel(MCMCKernel, Pytree):
         batched predicate would run both branches in every sweep)."""
         N, K = state.features.shape
         mask = self.data.mask
+        step, num_warmup = (state.step, state.num_warmup) if clock is None else clock
+        model_kappa = state.hyper.kappa
+        sticky = self.moves["sticky_start"] > 1.0 and "kappa" not in self.hyperpriors
+        if sticky:
+            # a search aid of the first half of warmup: the sweep's every part sees kappa x a
+            # factor that falls linearly from sticky_start to 1 at mid-warmup (long segments while
+            # the skills form); the log joint and the sampling sweeps keep the model's kappa
+            half = jnp.maximum(num_warmup // 2, 1)
+            factor = self.moves["sticky_start"] + (1.0 - self.moves["sticky_start"]) * jnp.clip(step / half, 0.0, 1.0)
+            state = state._replace(hyper=state.hyper._replace(kappa=model_kappa * factor))
         key, k_feat, k_bd, k_z, k_eta, k_em, k_hyp, k_sm = jax.random.split(state.rng_key, 8)
         k_gm = jax.random.fold_in(k_sm, 1)
         gate = self.gate(state)  # the ends are held fixed until step 3
@@ -421,7 +436,6 @@ class BPHMMKernel(MCMCKernel, Pytree):
         # the moves' state (``npbrs.inference.sampler.state``): each move maps it to a new one
         moved = MoveState.of(state, gate)._replace(features=features)
         blocks = min(self.moves["blocks"], N)  # refits of a split's allocation (split-merge, greedy splits)
-        step, num_warmup = (state.step, state.num_warmup) if clock is None else clock
         if self.moves["start"]:
             moves_on = step >= self.moves["start"]
 
@@ -510,6 +524,8 @@ class BPHMMKernel(MCMCKernel, Pytree):
                              **greedy_kept, **ends)
         if self.hyperpriors:
             new = new._replace(hyper=self.sample_hyperparameters(k_hyp, new))
+        if sticky:
+            new = new._replace(hyper=new.hyper._replace(kappa=model_kappa))
         new = self._finish(new)
         better = (state.step >= state.num_warmup) & (new.log_joint > state.best_log_joint)
         pick = lambda a, b: jax.tree.map(lambda x, y: jnp.where(better, x, y), a, b)  # noqa: E731

@@ -8,6 +8,8 @@ plain data and imports this module, not the kernel.
 
 from __future__ import annotations
 
+import math
+
 __all__ = ["MOVE_DEFAULTS", "check_moves"]
 
 #: Every option of the kernel's trans-dimensional moves and its value when not given (every move
@@ -16,9 +18,11 @@ __all__ = ["MOVE_DEFAULTS", "check_moves"]
 #: split's sequential allocation; ``start``, the sweep from which the moves run;
 #: ``greedy_from``, the fraction of warmup from which the greedy moves run; ``redraw_unused``, the
 #: sweeps between prior redraws of the parameters of skills without steps (1: every sweep; in
-#: between they are kept as they are).
+#: between they are kept as they are); ``sticky_start``, a factor on a fixed kappa at the first
+#: warmup sweep that falls linearly to 1 at mid-warmup (1: off; a search aid of warmup only).
 MOVE_DEFAULTS = {"birth_death": 0, "window": (10, 50), "split_merge": 0, "blocks": 2, "start": 0,
-                 "greedy_merge": 0, "greedy_split": 0, "greedy_from": 0.75, "redraw_unused": 1}
+                 "greedy_merge": 0, "greedy_split": 0, "greedy_from": 0.75, "redraw_unused": 1,
+                 "sticky_start": 1.0}
 
 
 def check_moves(moves) -> dict:
@@ -37,6 +41,10 @@ def check_moves(moves) -> dict:
         raise ValueError(f"moves.redraw_unused must be a number of sweeps >= 1, got {out['redraw_unused']!r}")
     if not isinstance(out["start"], int) or isinstance(out["start"], bool) or out["start"] < 0:
         raise ValueError(f"moves.start must be a sweep number >= 0, got {out['start']!r}")
+    f = out["sticky_start"]
+    if isinstance(f, bool) or not isinstance(f, (int, float)) or not (math.isfinite(f) and f >= 1.0):
+        raise ValueError(f"moves.sticky_start must be a factor >= 1 on kappa (1: off), got {f!r}")
+    out["sticky_start"] = float(f)
     g = out["greedy_from"]
     if isinstance(g, bool) or not isinstance(g, (int, float)) or not 0.0 <= g < 1.0:
         raise ValueError(f"moves.greedy_from must be a fraction of warmup in [0, 1), got {g!r}")
