@@ -34,4 +34,3 @@ def test_a_failed_concurrent_import_of_arviz_is_retried(monkeypatch):
     monkeypatch.setattr(sys, "meta_path", [_FailsOnce(5)] + sys.meta_path[1:])
     with pytest.raises(FileNotFoundError, match="daily_warning"):
         arviz(attempts=3)
-

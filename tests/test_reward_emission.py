@@ -55,7 +55,6 @@ def test_reward_emission_follows_the_protocol():
         RewardEmission(dom.mdp, epsilon=1.0)
 
 
-
 def test_the_default_prior_scale_is_10_for_a_few_features_and_narrows_with_one_weight_per_state():
     from npbrs.domains.highway import FEATURE_NAMES as HIGHWAY_FEATURES
     from npbrs.domains.quadcopter import FEATURE_NAMES as QUADCOPTER_FEATURES
@@ -84,6 +83,7 @@ def test_the_default_prior_scale_is_10_for_a_few_features_and_narrows_with_one_w
     for bad in ("wide", 0.0, -1.0):
         with pytest.raises(ValueError, match="prior_scale"):
             RewardEmission(rooms_mdp(), prior_scale=bad)
+
 
 def one_state_mdp():
     # one state, two actions, phi(s, a) = [a == 1]: pi(1) = sigmoid(theta), a logistic regression

@@ -51,7 +51,6 @@ def convergence(result, var_names=LABEL_INVARIANT):
 
     from ..arviz_import import arviz
 
-
     az = arviz()
 
     idata = _idata(result)

@@ -120,10 +120,9 @@ def segment_command(args) -> int:
 
 def compare_command(args) -> int:
     from ..arviz_import import arviz
+    from ..driver.runs import load
 
     az = arviz()
-
-    from ..driver.runs import load
 
     if len(args.runs) < 2:
         return command_error("compare", "compare needs at least two runs")

@@ -62,7 +62,6 @@ def label_invariant_diagnostic(stats: Dict[str, np.ndarray], which: str = "rhat"
 
     from ..arviz_import import arviz
 
-
     az = arviz()
 
     if which not in ("rhat", "ess"):
