@@ -57,6 +57,9 @@ _METHODS_HARD = ("policy", "vi")
 _KINDS = ("auto", "sparse", "dense", "factored")
 _MAX_UNROLLED_GATHERS = 32
 _MAX_FOLD_TERMS = 256
+_PRECISIONS = ("auto", "float64", "float32")
+_FLOAT32_FROM_STATES = 50_000  # krylov_precision="auto": float32 inner solves from this many states
+_FLOAT32_RTOL = 1e-5  # the tightest relative residual asked of a float32 inner solve
 
 
 class SolveResult(NamedTuple):
@@ -92,7 +95,7 @@ class _Columns(Pytree):
         self.kind = kind
         S, A, B = mdp.successors.shape
         self.num_states, self.num_actions = S, A
-        self._union = self._slot = None
+        self._union = self._fold = None
         if kind == "sparse":
             # (A, B, S): one contiguous index row per (action, slot); slots never used by any
             # state are dropped
@@ -104,7 +107,10 @@ class _Columns(Pytree):
             # folded where that saves gathers, and while the fold's terms (one per distinct
             # successor and (action, slot)) keep the program small
             if union.shape[0] < slots and union.shape[0] * slots <= _MAX_FOLD_TERMS:
-                self._union, self._slot = jnp.asarray(union), jnp.asarray(slot)
+                # the probability of reaching distinct successor u by action a, summed over slots
+                prob = np.transpose(mdp.probs[:, :, used], (1, 2, 0))
+                fold = np.stack([np.sum(np.where(slot == u, prob, 0.0), axis=1) for u in range(union.shape[0])])
+                self._union, self._fold = jnp.asarray(union), jnp.asarray(fold)  # (U, S), (U, A, S)
         elif kind == "dense":
             self._P = jnp.asarray(np.transpose(mdp.dense_transitions(), (1, 0, 2)))  # (A, S, S')
         else:
@@ -153,17 +159,23 @@ class _Columns(Pytree):
 
         Where the actions of a state share successors (a gridworld's moves and slips reach the
         same few neighbours), the policy is folded into one weight per distinct successor first,
-        W_u(s) = sum over (a, b) reaching union[u, s] of pi_a(s) p(s, a, b): an application is
-        then U gathers instead of A B, and reads U weight rows instead of A policy rows and A B
-        probability and index rows (on CPU an application's cost is that memory traffic). The
-        weights are computed once per policy, outside the loops that apply it."""
+        W_u(s) = sum_a pi_a(s) F_ua(s), with F_ua(s) the probability that action a reaches
+        union[u, s] (precomputed): an application is then U gathers instead of A B, and reads U
+        weight rows instead of A policy rows and A B probability and index rows (on CPU an
+        application's cost is that memory traffic). The weights are computed once per policy, in
+        pi's dtype, behind an optimisation barrier: without it XLA fused the fold into every
+        application of the loops that use it (at a million states a fold reads about 25 rows,
+        an application 5).
+
+        x's dtype should be pi's (the inner solves may run in float32, ``SoftSolver``'s
+        ``krylov_precision``)."""
         if self._union is None:
             if transpose:
-                return lambda x: self.transpose(tuple(p * x for p in pi))
-            return lambda x: sum(p * e for p, e in zip(pi, self.apply(x)))
-        A, nb = self._slot.shape[:2]
-        W = [sum(jnp.where(self._slot[a, b] == u, self._prob[a, b], 0.0) * pi[a] for a in range(A) for b in range(nb))
-             for u in range(self._union.shape[0])]
+                return lambda x: self.transpose(tuple(p * x for p in pi)).astype(x.dtype)
+            return lambda x: sum(p * e for p, e in zip(pi, self.apply(x))).astype(x.dtype)
+        dtype = pi[0].dtype
+        W = jax.lax.optimization_barrier([sum(self._fold[u, a].astype(dtype) * p for a, p in enumerate(pi))
+                                          for u in range(self._union.shape[0])])
         if transpose:
             def apply_transpose(x):
                 out = jnp.zeros(x.shape, x.dtype)
@@ -237,6 +249,10 @@ def _gmres(matvec, b, rtol, dim: int, max_cycles: int, basis=None):
     the operator, is the cost of a step. A restart continues from the residual the Arnoldi
     relation gives (no extra matvec).
 
+    The vectors may be float32 (``SoftSolver``'s ``krylov_precision``): inner products and norms
+    then accumulate in float64 (sums over a million float32 products lose the orthogonality
+    that restarts need, and GMRES stagnated), and the small Hessenberg arithmetic is float64.
+
     ``basis`` is an optional (K, dim + 1, n) work array with finite entries, returned for
     reuse by the next call (rows not yet written in a cycle are masked out, so it needs no
     zeroing: allocating and clearing it costs as much as a few Arnoldi steps).
@@ -244,8 +260,16 @@ def _gmres(matvec, b, rtol, dim: int, max_cycles: int, basis=None):
     """
     m = dim
     K, n = b.shape
-    dtype = b.dtype
-    bnorm = jnp.linalg.norm(b, axis=-1)
+    dtype = b.dtype  # the vectors' precision
+    small = jnp.promote_types(dtype, jnp.float64)  # the Hessenberg's, inner products' and norms'
+
+    def dots(Vb, w):
+        return jnp.einsum("kjs,ks->kj", Vb, w).astype(small)
+
+    def norm(w):
+        return jnp.linalg.norm(w, axis=-1).astype(small)
+
+    bnorm = norm(b)
     target = rtol * bnorm
     rows = jnp.arange(m + 1)
     ks = jnp.arange(K)
@@ -253,9 +277,9 @@ def _gmres(matvec, b, rtol, dim: int, max_cycles: int, basis=None):
         basis = jnp.zeros((K, m + 1, n), dtype)
 
     def arnoldi(Vb, r, beta, live):
-        R = jnp.zeros((K, m + 1, m), dtype)
-        Om = jnp.broadcast_to(jnp.eye(m + 1, dtype=dtype), (K, m + 1, m + 1))
-        v0 = r / jnp.where(beta > 0, beta, 1.0)[:, None]
+        R = jnp.zeros((K, m + 1, m), small)
+        Om = jnp.broadcast_to(jnp.eye(m + 1, dtype=small), (K, m + 1, m + 1))
+        v0 = r / jnp.where(beta > 0, beta, 1.0)[:, None].astype(dtype)
         live = live & (beta > target)
 
         def cond(c):
@@ -267,9 +291,9 @@ def _gmres(matvec, b, rtol, dim: int, max_cycles: int, basis=None):
             Vb, R, Om, j, v, steps, live = c
             Vb = Vb.at[:, j].set(v)
             w = matvec(v)
-            h = jnp.where(rows <= j, jnp.einsum("kjs,ks->kj", Vb, w), 0.0)
-            w = w - jnp.einsum("kj,kjs->ks", h, Vb)
-            hn = jnp.linalg.norm(w, axis=-1)
+            h = jnp.where(rows <= j, dots(Vb, w), 0.0)
+            w = w - jnp.einsum("kj,kjs->ks", h.astype(dtype), Vb)
+            hn = norm(w)
             col = jnp.einsum("kij,kj->ki", Om, h.at[:, j + 1].set(hn))
             x1, x2 = col[:, j], col[:, j + 1]
             rho = jnp.hypot(x1, x2)
@@ -283,21 +307,22 @@ def _gmres(matvec, b, rtol, dim: int, max_cycles: int, basis=None):
             R = jnp.where(live[:, None, None], R_new, R)
             steps = steps + live
             live = live & (beta * jnp.abs(Om[:, j + 1, 0]) > target)
-            return Vb, R, Om, j + 1, w / jnp.where(hn > 0, hn, 1.0)[:, None], steps, live
+            return Vb, R, Om, j + 1, w / jnp.where(hn > 0, hn, 1.0)[:, None].astype(dtype), steps, live
 
         init = (Vb, R, Om, jnp.asarray(0), v0, jnp.zeros(K, jnp.int32), live)
         Vb, R, Om, j, v, steps, _ = jax.lax.while_loop(cond, body, init)
         Vb = Vb.at[:, jnp.minimum(j, m)].set(v)  # row steps_k of a system that stopped last
         used = jnp.arange(m)[None, :] < steps[:, None]  # (K, m)
-        Rm = jnp.where(used[:, :, None] & used[:, None, :], R[:, :m], jnp.eye(m, dtype=dtype))
+        Rm = jnp.where(used[:, :, None] & used[:, None, :], R[:, :m], jnp.eye(m, dtype=small))
         g = jnp.where(used, beta[:, None] * Om[:, :m, 0], 0.0)
         y = jax.scipy.linalg.solve_triangular(Rm, g[..., None], lower=False)[..., 0]
-        dx = jnp.einsum("kj,kjs->ks", jnp.pad(y, ((0, 0), (0, 1))), Vb)
+        dx = jnp.einsum("kj,kjs->ks", jnp.pad(y, ((0, 0), (0, 1))).astype(dtype), Vb)
         # the residual without another matvec: b - A x = V (beta e1 - H y)
         # = g_j * sum_i Omega[j, i] v_i over the first j + 1 basis vectors, j = steps
         om_j = Om[ks, steps]  # (K, m + 1), zero beyond column j
         g_j = beta * om_j[:, 0]
-        r = g_j[:, None] * jnp.einsum("ki,kis->ks", jnp.where(rows[None, :] <= steps[:, None], om_j, 0.0), Vb)
+        r = g_j[:, None].astype(dtype) * jnp.einsum("ki,kis->ks", jnp.where(rows[None, :] <= steps[:, None], om_j,
+                                                                             0.0).astype(dtype), Vb)
         return Vb, dx, steps, r, jnp.abs(g_j)
 
     def cond(c):
@@ -307,6 +332,8 @@ def _gmres(matvec, b, rtol, dim: int, max_cycles: int, basis=None):
         Vb, x, r, rnorm, cyc, nmv = c
         active = rnorm > target
         Vb, dx, steps, r_new, est = arnoldi(Vb, r, rnorm, active)
+        if dtype != small:  # float32 vectors: restart from the residual's own norm, not the estimate
+            est = norm(r_new)
         return (Vb, x + dx, jnp.where(active[:, None], r_new, r), jnp.where(active, est, rnorm), cyc + 1,
                 nmv + steps)
 
@@ -373,7 +400,7 @@ def _policy_solve(op: _Columns, gamma, pi, b, rtol, degree: int, dim: int, max_c
     return x, k * degree + degree - 1, basis
 
 
-def _soft_newton(op, gamma, r_cols, v0, tol, max_iter, degree, dim, max_cycles, eta):
+def _soft_newton(op, gamma, r_cols, v0, tol, max_iter, degree, dim, max_cycles, eta, inner=None):
     """Inexact Newton (soft policy iteration) for K reward tables in lock-step. Returns the
     last iterates' Q columns, their backups T(V) = logsumexp(Q) (K, S), and per system the
     number of steps, the residual and the operator applications.
@@ -386,6 +413,13 @@ def _soft_newton(op, gamma, r_cols, v0, tol, max_iter, degree, dim, max_cycles, 
     its tolerance is min(eta, res_0), so a warm start near the solution gets an accurate first
     solve (one or two steps in all) and a cold one a loose one. A converged system gets a
     zero right-hand side, which GMRES skips.
+
+    ``inner="float32"`` solves the Newton steps' linear systems in float32 (policy weights,
+    right-hand side, Krylov basis), to a relative residual of at least ``_FLOAT32_RTOL``: half
+    the memory traffic of each operator application and orthogonalisation. The iteration
+    itself stays float64 (V, the backups, the residual that decides convergence), and an
+    inexact Newton step still converges to the float64 fixed point; only the last steps'
+    solves are looser (the floor instead of res^2), which can cost an extra Newton step.
     """
     K = v0.shape[0]
     Q, TV, pi = _soft_backup(r_cols, op.apply(v0), gamma)
@@ -402,14 +436,20 @@ def _soft_newton(op, gamma, r_cols, v0, tol, max_iter, degree, dim, max_cycles, 
         rtol = jnp.where(it == 0, jnp.minimum(eta, res), jnp.minimum(eta, ew))
         rtol = jnp.clip(jnp.maximum(rtol, 0.1 * tol / jnp.maximum(res, 1e-300)), 1e-14, eta)
         rhs = jnp.where(active[:, None], V - TV, 0.0)
-        step, k, basis = _policy_solve(op, gamma, pi, rhs, rtol, degree, dim, max_cycles, basis=basis)
+        if inner == "float32":
+            step, k, basis = _policy_solve(op, gamma, tuple(p.astype(jnp.float32) for p in pi),
+                                           rhs.astype(jnp.float32), jnp.maximum(rtol, _FLOAT32_RTOL).astype(jnp.float32),
+                                           degree, dim, max_cycles, basis=basis)
+            step = step.astype(V.dtype)
+        else:
+            step, k, basis = _policy_solve(op, gamma, pi, rhs, rtol, degree, dim, max_cycles, basis=basis)
         V = V - step
         Q, TV_new, pi = _soft_backup(r_cols, op.apply(V), gamma)
         res_new = jnp.where(active, _relative(TV_new - V, TV_new), res)
         return (V, Q, TV_new, pi, it + active, res_new, nmv + jnp.where(active, k, 0), jnp.where(active, res, res_prev),
                 jnp.where(active, rtol, eta_prev), basis, n + 1)
 
-    basis = jnp.zeros((K, dim + 1) + v0.shape[1:], v0.dtype)
+    basis = jnp.zeros((K, dim + 1) + v0.shape[1:], jnp.float32 if inner == "float32" else v0.dtype)
     zeros = jnp.zeros(K, jnp.int32)
     init = (v0, Q, TV, pi, zeros, res, zeros, res, jnp.full(K, eta, res.dtype), basis, jnp.asarray(0))
     _, Q, TV, _, it, res, nmv, *_ = jax.lax.while_loop(cond, body, init)
@@ -523,7 +563,7 @@ class SoftSolver(Pytree):
 
     def __init__(self, mdp, *, tol: float = 1e-10, max_iter: Optional[int] = None, method: str = "newton",
                  operator: str = "auto", krylov_dim: int = 5, max_restarts: int = 40, precondition_degree: int = 4,
-                 forcing: float = 0.3, grad_tol: float = 1e-11):
+                 forcing: float = 0.3, grad_tol: float = 1e-11, krylov_precision: str = "auto"):
         if method not in _METHODS_SOFT:
             raise ValueError(f"unknown soft solver method {method!r}; expected one of {_METHODS_SOFT}")
         if max_iter is None:
@@ -533,6 +573,10 @@ class SoftSolver(Pytree):
             raise ValueError(f"forcing must lie in (0, 1), got {forcing}")
         if not (np.isfinite(grad_tol) and grad_tol > 0):
             raise ValueError(f"grad_tol must be positive, got {grad_tol}")
+        if krylov_precision not in _PRECISIONS:
+            raise ValueError(f"unknown krylov_precision {krylov_precision!r}; expected one of {_PRECISIONS}")
+        if krylov_precision == "auto":
+            krylov_precision = "float32" if mdp.num_states >= _FLOAT32_FROM_STATES else "float64"
         self.mdp = mdp
         self.discount = float(mdp.discount)
         self.method = method
@@ -543,6 +587,7 @@ class SoftSolver(Pytree):
         self.precondition_degree = int(precondition_degree)
         self.forcing = float(forcing)
         self.grad_tol = float(grad_tol)
+        self.krylov_precision = krylov_precision
         self.num_states, self.num_actions, self.num_features = mdp.num_states, mdp.num_actions, mdp.num_features
         self._op = _Columns(mdp, operator)
         self.operator = self._op.kind
@@ -557,14 +602,15 @@ class SoftSolver(Pytree):
 
     def __repr__(self):
         return (f"SoftSolver(mdp={self.mdp.name!r}, method={self.method!r}, operator={self.operator!r}, "
-                f"tol={self.tol:g}, max_iter={self.max_iter})")
+                f"tol={self.tol:g}, max_iter={self.max_iter}, krylov_precision={self.krylov_precision!r})")
 
     # -- the fixed points of K reward tables (K, S, A), with their implicit derivative
     def _core(self, op, r, v0):
         r_cols = tuple(r[..., a] for a in range(self.num_actions))
         if self.method == "newton":
             return _soft_newton(op, self.discount, r_cols, v0, self.tol, self.max_iter,
-                                self.precondition_degree, self.krylov_dim, self.max_restarts, self.forcing)
+                                self.precondition_degree, self.krylov_dim, self.max_restarts, self.forcing,
+                                self.krylov_precision)
         return _soft_vi(op, self.discount, r_cols, v0, self.tol, self.max_iter)
 
     def _make_fixed_point(self):
@@ -637,7 +683,8 @@ class SoftSolver(Pytree):
 
 def make_soft_solver(mdp, *, tol: float = 1e-10, max_iter: Optional[int] = None, method: str = "newton",
                      operator: str = "auto", krylov_dim: int = 5, max_restarts: int = 40,
-                     precondition_degree: int = 4, forcing: float = 0.3, grad_tol: float = 1e-11) -> SoftSolver:
+                     precondition_degree: int = 4, forcing: float = 0.3, grad_tol: float = 1e-11,
+                     krylov_precision: str = "auto") -> SoftSolver:
     """A pure, jit-able soft value iteration for ``mdp``: ``solve(rewards, v0) -> SolveResult``.
 
     Args:
@@ -653,6 +700,12 @@ def make_soft_solver(mdp, *, tol: float = 1e-10, max_iter: Optional[int] = None,
         forcing: the largest relative residual a Newton step's linear solve may stop at (the
             Eisenstat-Walker forcing terms are capped by it; see ``_soft_newton``).
         grad_tol: relative tolerance of the linear solves of derivatives.
+        krylov_precision: "float64", "float32" or "auto" (float32 from 50,000 states): the
+            precision of the Newton steps' linear solves. The solution is float64 either way
+            (the Newton iteration and its convergence test are); float32 halves the memory
+            traffic of the solves, which is their cost on large MDPs (a million-state gridworld,
+            4 tables: 1.6 s against 2.9 s), and can cost an extra Newton step. Derivatives'
+            solves are always float64.
     Returns:
         A :class:`SoftSolver`; ``solver(rewards (..., S, A), v0 (..., S) or None)``.
 
@@ -665,7 +718,7 @@ def make_soft_solver(mdp, *, tol: float = 1e-10, max_iter: Optional[int] = None,
     """
     return SoftSolver(mdp, tol=tol, max_iter=max_iter, method=method, operator=operator, krylov_dim=krylov_dim,
                       max_restarts=max_restarts, precondition_degree=precondition_degree, forcing=forcing,
-                      grad_tol=grad_tol)
+                      grad_tol=grad_tol, krylov_precision=krylov_precision)
 
 
 # ------------------------------------------------------------------------ hard solver

@@ -138,6 +138,58 @@ def test_the_policy_operator_folds_shared_successors_and_equals_the_dense_matrix
     np.testing.assert_allclose(per_action, expected, atol=1e-13)
 
 
+@pytest.mark.parametrize("folded", [False, True])
+def test_float32_inner_solves_reach_the_float64_fixed_point_and_keep_float64_derivatives(problem, folded):
+    """krylov_precision="float32" solves each Newton step's linear system in float32; the
+    iteration and its convergence test stay float64, so the solution is the same fixed point
+    to the tolerance, the step count grows by at most one, and derivatives (solved in float64)
+    are unchanged. Both operator forms: per action, and folded onto distinct successors."""
+    from npbrs.domains import solvers as solvers_module
+
+    if folded:
+        mdp, P = random_mdp(4, S=12, A=4, density=0.15, gamma=0.95)
+        R = np.stack([s * np.random.default_rng(11).normal(size=(12, 4)) for s in (0.01, 1.0, 30.0)])
+    else:
+        mdp, P, _, R = problem
+    s64 = make_soft_solver(mdp, tol=1e-12, krylov_precision="float64")
+    s32 = make_soft_solver(mdp, tol=1e-12, krylov_precision="float32")
+    assert (s32._op._union is not None) == folded
+    r64, r32 = s64(R), s32(R)
+    for k in range(len(R)):
+        V_ref, Q_ref = numpy_soft_vi(P, R[k], mdp.discount)
+        np.testing.assert_allclose(r32.V[k], V_ref, rtol=1e-8, atol=1e-8 * np.abs(V_ref).max())
+        np.testing.assert_allclose(r32.Q[k], Q_ref, rtol=1e-8, atol=1e-8 * np.abs(V_ref).max())
+    assert r32.V.dtype == jnp.float64 and np.all(np.asarray(r32.residual) <= 1e-12)
+    assert np.all(np.asarray(r32.num_iter) <= np.asarray(r64.num_iter) + 1)
+    # a warm start from a nearby solution converges in a step or two, as in float64
+    warm = s32(R * 1.01, r32.V)
+    assert np.all(np.asarray(warm.num_iter) <= 3) and np.all(np.asarray(warm.residual) <= 1e-12)
+    g = [jax.grad(lambda r, s=s: (s(r).V ** 2).sum())(jnp.asarray(R[1])) for s in (s64, s32)]
+    np.testing.assert_allclose(g[1], g[0], rtol=1e-9, atol=1e-9 * float(jnp.abs(g[0]).max()))
+    # "auto" is float32 from _FLOAT32_FROM_STATES states on, float64 below
+    assert make_soft_solver(mdp).krylov_precision == "float64"
+    assert solvers_module._FLOAT32_FROM_STATES > mdp.num_states
+    with pytest.raises(ValueError, match="krylov_precision"):
+        make_soft_solver(mdp, krylov_precision="half")
+
+
+@pytest.mark.slow
+def test_float32_krylov_solves_do_not_stagnate_at_a_million_states():
+    """At a million states a float32 GMRES(8) restarted from its Givens estimate of the residual
+    norm stagnated (409 operator applications against 121); restarts now normalise by the
+    residual's own norm."""
+    from npbrs.domains.gridworld import open_gridworld
+
+    mdp = open_gridworld(1000)
+    theta = np.zeros((1, mdp.num_features))
+    theta[0, 0] = 5.0
+    solver = make_soft_solver(mdp, krylov_dim=8)
+    assert solver.krylov_precision == "float32"
+    res = solver(np.asarray(solver.rewards(theta)))
+    assert np.asarray(res.residual).max() <= 1e-10
+    assert int(np.asarray(res.num_matvec)[0]) <= 160, np.asarray(res.num_matvec)
+
+
 def test_hard_solver_greedy_policy_is_the_best_of_all_deterministic_policies():
     rng = np.random.default_rng(7)
     S, A, gamma = 3, 2, 0.9
