@@ -1,9 +1,22 @@
 """How npbrs scales: the soft Bellman solve in the number of states S (``--part states``), and
 the sampler in the number of trajectories N (``--part trajectories``).
 
-    python benchmarks/bench_scale.py [--json PATH] [--part states|trajectories|all]
+    python benchmarks/bench_scale.py [--json PATH] [--part states|trajectories|devices|memory|all]
                                      [--sizes 1e4 1e5 1e6] [--skills 4] [--repeats 3] [--note TEXT]
                                      [--ns 16 128 1024] [--lengths 500 20] [--chains 2] [--sweeps 3]
+                                     [--device-length 500] [--device-sweeps 4]
+
+``--part all`` runs states, trajectories and devices and writes every key of the issue in one
+JSON (``exponent_n``, ``exponent_s``, ``solve_1e6_cold_s``, ``fit_n1024_peak_mb``,
+``devices4_ratio``); ``--part memory`` runs a whole default fit alone (below).
+
+Devices. One chain's 1024 highway trajectories of ``--device-length`` steps, its trajectories
+sharded over 4 CPU host devices against 1 device, each in a process of its own
+(``benchmarks/bench_devices.py``'s measurement): ``devices4_ratio``, and whether both drew the
+same segmentation. On a 2-core machine the 4 "devices" share the two cores: no speed-up expected.
+
+Memory. ``fit_n1024_default_peak_mb``: the peak resident memory of a whole default fit (every
+default, 2 chains) of 1024 highway trajectories x 500 steps, in a process of its own.
 
 Trajectories. Highway demonstrations of N trajectories x T steps, ``fit``'s defaults (the reward
 emission, every move, 8 slots; the greedy moves run in the last quarter of warmup) with 2
@@ -54,6 +67,7 @@ import resource
 import statistics
 import subprocess
 import sys
+import tempfile
 import time
 
 import numpy as np
@@ -239,10 +253,68 @@ def part_trajectories(args) -> dict:
             "chains": args.chains, "sweeps": args.sweeps}
 
 
+# ------------------------------------------------------------------------------ devices part
+def part_devices(args) -> dict:
+    """A sweep's time with one chain's N = 1024 highway trajectories sharded over 4 CPU host
+    devices against 1 device (``benchmarks/bench_devices.py``'s measurement, at
+    ``--device-length`` steps): ``devices4_ratio`` (below 1: faster), and whether the two runs
+    drew the same segmentation."""
+    sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+    import bench_devices
+
+    out = {"trajectories": 1024, "length": args.device_length, "sweeps": args.device_sweeps}
+    base = os.path.join(tempfile.mkdtemp(prefix="npbrs-devices-"), "draws")
+    for devices in (1, 4):
+        out[f"devices{devices}"] = bench_devices.run(devices, args.device_length, args.device_sweeps,
+                                                     f"{base}{devices}.npz")
+        print(f"  {devices} device(s): sweep {out[f'devices{devices}']['sweep_s']} s", flush=True)
+    out["devices4_ratio"] = round(out["devices4"]["sweep_s"] / out["devices1"]["sweep_s"], 3)
+    one, four = (np.load(f"{base}{d}.npz") for d in (1, 4))
+    out["devices4_same_segmentation"] = bool(np.array_equal(one["segmentation"], four["segmentation"]))
+    out["devices4_log_joint_max_rel_diff"] = float(np.max(np.abs(one["log_joint"] - four["log_joint"])
+                                                          / np.abs(one["log_joint"])))
+    return out
+
+
+# ------------------------------------------------------------------------------- memory part
+def measure_default_fit(N: int, T: int, chains: int) -> dict:
+    """One fresh process: a default ``fit`` (every default: 200 + 200 sweeps, 8 slots, every
+    move) of N highway trajectories x T steps with ``chains`` chains; its wall time and the
+    process's peak resident memory."""
+    os.environ.setdefault("NPBRS_CACHE_DIR", "off")
+    from npbrs.domains import generate_demonstrations, get_domain
+    from npbrs.inference import fit
+
+    dom = get_domain("highway")
+    demos = generate_demonstrations(dom, num_trajectories=N, length=T, seed=0)
+    start = time.perf_counter()
+    result = fit(dom.mdp, demos, num_chains=chains, seed=0, progress_bar=False)
+    return {"N": N, "T": T, "chains": chains, "fit_s": round(time.perf_counter() - start, 1),
+            "skills": int(result.num_skills),
+            "peak_rss_mb": round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024)}
+
+
+def part_memory(args) -> dict:
+    """``fit_n1024_default_peak_mb``: the peak memory of a whole default 2-chain fit of 1024
+    highway trajectories x 500 steps (about a quarter of an hour on 2 cores; the trajectories
+    part's ``fit_n1024_peak_mb`` is a short fit's)."""
+    before = machine_state()
+    out = subprocess.run([sys.executable, __file__, "--_memory-child", "1024,500", "--chains", str(args.chains)],
+                         capture_output=True, text=True)
+    if out.returncode:
+        raise RuntimeError(f"the default fit failed:\n{out.stderr[-3000:]}")
+    row = json.loads(out.stdout.strip().splitlines()[-1])
+    row.update(load_before=before["loadavg"], load_after=machine_state()["loadavg"])
+    print(f"  default fit N 1024 T 500, {args.chains} chains: {row['fit_s']} s, peak {row['peak_rss_mb']} MB, "
+          f"{row['skills']} skills", flush=True)
+    return {"default_fit": row, "fit_n1024_default_peak_mb": row["peak_rss_mb"]}
+
+
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--json", help="write the results here")
-    parser.add_argument("--part", choices=("states", "trajectories", "all"), default="states")
+    parser.add_argument("--part", choices=("states", "trajectories", "devices", "memory", "all"), default="states",
+                        help="all: states, trajectories and devices (memory, a whole default fit, runs alone)")
     parser.add_argument("--sizes", nargs="+", type=float, default=DEFAULT_SIZES, help="numbers of states")
     parser.add_argument("--skills", type=int, default=4, help="reward tables solved together")
     parser.add_argument("--repeats", type=int, default=3)
@@ -251,9 +323,16 @@ def main(argv=None) -> int:
     parser.add_argument("--lengths", nargs="+", type=int, default=DEFAULT_LENGTHS, help="trajectory lengths")
     parser.add_argument("--chains", type=int, default=2, help="chains of the trajectories part's fits")
     parser.add_argument("--sweeps", type=int, default=3, help="timed warmup (and sampling) sweeps")
+    parser.add_argument("--device-length", type=int, default=500, help="trajectory length of the devices part")
+    parser.add_argument("--device-sweeps", type=int, default=4, help="timed sweeps of the devices part")
     parser.add_argument("--_states-child", type=float, help=argparse.SUPPRESS)
+    parser.add_argument("--_memory-child", help=argparse.SUPPRESS)
     parser.add_argument("--_trajectories-child", help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
+    if args._memory_child:
+        N, T = (int(v) for v in args._memory_child.split(","))
+        print(json.dumps(measure_default_fit(N, T, args.chains)))
+        return 0
     if args._trajectories_child:
         N, T = (int(v) for v in args._trajectories_child.split(","))
         print(json.dumps(measure_trajectories(N, T, args.chains, args.sweeps)))
@@ -277,6 +356,14 @@ def main(argv=None) -> int:
         print(f"trajectories: N {list(args.ns)}, T {list(args.lengths)}, {args.chains} chains", flush=True)
         report["trajectories"] = part_trajectories(args)
         report.update({k: v for k, v in report["trajectories"].items() if k != "rows"})
+    if args.part in ("devices", "all"):
+        print(f"devices: N 1024, T {args.device_length}, 1 chain, 1 and 4 host devices", flush=True)
+        report["devices"] = part_devices(args)
+        report["devices4_ratio"] = report["devices"]["devices4_ratio"]
+    if args.part == "memory":
+        print(f"memory: a default fit, N 1024, T 500, {args.chains} chains", flush=True)
+        report["memory"] = part_memory(args)
+        report["fit_n1024_default_peak_mb"] = report["memory"]["fit_n1024_default_peak_mb"]
     report["machine_at_end"] = machine_state()
     if args.json:
         os.makedirs(os.path.dirname(os.path.abspath(args.json)), exist_ok=True)
