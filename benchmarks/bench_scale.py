@@ -15,6 +15,10 @@ sharded over 4 CPU host devices against 1 device, each in a process of its own
 (``benchmarks/bench_devices.py``'s measurement): ``devices4_ratio``, and whether both drew the
 same segmentation. On a 2-core machine the 4 "devices" share the two cores: no speed-up expected.
 
+Sweep (``--part sweep``). A whole sampler sweep of ``fit``'s defaults on the open gridworld of
+each ``--sizes`` (1 chain, 16 demonstrations of 100 steps by two experts): ``sweep_1e6_s``,
+``sweep_1e6_peak_mb``, ``exponent_s_sweep``.
+
 Memory. ``fit_n1024_default_peak_mb``: the peak resident memory of a whole default fit (every
 default, 2 chains) of 1024 highway trajectories x 500 steps, in a process of its own.
 
@@ -253,6 +257,66 @@ def part_trajectories(args) -> dict:
             "chains": args.chains, "sweeps": args.sweeps}
 
 
+# ------------------------------------------------------------------------------- sweep part
+def measure_sweep(S: int, chains: int, sweeps: int) -> dict:
+    """One fresh process: ``fit``'s defaults on the open gridworld of S states (the reward
+    emission, 8 slots, every move): 16 demonstrations of 100 steps by two Boltzmann experts (theta
+    = 1000 e_k: walk to goal k), switching with probability 0.02 a step. A first fit of 1 + 1
+    sweeps compiles; a second of ``sweeps`` + ``sweeps`` is timed (``sweep_s`` its time over
+    its sweeps, the greedy moves' share of warmup included)."""
+    import types
+
+    os.environ.setdefault("NPBRS_CACHE_DIR", "off")
+    from npbrs.domains import generate_demonstrations, make_soft_solver
+    from npbrs.domains.gridworld import open_gridworld
+    from npbrs.inference import fit
+
+    mdp = open_gridworld(int(round(math.sqrt(S))))
+    solver = make_soft_solver(mdp)
+    theta = np.zeros((2, mdp.num_features))
+    theta[[0, 1], [0, 1]] = 1000.0
+    res = solver(np.asarray(solver.rewards(theta)))
+    policies = np.exp(np.asarray(res.Q) - np.asarray(res.V)[..., None])
+    policies /= policies.sum(-1, keepdims=True)
+    demos = generate_demonstrations(types.SimpleNamespace(mdp=mdp), num_trajectories=16, length=100, seed=0,
+                                    policies=policies)
+    del res, policies
+    kw = dict(num_chains=chains, progress_bar=False, seed=0)
+    start = time.perf_counter()
+    fit(mdp, demos, num_warmup=1, num_samples=1, **kw)
+    first = time.perf_counter() - start
+    start = time.perf_counter()
+    result = fit(mdp, demos, num_warmup=sweeps, num_samples=sweeps, **kw)
+    timed = time.perf_counter() - start
+    return {"S": mdp.num_states, "chains": chains, "first_fit_s": round(first, 2), "timed_fit_s": round(timed, 2),
+            "sweep_s": round(timed / (2 * sweeps), 3), "skills": int(result.num_skills),
+            "peak_rss_mb": round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024)}
+
+
+def part_sweep(args) -> dict:
+    """A whole sampler sweep on the open gridworld for each of ``--sizes`` (fresh processes):
+    ``sweep_1e6_s`` and ``sweep_1e6_peak_mb`` at a million states, ``exponent_s_sweep``."""
+    rows = []
+    for S in args.sizes:
+        before = machine_state()
+        out = subprocess.run([sys.executable, __file__, "--_sweep-child", str(int(S)), "--chains", str(args.sweep_chains),
+                              "--sweeps", str(args.sweeps)], capture_output=True, text=True)
+        if out.returncode:
+            raise RuntimeError(f"S = {int(S)} failed:\n{out.stderr[-3000:]}")
+        row = json.loads(out.stdout.strip().splitlines()[-1])
+        row.update(load_before=before["loadavg"], load_after=machine_state()["loadavg"])
+        print(f"  S {row['S']:8d}: first fit {row['first_fit_s']:7.1f} s, sweep {row['sweep_s']:.3f} s, "
+              f"peak {row['peak_rss_mb']} MB, {row['skills']} skills", flush=True)
+        rows.append(row)
+    out = {"rows": rows}
+    if len(rows) > 1:
+        out["exponent_s_sweep"] = round(fit_exponent([r["S"] for r in rows], [r["sweep_s"] for r in rows]), 3)
+    big = [r for r in rows if r["S"] == 10 ** 6]
+    if big:
+        out["sweep_1e6_s"], out["sweep_1e6_peak_mb"] = big[0]["sweep_s"], big[0]["peak_rss_mb"]
+    return out
+
+
 # ------------------------------------------------------------------------------ devices part
 def part_devices(args) -> dict:
     """A sweep's time with one chain's N = 1024 highway trajectories sharded over 4 CPU host
@@ -313,8 +377,9 @@ def part_memory(args) -> dict:
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--json", help="write the results here")
-    parser.add_argument("--part", choices=("states", "trajectories", "devices", "memory", "all"), default="states",
-                        help="all: states, trajectories and devices (memory, a whole default fit, runs alone)")
+    parser.add_argument("--part", choices=("states", "trajectories", "devices", "sweep", "memory", "all"),
+                        default="states",
+                        help="all: states, trajectories and devices (sweep and memory run alone)")
     parser.add_argument("--sizes", nargs="+", type=float, default=DEFAULT_SIZES, help="numbers of states")
     parser.add_argument("--skills", type=int, default=4, help="reward tables solved together")
     parser.add_argument("--repeats", type=int, default=3)
@@ -327,8 +392,13 @@ def main(argv=None) -> int:
     parser.add_argument("--device-sweeps", type=int, default=4, help="timed sweeps of the devices part")
     parser.add_argument("--_states-child", type=float, help=argparse.SUPPRESS)
     parser.add_argument("--_memory-child", help=argparse.SUPPRESS)
+    parser.add_argument("--sweep-chains", type=int, default=1, help="chains of the sweep part's fits")
+    parser.add_argument("--_sweep-child", type=int, help=argparse.SUPPRESS)
     parser.add_argument("--_trajectories-child", help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
+    if args._sweep_child:
+        print(json.dumps(measure_sweep(args._sweep_child, args.chains, args.sweeps)))
+        return 0
     if args._memory_child:
         N, T = (int(v) for v in args._memory_child.split(","))
         print(json.dumps(measure_default_fit(N, T, args.chains)))
@@ -360,6 +430,10 @@ def main(argv=None) -> int:
         print(f"devices: N 1024, T {args.device_length}, 1 chain, 1 and 4 host devices", flush=True)
         report["devices"] = part_devices(args)
         report["devices4_ratio"] = report["devices"]["devices4_ratio"]
+    if args.part == "sweep":
+        print(f"sweep: open gridworld, sizes {[int(s) for s in args.sizes]}, {args.sweep_chains} chain(s)", flush=True)
+        report["sweep"] = part_sweep(args)
+        report.update({k: v for k, v in report["sweep"].items() if k != "rows"})
     if args.part == "memory":
         print(f"memory: a default fit, N 1024, T 500, {args.chains} chains", flush=True)
         report["memory"] = part_memory(args)

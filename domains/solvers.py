@@ -39,7 +39,7 @@ linear systems are solved in float32: a step only needs its solve to a relative 
 and the float64 iteration around it (values, backups, the residual that decides convergence)
 reaches the same fixed point to the tolerance. Every application and orthogonalisation then
 moves half the bytes: 4 tables at a million states took 1.5 s instead of 2.9 s, one table 0.67
-s. Derivatives' solves stay float64.
+s. Derivatives' solves follow the same precision (a relative 1e-5 in float32).
 """
 
 from __future__ import annotations
@@ -132,7 +132,7 @@ class _Columns(Pytree):
             if A * nb <= _MAX_UNROLLED_GATHERS:
                 # one gather per (action, slot), unrolled: XLA fuses them into one pass; a
                 # reduction over a gathered axis compiles to code an order of magnitude slower
-                return tuple(sum(V[..., self._succ[a, b]] * self._prob[a, b] for b in range(nb))
+                return tuple(sum(V[..., self._succ[a, b]] * self._prob[a, b].astype(V.dtype) for b in range(nb))
                              for a in range(A))
 
             def slot(b, acc):  # many successors: a loop keeps the program small
@@ -153,7 +153,7 @@ class _Columns(Pytree):
             out = jnp.zeros(cols[0].shape, cols[0].dtype)
             for a in range(A):
                 for b in range(self._succ.shape[1]):
-                    out = out.at[..., self._succ[a, b]].add(self._prob[a, b] * cols[a])
+                    out = out.at[..., self._succ[a, b]].add(self._prob[a, b].astype(out.dtype) * cols[a])
             return out
         if self.kind == "dense":
             return sum(cols[a] @ self._P[a] for a in range(A))
@@ -627,6 +627,7 @@ class SoftSolver(Pytree):
         # is ignored: the dynamics are data, not parameters).
         gamma, A = self.discount, self.num_actions
         dim, cycles, gtol, degree = self.krylov_dim, self.max_restarts, self.grad_tol, self.precondition_degree
+        inner32 = self.krylov_precision == "float32"
         core = self._core
 
         @jax.custom_jvp
@@ -642,11 +643,17 @@ class SoftSolver(Pytree):
             V, Q, it, res, nmv = fixed_point(op, r, v0)
             pi = tuple(jnp.exp(Q[..., a] - V) for a in range(A))
             rhs = sum(p * dr[..., a] for a, p in enumerate(pi))
+
+            def solve(b, transpose):
+                if inner32:  # float32 like the Newton steps' solves, to a relative _FLOAT32_RTOL
+                    x = _policy_solve(op, gamma, tuple(p.astype(jnp.float32) for p in pi), b.astype(jnp.float32),
+                                      max(gtol, _FLOAT32_RTOL), degree, dim, cycles, transpose=transpose)[0]
+                    return x.astype(b.dtype)
+                return _policy_solve(op, gamma, pi, b, gtol, degree, dim, cycles, transpose=transpose)[0]
+
             dV = jax.lax.custom_linear_solve(
                 lambda x: x - gamma * _policy_apply(op, pi)(x), rhs,
-                solve=lambda _, b: _policy_solve(op, gamma, pi, b, gtol, degree, dim, cycles)[0],
-                transpose_solve=lambda _, b: _policy_solve(op, gamma, pi, b, gtol, degree, dim, cycles,
-                                                           transpose=True)[0])
+                solve=lambda _, b: solve(b, False), transpose_solve=lambda _, b: solve(b, True))
             dQ = dr + gamma * jnp.stack(op.apply(dV), -1)
             zero_int = np.zeros(it.shape, dtype=jax.dtypes.float0)
             return (V, Q, it, res, nmv), (dV, dQ, zero_int, jnp.zeros_like(res), zero_int)
@@ -711,8 +718,10 @@ def make_soft_solver(mdp, *, tol: float = 1e-10, max_iter: Optional[int] = None,
             precision of the Newton steps' linear solves. The solution is float64 either way
             (the Newton iteration and its convergence test are); float32 halves the memory
             traffic of the solves, which is their cost on large MDPs (a million-state gridworld,
-            4 tables: 1.6 s against 2.9 s), and can cost an extra Newton step. Derivatives'
-            solves are always float64.
+            4 tables: 1.5 s against 2.9 s), and can cost an extra Newton step. Derivatives'
+            solves follow it: in float32 they are accurate to a relative 1e-5 instead of
+            ``grad_tol`` (a Metropolis-adjusted move stays exact with any deterministic
+            gradient; an optimiser's steps are as good).
     Returns:
         A :class:`SoftSolver`; ``solver(rewards (..., S, A), v0 (..., S) or None)``.
 
