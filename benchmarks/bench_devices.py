@@ -67,23 +67,16 @@ def run(devices: int, length: int, sweeps: int, out: str) -> dict:
     return json.loads(done.stdout.strip().splitlines()[-1])
 
 
-def main(argv=None):
-    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    p.add_argument("--length", type=int, default=100, help="steps per trajectory (N = 1024)")
-    p.add_argument("--sweeps", type=int, default=8, help="sweeps of the timed fit")
-    p.add_argument("--json", default=os.path.join(os.path.dirname(__file__), "results", "bench_devices.json"))
-    p.add_argument("--note", default="", help="what else was running on the machine")
-    args = p.parse_args(argv)
+def compare(length: int, sweeps: int, base: str, log=print) -> dict:
+    """Both runs (1 and 4 devices) with their draws written next to ``base``: each run's figures,
+    ``devices4_ratio``, ``same_segmentation`` and ``log_joint_max_rel_diff``."""
     import numpy as np
 
-    out = {"meta": {"date": datetime.now(timezone.utc).isoformat(timespec="seconds"), "python": sys.version.split()[0],
-                    "machine": platform.platform(), "cpus": os.cpu_count(), "trajectories": 1024,
-                    "length": args.length, "sweeps": args.sweeps, "note": args.note}}
-    base = os.path.splitext(args.json)[0]
+    out = {}
     for devices in (1, 4):
         t = time.perf_counter()
-        out[f"devices{devices}"] = run(devices, args.length, args.sweeps, f"{base}.draws{devices}.npz")
-        print(f"{devices} device(s): {out[f'devices{devices}']} ({time.perf_counter() - t:.0f} s)", flush=True)
+        out[f"devices{devices}"] = run(devices, length, sweeps, f"{base}.draws{devices}.npz")
+        log(f"{devices} device(s): {out[f'devices{devices}']} ({time.perf_counter() - t:.0f} s)")
     out["devices4_ratio"] = round(out["devices4"]["sweep_s"] / out["devices1"]["sweep_s"], 3)
     one, four = (np.load(f"{base}.draws{d}.npz") for d in (1, 4))
     out["same_segmentation"] = bool(np.array_equal(one["segmentation"], four["segmentation"]))
@@ -91,6 +84,20 @@ def main(argv=None):
                                                  / np.abs(one["log_joint"])))
     for d in (1, 4):
         os.remove(f"{base}.draws{d}.npz")
+    return out
+
+
+def main(argv=None):
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--length", type=int, default=100, help="steps per trajectory (N = 1024)")
+    p.add_argument("--sweeps", type=int, default=8, help="sweeps of the timed fit")
+    p.add_argument("--json", default=os.path.join(os.path.dirname(__file__), "results", "bench_devices.json"))
+    p.add_argument("--note", default="", help="what else was running on the machine")
+    args = p.parse_args(argv)
+    out = {"meta": {"date": datetime.now(timezone.utc).isoformat(timespec="seconds"), "python": sys.version.split()[0],
+                    "machine": platform.platform(), "cpus": os.cpu_count(), "trajectories": 1024,
+                    "length": args.length, "sweeps": args.sweeps, "note": args.note}}
+    out.update(compare(args.length, args.sweeps, os.path.splitext(args.json)[0], lambda m: print(m, flush=True)))
     print(f"sweep time on 4 host devices / on 1: {out['devices4_ratio']}; same segmentation: "
           f"{out['same_segmentation']}, log joints within {out['log_joint_max_rel_diff']:.1e} (relative)")
     os.makedirs(os.path.dirname(os.path.abspath(args.json)), exist_ok=True)

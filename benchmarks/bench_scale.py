@@ -105,6 +105,19 @@ def fit_exponent(sizes, times) -> float:
     return float(np.polyfit(x, y, 1)[0])
 
 
+def run_child(flags, what: str) -> dict:
+    """This script again in a fresh process with ``flags``; its last line's JSON, with the
+    machine's load before and after."""
+    before = machine_state()
+    out = subprocess.run([sys.executable, os.path.abspath(__file__)] + [str(f) for f in flags],
+                         capture_output=True, text=True)
+    if out.returncode:
+        raise RuntimeError(f"{what} failed:\n{out.stderr[-3000:]}")
+    row = json.loads(out.stdout.strip().splitlines()[-1])
+    row.update(load_before=before["loadavg"], load_after=machine_state()["loadavg"])
+    return row
+
+
 # ---------------------------------------------------------------------------- states part
 def measure_states(S: int, skills: int, repeats: int) -> dict:
     """One size, in this process: build, first call, compiled and warm-started solves."""
@@ -233,13 +246,8 @@ def part_trajectories(args) -> dict:
     rows = []
     for T in args.lengths:
         for N in args.ns:
-            before = machine_state()
-            out = subprocess.run([sys.executable, __file__, "--_trajectories-child", f"{N},{T}", "--chains",
-                                  str(args.chains), "--sweeps", str(args.sweeps)], capture_output=True, text=True)
-            if out.returncode:
-                raise RuntimeError(f"N = {N}, T = {T} failed:\n{out.stderr[-3000:]}")
-            row = json.loads(out.stdout.strip().splitlines()[-1])
-            row.update(load_before=before["loadavg"], load_after=machine_state()["loadavg"])
+            row = run_child(["--_trajectories-child", f"{N},{T}", "--chains", args.chains, "--sweeps", args.sweeps],
+                            f"N = {N}, T = {T}")
             print(f"  N {N:5d} T {T:4d}: first fit {row['first_fit_s']:7.1f} s, sweep {row['sweep_s']:.3f} s, "
                   f"peak {row['peak_rss_mb']} MB, {row['skills']} skills", flush=True)
             rows.append(row)
@@ -298,13 +306,8 @@ def part_sweep(args) -> dict:
     ``sweep_1e6_s`` and ``sweep_1e6_peak_mb`` at a million states, ``exponent_s_sweep``."""
     rows = []
     for S in args.sizes:
-        before = machine_state()
-        out = subprocess.run([sys.executable, __file__, "--_sweep-child", str(int(S)), "--chains", str(args.sweep_chains),
-                              "--sweeps", str(args.sweeps)], capture_output=True, text=True)
-        if out.returncode:
-            raise RuntimeError(f"S = {int(S)} failed:\n{out.stderr[-3000:]}")
-        row = json.loads(out.stdout.strip().splitlines()[-1])
-        row.update(load_before=before["loadavg"], load_after=machine_state()["loadavg"])
+        row = run_child(["--_sweep-child", int(S), "--chains", args.sweep_chains, "--sweeps", args.sweeps],
+                        f"S = {int(S)}")
         print(f"  S {row['S']:8d}: first fit {row['first_fit_s']:7.1f} s, sweep {row['sweep_s']:.3f} s, "
               f"peak {row['peak_rss_mb']} MB, {row['skills']} skills", flush=True)
         rows.append(row)
@@ -327,16 +330,10 @@ def part_devices(args) -> dict:
     import bench_devices
 
     out = {"trajectories": 1024, "length": args.device_length, "sweeps": args.device_sweeps}
-    base = os.path.join(tempfile.mkdtemp(prefix="npbrs-devices-"), "draws")
-    for devices in (1, 4):
-        out[f"devices{devices}"] = bench_devices.run(devices, args.device_length, args.device_sweeps,
-                                                     f"{base}{devices}.npz")
-        print(f"  {devices} device(s): sweep {out[f'devices{devices}']['sweep_s']} s", flush=True)
-    out["devices4_ratio"] = round(out["devices4"]["sweep_s"] / out["devices1"]["sweep_s"], 3)
-    one, four = (np.load(f"{base}{d}.npz") for d in (1, 4))
-    out["devices4_same_segmentation"] = bool(np.array_equal(one["segmentation"], four["segmentation"]))
-    out["devices4_log_joint_max_rel_diff"] = float(np.max(np.abs(one["log_joint"] - four["log_joint"])
-                                                          / np.abs(one["log_joint"])))
+    base = os.path.join(tempfile.mkdtemp(prefix="npbrs-devices-"), "run")
+    res = bench_devices.compare(args.device_length, args.device_sweeps, base, lambda m: print("  " + m, flush=True))
+    out.update(res, devices4_same_segmentation=res.pop("same_segmentation"),
+               devices4_log_joint_max_rel_diff=res.pop("log_joint_max_rel_diff"))
     return out
 
 
@@ -362,13 +359,7 @@ def part_memory(args) -> dict:
     """``fit_n1024_default_peak_mb``: the peak memory of a whole default 2-chain fit of 1024
     highway trajectories x 500 steps (about a quarter of an hour on 2 cores; the trajectories
     part's ``fit_n1024_peak_mb`` is a short fit's)."""
-    before = machine_state()
-    out = subprocess.run([sys.executable, __file__, "--_memory-child", "1024,500", "--chains", str(args.chains)],
-                         capture_output=True, text=True)
-    if out.returncode:
-        raise RuntimeError(f"the default fit failed:\n{out.stderr[-3000:]}")
-    row = json.loads(out.stdout.strip().splitlines()[-1])
-    row.update(load_before=before["loadavg"], load_after=machine_state()["loadavg"])
+    row = run_child(["--_memory-child", "1024,500", "--chains", args.chains], "the default fit")
     print(f"  default fit N 1024 T 500, {args.chains} chains: {row['fit_s']} s, peak {row['peak_rss_mb']} MB, "
           f"{row['skills']} skills", flush=True)
     return {"default_fit": row, "fit_n1024_default_peak_mb": row["peak_rss_mb"]}

@@ -139,7 +139,7 @@ def test_the_policy_operator_folds_shared_successors_and_equals_the_dense_matrix
 
 
 @pytest.mark.parametrize("folded", [False, True])
-def test_float32_inner_solves_reach_the_float64_fixed_point_and_keep_float64_derivatives(problem, folded):
+def test_float32_inner_solves_reach_the_float64_fixed_point_with_accurate_derivatives(problem, folded):
     """krylov_precision="float32" solves each Newton step's linear system in float32; the
     iteration and its convergence test stay float64, so the solution is the same fixed point
     to the tolerance and the step count grows by at most one; derivatives (their solves in
