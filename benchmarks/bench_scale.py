@@ -168,18 +168,11 @@ def part_states(sizes, skills: int, repeats: int) -> dict:
     """Every size in a fresh process; the table, the exponents and the 10^6 figures."""
     rows = []
     for S in sizes:
-        before = machine_state()
-        out = subprocess.run([sys.executable, os.path.abspath(__file__), "--_states-child", str(S),
-                              "--skills", str(skills), "--repeats", str(repeats)],
-                             capture_output=True, text=True)
-        if out.returncode != 0:
-            raise RuntimeError(f"the S = {S} run failed:\n{out.stderr[-4000:]}")
-        row = json.loads(out.stdout.strip().splitlines()[-1])
-        row["machine_before"], row["machine_after"] = before, machine_state()
-        rows.append(row)
+        row = run_child(["--_states-child", S, "--skills", skills, "--repeats", repeats], f"the S = {S} run")
         print(f"  S = {row['S']:>8}: first call {row['first_call_s']:7.2f} s, solve {row['solve_s']:7.2f} s, "
               f"warm start {row['warm_start_s']:7.2f} s, peak {row['peak_rss_mb']:6.0f} MB "
-              f"(load {before['loadavg'][0]:.1f})", flush=True)
+              f"(load {row['load_before'][0]:.1f})", flush=True)
+        rows.append(row)
     result = {"rows": rows}
     if len(rows) >= 2:
         result["exponent_s"] = fit_exponent([r["S"] for r in rows], [r["solve_s"] for r in rows])
@@ -204,7 +197,7 @@ def print_states(result: dict) -> None:
         print(f"{r['S']:>9} {r['build_s']:>6.2f} {r['first_call_s']:>7.2f} ({r['first_call_cpu_s']:>5.2f}) "
               f"{r['solve_s']:>7.2f} ({r['solve_cpu_s']:>5.2f}) {r['warm_start_s']:>7.2f} ({r['warm_start_cpu_s']:>5.2f}) "
               f"{max(r['newton_steps']):>7} {max(r['matvecs']):>8} {r['peak_rss_mb']:>8.0f} "
-              f"{r['machine_before']['loadavg'][0]:>5.1f}")
+              f"{r['load_before'][0]:>5.1f}")
     if "exponent_s" in result:
         print(f"growth exponent in S: {result['exponent_s']:.3f} (solve), "
               f"{result['exponent_s_warm_start']:.3f} (warm start), {result['exponent_s_cpu']:.3f} (solve, CPU time)")

@@ -256,9 +256,10 @@ def _gmres(matvec, b, rtol, dim: int, max_cycles: int, basis=None):
     the operator, is the cost of a step. A restart continues from the residual the Arnoldi
     relation gives (no extra matvec).
 
-    The vectors may be float32 (``SoftSolver``'s ``krylov_precision``): inner products and norms
-    then accumulate in float64 (sums over a million float32 products lose the orthogonality
-    that restarts need, and GMRES stagnated), and the small Hessenberg arithmetic is float64.
+    The vectors may be float32 (``SoftSolver``'s ``krylov_precision``): the small Hessenberg
+    arithmetic stays float64, and a restart normalises the new residual by its own norm rather
+    than by the Givens estimate (in float32 the two drift apart at a million states, and
+    GMRES(8) stagnated).
 
     ``basis`` is an optional (K, dim + 1, n) work array with finite entries, returned for
     reuse by the next call (rows not yet written in a cycle are masked out, so it needs no
@@ -383,7 +384,7 @@ def _policy_apply(op: _Columns, pi, transpose: bool = False):
 
 
 def _policy_solve(op: _Columns, gamma, pi, b, rtol, degree: int, dim: int, max_cycles: int,
-                  transpose: bool = False, basis=None):
+                  transpose: bool = False, basis=None, precision: str = "float64"):
     """Solve (I - gamma P_pi) x = b (or its transpose) for K systems by GMRES,
     right-preconditioned with the truncated Neumann series M^-1 = sum_{k<degree} (gamma P_pi)^k.
 
@@ -391,9 +392,18 @@ def _policy_solve(op: _Columns, gamma, pi, b, rtol, degree: int, dim: int, max_c
     to (gamma |lambda|)^degree around 1, so GMRES needs fewer steps (and fewer
     orthogonalisations, which cost about as much as an operator application). The powers
     are taken in a ``fori_loop`` so that XLA materialises each application instead of fusing
-    chains of them (which it compiles badly). Returns (x (K, S), operator applications (K,),
-    the GMRES work array for reuse).
+    chains of them (which it compiles badly). Returns (x (K, S) in b's dtype, operator
+    applications (K,), the GMRES work array for reuse).
+
+    ``precision="float32"`` (``SoftSolver``'s ``krylov_precision``) solves in float32: the
+    policy, the right-hand side and the basis (``basis`` must then be float32), to a relative
+    residual of at least ``_FLOAT32_RTOL``.
     """
+    out_dtype = b.dtype
+    if precision == "float32":
+        pi = tuple(p.astype(jnp.float32) for p in pi)
+        b = b.astype(jnp.float32)
+        rtol = jnp.maximum(rtol, _FLOAT32_RTOL)
     P = _policy_apply(op, pi, transpose)
 
     def power(y):
@@ -404,10 +414,10 @@ def _policy_solve(op: _Columns, gamma, pi, b, rtol, degree: int, dim: int, max_c
     # pass (summing z <- gamma P z into a second carry gave the gathers two consumers, and XLA
     # wrote every gathered column to memory and read it back twice: 5 times the cost)
     x = jax.lax.fori_loop(0, degree - 1, lambda _, x: y + gamma * P(x), y)
-    return x, k * degree + degree - 1, basis
+    return x.astype(out_dtype), k * degree + degree - 1, basis
 
 
-def _soft_newton(op, gamma, r_cols, v0, tol, max_iter, degree, dim, max_cycles, eta, inner=None):
+def _soft_newton(op, gamma, r_cols, v0, tol, max_iter, degree, dim, max_cycles, eta, precision="float64"):
     """Inexact Newton (soft policy iteration) for K reward tables in lock-step. Returns the
     last iterates' Q columns, their backups T(V) = logsumexp(Q) (K, S), and per system the
     number of steps, the residual and the operator applications.
@@ -421,8 +431,9 @@ def _soft_newton(op, gamma, r_cols, v0, tol, max_iter, degree, dim, max_cycles, 
     solve (one or two steps in all) and a cold one a loose one. A converged system gets a
     zero right-hand side, which GMRES skips.
 
-    ``inner="float32"`` solves the Newton steps' linear systems in float32 (policy weights,
-    right-hand side, Krylov basis), to a relative residual of at least ``_FLOAT32_RTOL``: half
+    ``precision="float32"`` solves the Newton steps' linear systems in float32 (policy weights,
+    right-hand side, Krylov basis; ``_policy_solve``), to a relative residual of at least
+    ``_FLOAT32_RTOL``: half
     the memory traffic of each operator application and orthogonalisation. The iteration
     itself stays float64 (V, the backups, the residual that decides convergence), and an
     inexact Newton step still converges to the float64 fixed point; only the last steps'
@@ -443,20 +454,15 @@ def _soft_newton(op, gamma, r_cols, v0, tol, max_iter, degree, dim, max_cycles, 
         rtol = jnp.where(it == 0, jnp.minimum(eta, res), jnp.minimum(eta, ew))
         rtol = jnp.clip(jnp.maximum(rtol, 0.1 * tol / jnp.maximum(res, 1e-300)), 1e-14, eta)
         rhs = jnp.where(active[:, None], V - TV, 0.0)
-        if inner == "float32":
-            step, k, basis = _policy_solve(op, gamma, tuple(p.astype(jnp.float32) for p in pi),
-                                           rhs.astype(jnp.float32), jnp.maximum(rtol, _FLOAT32_RTOL).astype(jnp.float32),
-                                           degree, dim, max_cycles, basis=basis)
-            step = step.astype(V.dtype)
-        else:
-            step, k, basis = _policy_solve(op, gamma, pi, rhs, rtol, degree, dim, max_cycles, basis=basis)
+        step, k, basis = _policy_solve(op, gamma, pi, rhs, rtol, degree, dim, max_cycles, basis=basis,
+                                       precision=precision)
         V = V - step
         Q, TV_new, pi = _soft_backup(r_cols, op.apply(V), gamma)
         res_new = jnp.where(active, _relative(TV_new - V, TV_new), res)
         return (V, Q, TV_new, pi, it + active, res_new, nmv + jnp.where(active, k, 0), jnp.where(active, res, res_prev),
                 jnp.where(active, rtol, eta_prev), basis, n + 1)
 
-    basis = jnp.zeros((K, dim + 1) + v0.shape[1:], jnp.float32 if inner == "float32" else v0.dtype)
+    basis = jnp.zeros((K, dim + 1) + v0.shape[1:], jnp.float32 if precision == "float32" else v0.dtype)
     zeros = jnp.zeros(K, jnp.int32)
     init = (v0, Q, TV, pi, zeros, res, zeros, res, jnp.full(K, eta, res.dtype), basis, jnp.asarray(0))
     _, Q, TV, _, it, res, nmv, *_ = jax.lax.while_loop(cond, body, init)
@@ -627,8 +633,7 @@ class SoftSolver(Pytree):
         # is ignored: the dynamics are data, not parameters).
         gamma, A = self.discount, self.num_actions
         dim, cycles, gtol, degree = self.krylov_dim, self.max_restarts, self.grad_tol, self.precondition_degree
-        inner32 = self.krylov_precision == "float32"
-        core = self._core
+        precision, core = self.krylov_precision, self._core
 
         @jax.custom_jvp
         def fixed_point(op, r, v0):
@@ -644,12 +649,8 @@ class SoftSolver(Pytree):
             pi = tuple(jnp.exp(Q[..., a] - V) for a in range(A))
             rhs = sum(p * dr[..., a] for a, p in enumerate(pi))
 
-            def solve(b, transpose):
-                if inner32:  # float32 like the Newton steps' solves, to a relative _FLOAT32_RTOL
-                    x = _policy_solve(op, gamma, tuple(p.astype(jnp.float32) for p in pi), b.astype(jnp.float32),
-                                      max(gtol, _FLOAT32_RTOL), degree, dim, cycles, transpose=transpose)[0]
-                    return x.astype(b.dtype)
-                return _policy_solve(op, gamma, pi, b, gtol, degree, dim, cycles, transpose=transpose)[0]
+            def solve(b, transpose):  # in the Newton steps' precision
+                return _policy_solve(op, gamma, pi, b, gtol, degree, dim, cycles, transpose, precision=precision)[0]
 
             dV = jax.lax.custom_linear_solve(
                 lambda x: x - gamma * _policy_apply(op, pi)(x), rhs,
