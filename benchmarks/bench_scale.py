@@ -262,15 +262,23 @@ def part_trajectories(args) -> dict:
 def measure_sweep(S: int, chains: int, sweeps: int) -> dict:
     """One fresh process: ``fit``'s defaults on the open gridworld of S states (the reward
     emission, 8 slots, every move): 16 demonstrations of 100 steps by two Boltzmann experts (theta
-    = 1000 e_k: walk to goal k), switching with probability 0.02 a step. A first fit of 1 + 1
-    sweeps compiles; a second of ``sweeps`` + ``sweeps`` is timed (``sweep_s`` its time over
-    its sweeps, the greedy moves' share of warmup included)."""
+    = 1000 e_k: walk to goal k), switching with probability 0.02 a step.
+
+    One fit of ``sweeps`` + ``sweeps`` sweeps, each sweep timed on its own (the driver's
+    ``_Chains.advance`` wrapped, the chains' state waited for): the first sweep compiles and is
+    left out; the warmup's last quarter runs the greedy moves, as in every default fit. Reports
+    the start (``init_s``: the initial IRL fits of the skills, compilation included), the median
+    plain warmup, greedy and sampling sweep, and ``sweep_s``: the mean sweep of a default fit
+    (200 + 200 sweeps: 150 plain warmup, 50 greedy, 200 sampling) from those medians."""
     import types
 
     os.environ.setdefault("NPBRS_CACHE_DIR", "off")
+    import jax
+
     from npbrs.domains import generate_demonstrations, make_soft_solver
     from npbrs.domains.gridworld import open_gridworld
     from npbrs.inference import fit
+    from npbrs.inference.driver import fit as driver
 
     mdp = open_gridworld(int(round(math.sqrt(S))))
     solver = make_soft_solver(mdp)
@@ -282,15 +290,36 @@ def measure_sweep(S: int, chains: int, sweeps: int) -> dict:
     demos = generate_demonstrations(types.SimpleNamespace(mdp=mdp), num_trajectories=16, length=100, seed=0,
                                     policies=policies)
     del res, policies
-    kw = dict(num_chains=chains, progress_bar=False, seed=0)
+    times, advance, init = [], driver._Chains.advance, driver._Compiled.init
+
+    def timed_advance(self):
+        t = time.perf_counter()
+        records = advance(self)
+        jax.block_until_ready(self.states)
+        times.append(time.perf_counter() - t)
+        return records
+
+    def timed_init(self, *args, **kwargs):
+        t = time.perf_counter()
+        state = jax.block_until_ready(init(self, *args, **kwargs))
+        times.append(("init", time.perf_counter() - t))
+        return state
+
+    driver._Chains.advance, driver._Compiled.init = timed_advance, timed_init
     start = time.perf_counter()
-    fit(mdp, demos, num_warmup=1, num_samples=1, **kw)
-    first = time.perf_counter() - start
-    start = time.perf_counter()
-    result = fit(mdp, demos, num_warmup=sweeps, num_samples=sweeps, **kw)
-    timed = time.perf_counter() - start
-    return {"S": mdp.num_states, "chains": chains, "first_fit_s": round(first, 2), "timed_fit_s": round(timed, 2),
-            "sweep_s": round(timed / (2 * sweeps), 3), "skills": int(result.num_skills),
+    result = fit(mdp, demos, num_warmup=sweeps, num_samples=sweeps, num_chains=chains, progress_bar=False, seed=0)
+    wall = time.perf_counter() - start
+    init_s, per_sweep = times[0][1], np.asarray(times[1:])
+    greedy_from = int(np.floor(0.75 * sweeps))  # MOVE_DEFAULTS["greedy_from"] x warmup
+    plain = np.median(per_sweep[1:greedy_from]) if greedy_from > 1 else float("nan")
+    greedy = np.median(per_sweep[greedy_from:sweeps])
+    sample = np.median(per_sweep[sweeps:])
+    mean = (150 * plain + 50 * greedy + 200 * sample) / 400
+    return {"S": mdp.num_states, "chains": chains, "sweeps": 2 * sweeps, "fit_s": round(wall, 2),
+            "init_s": round(init_s, 2), "first_sweep_s": round(float(per_sweep[0]), 2),
+            "warmup_sweep_s": round(float(plain), 3), "greedy_sweep_s": round(float(greedy), 3),
+            "sample_sweep_s": round(float(sample), 3), "sweep_s": round(float(mean), 3),
+            "sweep_times": [round(float(t), 3) for t in per_sweep], "skills": int(result.num_skills),
             "peak_rss_mb": round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024)}
 
 
@@ -301,12 +330,16 @@ def part_sweep(args) -> dict:
     for S in args.sizes:
         row = run_child(["--_sweep-child", int(S), "--chains", args.sweep_chains, "--sweeps", args.sweeps],
                         f"S = {int(S)}")
-        print(f"  S {row['S']:8d}: first fit {row['first_fit_s']:7.1f} s, sweep {row['sweep_s']:.3f} s, "
-              f"peak {row['peak_rss_mb']} MB, {row['skills']} skills", flush=True)
+        print(f"  S {row['S']:8d}: start {row['init_s']:7.1f} s; sweeps: warmup {row['warmup_sweep_s']:.2f} s, "
+              f"greedy {row['greedy_sweep_s']:.2f} s, sampling {row['sample_sweep_s']:.2f} s, a default fit's mean "
+              f"{row['sweep_s']:.3f} s; peak {row['peak_rss_mb']} MB, {row['skills']} skills", flush=True)
         rows.append(row)
     out = {"rows": rows}
     if len(rows) > 1:
-        out["exponent_s_sweep"] = round(fit_exponent([r["S"] for r in rows], [r["sweep_s"] for r in rows]), 3)
+        sizes = [r["S"] for r in rows]
+        out["exponent_s_sweep"] = round(fit_exponent(sizes, [r["sweep_s"] for r in rows]), 3)
+        for key in ("init", "warmup_sweep", "greedy_sweep", "sample_sweep"):
+            out[f"exponent_s_{key}"] = round(fit_exponent(sizes, [r[f"{key}_s"] for r in rows]), 3)
     big = [r for r in rows if r["S"] == 10 ** 6]
     if big:
         out["sweep_1e6_s"], out["sweep_1e6_peak_mb"] = big[0]["sweep_s"], big[0]["peak_rss_mb"]
