@@ -289,15 +289,7 @@ class BPHMMKernel(MCMCKernel, Pytree):
             z = z0
         z = jnp.where(self.data.mask, z, -1).astype(jnp.int32)
         weights = skill_weights(z, self.data.mask, K)
-        if z0 is None and K0 < K:
-            # slots K0.. have no steps: their prior draws (their exact conditional), not data
-            # fits of nothing, which cost a batched solve a slot (on a large MDP, most of the
-            # start: the fits' lanes run in lock-step, the empty ones included)
-            rest = jax.vmap(self.emission.sample_prior_one)(jax.random.split(keys[2], K - K0))
-            params = jax.tree.map(lambda a, b: jnp.concatenate([a, b]),
-                                  self.emission.init_params(keys[1], self.data, weights[..., :K0]), rest)
-        else:
-            params = self.emission.init_params(keys[1], self.data, weights)
+        params = self.emission.init_params(keys[1], self.data, weights)
         if z0 is None:
             features = jnp.zeros((N, K)).at[:, :K0].set(1.0)
         else:  # a given segmentation: each trajectory has the features of the skills it uses
