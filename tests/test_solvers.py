@@ -108,7 +108,7 @@ def test_factored_next_value_operator_equals_successor_gather(name):
 
 @pytest.mark.parametrize("transpose", [False, True])
 def test_the_policy_operator_folds_shared_successors_and_equals_the_dense_matrix(transpose):
-    from npbrs.domains.solvers import _Columns, successor_union
+    from npbrs.domains.solvers import _Columns, predecessors, successor_union
 
     mdp, P = random_mdp(4, S=12, A=4, density=0.15)
     S, A, B = mdp.successors.shape
@@ -133,6 +133,14 @@ def test_the_policy_operator_folds_shared_successors_and_equals_the_dense_matrix
     # a denser MDP's fold would hold too many terms (distinct successors x (action, slot)):
     # it keeps the per-action form, as does an MDP whose actions share no successors
     assert _Columns(random_mdp(4, S=12, A=4, density=0.4)[0], "sparse")._union is None
+    if transpose:
+        # the transpose gathers over each state's predecessors; where a state has more than
+        # max_in_degree of them (a hub) the operator keeps the scatter form, which agrees too
+        assert op._pred is not None and predecessors(union, 1) is None
+        saved, op._pred = op._pred, None
+        scattered = op.policy(tuple(jnp.asarray(p) for p in pi), transpose)(jnp.asarray(x))
+        np.testing.assert_allclose(scattered, expected, atol=1e-13)
+        op._pred = saved
     op._union = None  # the per-action form
     per_action = op.policy(tuple(jnp.asarray(p) for p in pi), transpose)(jnp.asarray(x))
     np.testing.assert_allclose(per_action, expected, atol=1e-13)
