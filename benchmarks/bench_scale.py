@@ -269,7 +269,8 @@ def measure_sweep(S: int, chains: int, sweeps: int) -> dict:
     left out; the warmup's last quarter runs the greedy moves, as in every default fit. Reports
     the start (``init_s``: the initial IRL fits of the skills, compilation included), the median
     plain warmup, greedy and sampling sweep, and ``sweep_s``: the mean sweep of a default fit
-    (200 + 200 sweeps: 150 plain warmup, 50 greedy, 200 sampling) from those medians."""
+    (200 + 200 sweeps; greedy from ``MOVE_DEFAULTS["greedy_from"]`` of warmup: 150 plain, 50
+    greedy, 200 sampling) from those medians."""
     import types
 
     os.environ.setdefault("NPBRS_CACHE_DIR", "off")
@@ -279,6 +280,7 @@ def measure_sweep(S: int, chains: int, sweeps: int) -> dict:
     from npbrs.domains.gridworld import open_gridworld
     from npbrs.inference import fit
     from npbrs.inference.driver import fit as driver
+    from npbrs.inference.sampler.options import MOVE_DEFAULTS
 
     mdp = open_gridworld(int(round(math.sqrt(S))))
     solver = make_soft_solver(mdp)
@@ -290,7 +292,7 @@ def measure_sweep(S: int, chains: int, sweeps: int) -> dict:
     demos = generate_demonstrations(types.SimpleNamespace(mdp=mdp), num_trajectories=16, length=100, seed=0,
                                     policies=policies)
     del res, policies
-    times, advance, init = [], driver._Chains.advance, driver._Compiled.init
+    times, starts, advance, init = [], [], driver._Chains.advance, driver._Compiled.init
 
     def timed_advance(self):
         t = time.perf_counter()
@@ -302,19 +304,20 @@ def measure_sweep(S: int, chains: int, sweeps: int) -> dict:
     def timed_init(self, *args, **kwargs):
         t = time.perf_counter()
         state = jax.block_until_ready(init(self, *args, **kwargs))
-        times.append(("init", time.perf_counter() - t))
+        starts.append(time.perf_counter() - t)
         return state
 
     driver._Chains.advance, driver._Compiled.init = timed_advance, timed_init
     start = time.perf_counter()
     result = fit(mdp, demos, num_warmup=sweeps, num_samples=sweeps, num_chains=chains, progress_bar=False, seed=0)
     wall = time.perf_counter() - start
-    init_s, per_sweep = times[0][1], np.asarray(times[1:])
-    greedy_from = int(np.floor(0.75 * sweeps))  # MOVE_DEFAULTS["greedy_from"] x warmup
+    init_s, per_sweep = starts[0], np.asarray(times)
+    greedy_share = MOVE_DEFAULTS["greedy_from"]  # the warmup's greedy sweeps start at this fraction
+    greedy_from = int(np.floor(greedy_share * sweeps))
     plain = np.median(per_sweep[1:greedy_from]) if greedy_from > 1 else float("nan")
     greedy = np.median(per_sweep[greedy_from:sweeps])
     sample = np.median(per_sweep[sweeps:])
-    mean = (150 * plain + 50 * greedy + 200 * sample) / 400
+    mean = (greedy_share * plain + (1 - greedy_share) * greedy + sample) / 2  # 200 + 200 sweeps
     return {"S": mdp.num_states, "chains": chains, "sweeps": 2 * sweeps, "fit_s": round(wall, 2),
             "init_s": round(init_s, 2), "first_sweep_s": round(float(per_sweep[0]), 2),
             "warmup_sweep_s": round(float(plain), 3), "greedy_sweep_s": round(float(greedy), 3),

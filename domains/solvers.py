@@ -697,6 +697,9 @@ class SoftSolver(Pytree):
             pi = tuple(jnp.exp(Q[..., a] - V) for a in range(A))
             rhs = sum(p * dr[..., a] for a, p in enumerate(pi))
 
+            def operator(x, transpose=False):  # (I - gamma P_pi) x, or its transpose, in float64
+                return x - gamma * _policy_apply(op, pi, transpose)(x)
+
             def solve(b, transpose):
                 x = _policy_solve(op, gamma, pi, b, gtol, degree, dim, cycles, transpose, precision=precision)[0]
                 if precision == "float32":
@@ -705,13 +708,12 @@ class SoftSolver(Pytree):
                     # large terms that cancel near its optimum: at float32's 1e-5 alone it was wrong
                     # by its own size there, and IRL fits' line searches failed (56 evaluations
                     # for a 20-step fit at 10^5 states, against 13 in float64)
-                    r = b - (x - gamma * _policy_apply(op, pi, transpose)(x))
-                    x = x + _policy_solve(op, gamma, pi, r, gtol, degree, dim, cycles, transpose,
-                                          precision=precision)[0]
+                    x = x + _policy_solve(op, gamma, pi, b - operator(x, transpose), gtol, degree, dim, cycles,
+                                          transpose, precision=precision)[0]
                 return x
 
             dV = jax.lax.custom_linear_solve(
-                lambda x: x - gamma * _policy_apply(op, pi)(x), rhs,
+                operator, rhs,
                 solve=lambda _, b: solve(b, False), transpose_solve=lambda _, b: solve(b, True))
             dQ = dr + gamma * jnp.stack(op.apply(dV), -1)
             zero_int = np.zeros(it.shape, dtype=jax.dtypes.float0)

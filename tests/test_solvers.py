@@ -150,9 +150,9 @@ def test_the_policy_operator_folds_shared_successors_and_equals_the_dense_matrix
 def test_float32_inner_solves_reach_the_float64_fixed_point_with_accurate_derivatives(problem, folded):
     """krylov_precision="float32" solves each Newton step's linear system in float32; the
     iteration and its convergence test stay float64, so the solution is the same fixed point
-    to the tolerance and the step count grows by at most one; derivatives (their solves stay
-    float64: at 1e-5 an IRL gradient near its optimum was wrong by its own size) agree with
-    float64's to 1e-9. Both operator forms: per action, and folded onto distinct successors."""
+    to the tolerance and the step count grows by at most one; derivatives (their solves in
+    float32 too, refined once in float64: at float32's 1e-5 alone an IRL gradient near its
+    optimum was wrong by its own size) agree with float64's to 1e-9. Both operator forms: per action, and folded onto distinct successors."""
     from npbrs.domains import solvers as solvers_module
 
     if folded:
