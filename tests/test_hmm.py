@@ -227,10 +227,13 @@ def test_transition_and_initial_counts():
     np.testing.assert_array_equal(initial_counts(z, mask, 3), [[1, 0, 0], [0, 0, 1]])
 
 
-def test_the_filter_stays_exact_with_rare_transitions_and_peaked_likelihoods():
-    """The prediction is a matrix product in probability space: transitions of weight e^-600
-    and steps only one skill explains (log-likelihoods down to -500) must still give the
-    log-space recursion's marginal and filtered probabilities (a NumPy reference)."""
+@pytest.mark.parametrize("case", ["rare_exits", "rarely_entered", "masked"])
+def test_the_filter_stays_exact_with_rare_transitions_and_peaked_likelihoods(case):
+    """The recursion runs in probability space: transitions of weight e^-600, a skill entered
+    from anywhere with weight e^-750 only (below the smallest float64: its column's scale must
+    move into the likelihoods), steps only one skill explains (log-likelihoods down to -900),
+    and padding at the start and in the middle must still give the log-space recursion's
+    marginal and filtered probabilities (a NumPy reference)."""
     from scipy.special import logsumexp
 
     rng = np.random.default_rng(5)
@@ -242,17 +245,60 @@ def test_the_filter_stays_exact_with_rare_transitions_and_peaked_likelihoods():
     log_lik[:20, 1:] -= 500.0  # skill 0 alone explains the first 20 steps
     log_lik[20:, 0] -= 500.0   # then skill 0 cannot explain a step
     log_init = np.log(rng.dirichlet(np.ones(K)))
+    mask = np.ones(T, bool)
+    if case == "rarely_entered":
+        log_trans[:, 3] = -750.0  # skill 3 is entered (or kept) with weight e^-750 ...
+        log_lik[40:, :3] -= 900.0  # ... but only it explains the last 20 steps
+    if case == "masked":
+        mask[:3] = False
+        mask[30:33] = False
     lt = log_trans - logsumexp(log_trans, axis=1, keepdims=True)
     pred, total, alphas = log_init - logsumexp(log_init), 0.0, []
+    filt = pred
     for t in range(T):
+        if not mask[t]:
+            alphas.append(filt)
+            continue
         joint = pred + log_lik[t]
         c = logsumexp(joint)
         total += c
-        alphas.append(joint - c)
-        pred = logsumexp(alphas[-1][:, None] + lt, axis=0)
-    log_marginal, log_alpha = forward_filter(log_init, log_trans, log_lik)
+        filt = joint - c
+        alphas.append(filt)
+        pred = logsumexp(filt[:, None] + lt, axis=0)
+    log_marginal, log_alpha = forward_filter(log_init, log_trans, log_lik, mask)
     np.testing.assert_allclose(float(log_marginal), total, rtol=1e-12)
     np.testing.assert_allclose(np.exp(log_alpha), np.exp(np.array(alphas)), atol=1e-12)
+
+
+def test_the_filter_stays_finite_where_the_data_need_a_transition_below_the_smallest_float():
+    """Leaving skill 0 has weight e^-760 (below the smallest float64, about e^-745), and from
+    step 20 on skill 0 explains a step e^-800 worse than the others: every term of the step's
+    normaliser underflows in probability space. The filter floors predictions at e^-700 (the
+    log-space recursion it replaced, at e^-708), so the marginal stays finite, is at least the
+    exact one and at most the floor's difference (60 nats, and a few of normalisation) above
+    it; the filtered probabilities are the exact ones before the switch, and their likeliest
+    skill is the exact one everywhere. (Without the floor the marginal is NaN.)"""
+    from scipy.special import logsumexp
+
+    rng = np.random.default_rng(6)
+    T, K = 40, 3
+    log_trans = rng.normal(size=(K, K))
+    log_trans[0, 1:] = -760.0
+    log_lik = -rng.gamma(2.0, size=(T, K))
+    log_lik[:20, 1:] -= 500.0
+    log_lik[20:, 0] -= 800.0
+    lt = log_trans - logsumexp(log_trans, axis=1, keepdims=True)
+    pred, total, alphas = np.log(np.full(K, 1.0 / K)), 0.0, []
+    for t in range(T):
+        joint = pred + log_lik[t]
+        total += logsumexp(joint)
+        alphas.append(joint - logsumexp(joint))
+        pred = logsumexp(alphas[-1][:, None] + lt, axis=0)
+    log_marginal, log_alpha = forward_filter(np.zeros(K), log_trans, log_lik)
+    assert np.all(np.isfinite(np.asarray(log_alpha))) and np.isfinite(float(log_marginal))
+    assert total <= float(log_marginal) <= total + 65.0
+    np.testing.assert_array_equal(np.argmax(log_alpha, 1), np.argmax(np.array(alphas), 1))
+    np.testing.assert_allclose(np.exp(log_alpha[:20]), np.exp(np.array(alphas[:20])), atol=1e-12)
 
 
 # ----------------------------------------------------------------------------- gated transitions
