@@ -63,6 +63,7 @@ on a shared 2-core machine another job's processes halve what a run gets.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import math
 import os
@@ -259,39 +260,16 @@ def part_trajectories(args) -> dict:
 
 
 # ------------------------------------------------------------------------------- sweep part
-def measure_sweep(S: int, chains: int, sweeps: int) -> dict:
-    """One fresh process: ``fit``'s defaults on the open gridworld of S states (the reward
-    emission, 8 slots, every move): 16 demonstrations of 100 steps by two Boltzmann experts (theta
-    = 1000 e_k: walk to goal k), switching with probability 0.02 a step.
-
-    One fit of ``sweeps`` + ``sweeps`` sweeps, each sweep timed on its own (the driver's
-    ``_Chains.advance`` wrapped, the chains' state waited for): the first sweep compiles and is
-    left out; the warmup's last quarter runs the greedy moves, as in every default fit. Reports
-    the start (``init_s``: the initial IRL fits of the skills, compilation included), the median
-    plain warmup, greedy and sampling sweep, and ``sweep_s``: the mean sweep of a default fit
-    (200 + 200 sweeps; greedy from ``MOVE_DEFAULTS["greedy_from"]`` of warmup: 150 plain, 50
-    greedy, 200 sampling) from those medians."""
-    import types
-
-    os.environ.setdefault("NPBRS_CACHE_DIR", "off")
+@contextlib.contextmanager
+def timed_sweeps():
+    """Within the block, every sweep of a ``fit`` is timed on its own (the driver's
+    ``_Chains.advance`` wrapped, the chains' state waited for) and so is the chains' start
+    (``_Compiled.init``): yields (sweep times, start times), lists of seconds that fill as fits
+    run; the driver is restored on exit."""
     import jax
 
-    from npbrs.domains import generate_demonstrations, make_soft_solver
-    from npbrs.domains.gridworld import open_gridworld
-    from npbrs.inference import fit
     from npbrs.inference.driver import fit as driver
-    from npbrs.inference.sampler.options import MOVE_DEFAULTS
 
-    mdp = open_gridworld(int(round(math.sqrt(S))))
-    solver = make_soft_solver(mdp)
-    theta = np.zeros((2, mdp.num_features))
-    theta[[0, 1], [0, 1]] = 1000.0
-    res = solver(np.asarray(solver.rewards(theta)))
-    policies = np.exp(np.asarray(res.Q) - np.asarray(res.V)[..., None])
-    policies /= policies.sum(-1, keepdims=True)
-    demos = generate_demonstrations(types.SimpleNamespace(mdp=mdp), num_trajectories=16, length=100, seed=0,
-                                    policies=policies)
-    del res, policies
     times, starts, advance, init = [], [], driver._Chains.advance, driver._Compiled.init
 
     def timed_advance(self):
@@ -308,9 +286,47 @@ def measure_sweep(S: int, chains: int, sweeps: int) -> dict:
         return state
 
     driver._Chains.advance, driver._Compiled.init = timed_advance, timed_init
-    start = time.perf_counter()
-    result = fit(mdp, demos, num_warmup=sweeps, num_samples=sweeps, num_chains=chains, progress_bar=False, seed=0)
-    wall = time.perf_counter() - start
+    try:
+        yield times, starts
+    finally:
+        driver._Chains.advance, driver._Compiled.init = advance, init
+
+
+def measure_sweep(S: int, chains: int, sweeps: int) -> dict:
+    """One fresh process: ``fit``'s defaults on the open gridworld of S states (the reward
+    emission, 8 slots, every move): 16 demonstrations of 100 steps by two Boltzmann experts (theta
+    = 1000 e_k: walk to goal k), switching with probability 0.02 a step.
+
+    One fit of ``sweeps`` + ``sweeps`` sweeps, each sweep timed on its own (the driver's
+    ``_Chains.advance`` wrapped, the chains' state waited for): the first sweep compiles and is
+    left out; the warmup's last quarter runs the greedy moves, as in every default fit. Reports
+    the start (``init_s``: the initial IRL fits of the skills, compilation included), the median
+    plain warmup, greedy and sampling sweep, and ``sweep_s``: the mean sweep of a default fit
+    (200 + 200 sweeps; greedy from ``MOVE_DEFAULTS["greedy_from"]`` of warmup: 150 plain, 50
+    greedy, 200 sampling) from those medians."""
+    import types
+
+    os.environ.setdefault("NPBRS_CACHE_DIR", "off")
+
+    from npbrs.domains import generate_demonstrations, make_soft_solver
+    from npbrs.domains.gridworld import open_gridworld
+    from npbrs.inference import fit
+    from npbrs.inference.sampler.options import MOVE_DEFAULTS
+
+    mdp = open_gridworld(int(round(math.sqrt(S))))
+    solver = make_soft_solver(mdp)
+    theta = np.zeros((2, mdp.num_features))
+    theta[[0, 1], [0, 1]] = 1000.0
+    res = solver(np.asarray(solver.rewards(theta)))
+    policies = np.exp(np.asarray(res.Q) - np.asarray(res.V)[..., None])
+    policies /= policies.sum(-1, keepdims=True)
+    demos = generate_demonstrations(types.SimpleNamespace(mdp=mdp), num_trajectories=16, length=100, seed=0,
+                                    policies=policies)
+    del res, policies
+    with timed_sweeps() as (times, starts):
+        start = time.perf_counter()
+        result = fit(mdp, demos, num_warmup=sweeps, num_samples=sweeps, num_chains=chains, progress_bar=False, seed=0)
+        wall = time.perf_counter() - start
     init_s, per_sweep = starts[0], np.asarray(times)
     greedy_share = MOVE_DEFAULTS["greedy_from"]  # the warmup's greedy sweeps start at this fraction
     greedy_from = int(np.floor(greedy_share * sweeps))
