@@ -229,11 +229,11 @@ def test_transition_and_initial_counts():
 
 @pytest.mark.parametrize("case", ["rare_exits", "rarely_entered", "masked"])
 def test_the_filter_stays_exact_with_rare_transitions_and_peaked_likelihoods(case):
-    """The prediction is a matrix product in probability space: transitions of weight e^-600,
-    a skill entered from anywhere with weight e^-750 only (below the smallest float64: the
-    columns' shift must keep it representable), steps only one skill explains
-    (log-likelihoods down to -900), and padding at the start and in the middle must still give
-    the log-space recursion's marginal and filtered probabilities (a NumPy reference)."""
+    """The recursion runs in probability space: transitions of weight e^-600, a skill entered
+    from anywhere with weight e^-750 only (below the smallest float64: its column's scale must
+    move into the likelihoods), steps only one skill explains (log-likelihoods down to -900),
+    and padding at the start and in the middle must still give the log-space recursion's
+    marginal and filtered probabilities (a NumPy reference)."""
     from scipy.special import logsumexp
 
     rng = np.random.default_rng(5)
@@ -272,12 +272,12 @@ def test_the_filter_stays_exact_with_rare_transitions_and_peaked_likelihoods(cas
 
 def test_the_filter_stays_finite_where_the_data_need_a_transition_below_the_smallest_float():
     """Leaving skill 0 has weight e^-760 (below the smallest float64, about e^-745), and from
-    step 20 on skill 0 explains a step e^-800 worse than the others: the prediction's matrix
-    product underflows. The filter floors predictions at the smallest normal float (e^-708), so
-    the marginal stays finite, is at least the exact one and at most the floor's difference
-    (about 50 nats, and a few of normalisation) above it; the filtered probabilities are the
-    exact ones before the switch, and their likeliest skill is the exact one everywhere.
-    (Without the floor the marginal is NaN.)"""
+    step 20 on skill 0 explains a step e^-800 worse than the others: every term of the step's
+    normaliser underflows in probability space. The filter floors predictions at e^-700 (the
+    log-space recursion it replaced, at e^-708), so the marginal stays finite, is at least the
+    exact one and at most the floor's difference (60 nats, and a few of normalisation) above
+    it; the filtered probabilities are the exact ones before the switch, and their likeliest
+    skill is the exact one everywhere. (Without the floor the marginal is NaN.)"""
     from scipy.special import logsumexp
 
     rng = np.random.default_rng(6)
