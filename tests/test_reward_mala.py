@@ -150,7 +150,7 @@ def test_the_value_only_likelihood_is_the_posteriors_and_flags_a_failed_solve():
             np.testing.assert_allclose(np.asarray(ll), n1 * np.log(p1) + n0 * np.log1p(-p1), rtol=1e-10)
 
 
-@pytest.mark.parametrize("chunk", [1, 2, 4])
+@pytest.mark.parametrize("chunk", [pytest.param(1, marks=pytest.mark.slow), 2, 4])  # (1: the gather of 2, smaller)
 def test_only_the_active_skills_move_each_as_in_a_step_of_all(chunk, monkeypatch):
     """With ``active`` the kernel solves only the active skills (``chunk`` at a time: the
     module's batching threshold is set so; 2 puts an inactive skill in a chunk's tail, 4 pads

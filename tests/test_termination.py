@@ -286,6 +286,7 @@ def test_a_state_ends_fit_too_large_to_keep_its_draws_is_refused_before_compilin
 
 
 # ------------------------------------------------------------------- the whole sweep: getting it right
+@pytest.mark.slow  # (50 s of a cold suite; its documented power is covered by the faster tests above)
 def test_state_ends_sweeps_alternated_with_simulated_data_sample_the_prior():
     """Geweke's joint-distribution test (see ``test_joint_distribution.py``, whose setting this
     reuses: 3 ragged trajectories, 6 slots, policy skills, sampled alpha, kappa and gamma, birth/death
@@ -297,7 +298,12 @@ def test_state_ends_sweeps_alternated_with_simulated_data_sample_the_prior():
 
     Power, checked: without the logit's Jacobian in mu's Metropolis ratio it fails (p 8e-5, skills
     used and switches); ends counted in the state left instead of the one entered it does not
-    see (a few steps per state and slot here; the counts test and the planted test catch that)."""
+    see (a few steps per state and slot here; the counts test and the planted test catch that).
+
+    In ``-m slow`` only: each conditional the sweep with ends composes is checked exactly by a
+    faster test above (mu's Metropolis move against quadrature, which a missing Jacobian fails;
+    the ends' Beta; the features' ratio against the NumPyro model's density; eta from the
+    switches only; the log joint), and the sweep without ends by ``test_joint_distribution``."""
     import test_joint_distribution as J
 
     from npbrs.models.bphmm import Hyper

@@ -181,7 +181,6 @@ def allocate(emission, data, z_m, f_m, k1, k2, anchors, order, init_one, num_blo
     seg = jnp.zeros((N, T, 2)).at[ia, :, 0].set(_run_around(z_m[ia], mask[ia], ta).astype(jnp.float64))
     seg = seg.at[ib, :, 1].set(_run_around(z_m[ib], mask[ib], tb).astype(jnp.float64))
     init = jax.tree.map(lambda x: jnp.stack([x, x]), init_one)
-    fits0 = emission.fit_point(data, seg, init)
 
     def one_trajectory(i, valid, lik_ab):
         i = jnp.maximum(i, 0)
@@ -196,20 +195,27 @@ def allocate(emission, data, z_m, f_m, k1, k2, anchors, order, init_one, num_blo
         path, _ = viterbi(jnp.zeros(K), log_trans, jnp.where(allowed, emit, NEG_LOG), mi, (f_m[i] > 0) | (cols == k2))
         return jnp.where(go, path, zi)
 
-    def block(carry, rows_used):
-        z, done, fits = carry
-        rows, used = rows_used
+    # One point fit per scan step, then that step's block: the first step fits the anchors' runs
+    # (from ``init_one``), each later one the steps allocated so far (kept where its block was in
+    # use), and a last step with no block fits the final allocation. (One call site of the fit
+    # in the compiled program, not two: its code is a large part of the sweep's.)
+    fit_on = jnp.concatenate([jnp.ones(1, bool), in_use])  # (num_blocks + 1,)
+    rows_of = jnp.concatenate([blocks, jnp.full((1,) + blocks.shape[1:], -1, blocks.dtype)])
+
+    def block(carry, step):
+        z, done, fits, weights = carry
+        rows, fit_now = step
+        refit = emission.fit_point(data, weights, fits)
+        fits = jax.tree.map(lambda new, old: jnp.where(fit_now, new, old), refit, fits)
         lik_ab, _ = emission.log_likelihoods(fits, data, emission.init_cache(2))  # (N, T, 2)
         valid = rows >= 0
         zs = jax.vmap(lambda i, v: one_trajectory(i, v, lik_ab))(rows, valid)
         safe = jnp.where(valid, rows, N)  # out of range: dropped by the scatter
         z = z.at[safe].set(zs, mode="drop")
         done = done.at[safe].set(True, mode="drop")
-        refit = emission.fit_point(data, weights_of(z, done), fits)
-        fits = jax.tree.map(lambda new, old: jnp.where(used, new, old), refit, fits)
-        return (z, done, fits), None
+        return (z, done, fits, weights_of(z, done)), None
 
-    (z, _, fits), _ = jax.lax.scan(block, (z_m, jnp.zeros(N, bool), fits0), (blocks, in_use))
+    (z, _, fits, _), _ = jax.lax.scan(block, (z_m, jnp.zeros(N, bool), init, seg), (rows_of, fit_on))
     return z, fits
 
 
