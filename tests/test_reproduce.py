@@ -27,7 +27,9 @@ ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 @pytest.fixture
 def oracle_fit(monkeypatch):
     """``fit`` replaced by the truth: the true segmentation and skill rewards ("single": one
-    skill with skill A's reward; "subgoal": every skill aims at the first candidate goal)."""
+    skill with skill A's reward; "subgoal": every skill aims at the first candidate goal). The
+    truth is the run's per-step most probable skills (``segment``); its best draw
+    (``segmentation``) mislabels every trajectory's first step."""
     calls = []
     domain = get_domain("highway")
 
@@ -43,8 +45,10 @@ def oracle_fit(monkeypatch):
             seg, params = true, {"theta": np.array(domain.skill_weights)}
         else:
             seg, params = true, {}
-        return SimpleNamespace(segmentation=seg, num_skills=len(np.unique(np.concatenate(seg))),
-                               skill_params=params, best_log_joint=0.0, wall_time=0.0)
+        K = len(np.unique(np.concatenate(seg)))
+        best = [np.where(np.arange(len(z)) == 0, (z + 1) % K, z) for z in seg]
+        return SimpleNamespace(segmentation=best, num_skills=K, skill_params=params, best_log_joint=0.0,
+                               wall_time=0.0, segment=lambda mdp, emission=None: SimpleNamespace(labels=seg))
 
     monkeypatch.setattr(sys.modules["npbrs.inference.driver.fit"], "fit", fake)
     return calls
@@ -105,6 +109,30 @@ def test_a_stopped_reproduction_resumes_with_its_finished_runs(oracle_fit):
     assert [r["runs_done"] for r in seen] == [2]
     with pytest.raises(ValueError, match="differs in settings"):
         reproduce("highway", 30, runs=2, num_trajectories=2, progress=False, methods=("npbrs", "lds"), previous=first)
+
+
+def test_a_reproduction_scores_the_posterior_marginals_and_keeps_the_best_draws_scores(oracle_fit):
+    """By default every method is scored by its run's per-step most probable skills (here the
+    truth); the best draw's segmentation (here off at every first step) is scored beside it,
+    and is what ``segmentation="best"`` scores."""
+    options = dict(runs=1, num_trajectories=2, quick=True, progress=False, methods=("npbrs", "lds"))
+    marginal = reproduce("highway", 30, **options)
+    best = reproduce("highway", 30, segmentation="best", **options)
+    assert marginal["segmentation"] == "marginal" and best["segmentation"] == "best"
+    for method in ("npbrs", "lds"):
+        m, b = marginal["per_run"][0]["methods"][method], best["per_run"][0]["methods"][method]
+        assert m["hungarian_accuracy"] == 1.0 > b["hungarian_accuracy"]
+        assert m["best_draw"] == {k: b[k] for k in ("reward", "switches", "paper_accuracy", "hungarian_accuracy")}
+        assert "best_draw" not in b
+    run = marginal["per_run"][0]
+    assert run["methods"]["npbrs"]["rewards"] == run["expert"]["rewards"]
+    assert best["per_run"][0]["methods"]["npbrs"]["reward"] != run["expert"]["reward"]
+    assert "best draw's segmentation instead" in format_markdown(marginal)
+    assert "best draw's segmentation instead" not in format_markdown(best)
+    with pytest.raises(ValueError, match="segmentation must be one of marginal, best"):
+        reproduce("highway", 30, segmentation="mode", **options)
+    with pytest.raises(ValueError, match="differs in segmentation"):
+        reproduce("highway", 30, previous=best, **options)
 
 
 def test_bad_methods_and_settings_are_refused():
