@@ -98,7 +98,10 @@ def one_run(name, run, args, worlds):
             result.save(os.path.join(args.save_runs, f"{name}-{run}-{method}.nc"))
     npbrs, irl = fits["npbrs"], fits["irl"]
     carried = npbrs.policies(domain.mdp, greedy=True)
-    cloned = cloned_policies(domain.mdp, demos, npbrs.segmentation, carried)
+    # the segmentation the inferred skills act by: each step's most probable skill under the
+    # run's posterior (FitResult.segment; as npbrs reproduce scores), or the best draw's
+    labels = npbrs.segmentation if args.segmentation == "best" else npbrs.segment(domain.mdp).labels
+    cloned = cloned_policies(domain.mdp, demos, labels, carried)
     # replay from the recorded start states and label timeline: the demonstrations themselves
     # belong to the paper's world, so they are used without their MDP fingerprint
     timeline = Demonstrations(demos.states, demos.actions, demos.skills)
@@ -111,10 +114,10 @@ def one_run(name, run, args, worlds):
                   "expert_carried": evaluate_control(changed, timeline, demos.skills, domain.expert_policies(),
                                                      seed=run)["reward"],
                   "true_seg_irl": evaluate_control(changed, timeline, demos.skills, true_theta, seed=run)["reward"],
-                  "npbrs": evaluate_control(changed, timeline, npbrs.segmentation,
+                  "npbrs": evaluate_control(changed, timeline, labels,
                                             npbrs.policies(mdp, greedy=True), seed=run)["reward"],
-                  "carried": evaluate_control(changed, timeline, npbrs.segmentation, carried, seed=run)["reward"],
-                  "cloned": evaluate_control(changed, timeline, npbrs.segmentation, cloned, seed=run)["reward"],
+                  "carried": evaluate_control(changed, timeline, labels, carried, seed=run)["reward"],
+                  "cloned": evaluate_control(changed, timeline, labels, cloned, seed=run)["reward"],
                   "irl": evaluate_control(changed, timeline, irl.segmentation, irl.policies(mdp, greedy=True),
                                           seed=run)["reward"]}
         record[world] = scores
@@ -174,6 +177,9 @@ def main(argv=None) -> int:
     p.add_argument("--scale-prior", type=float, nargs=2, metavar=("A", "B"), default=None,
                    help="sample each skill's reward prior variance under InvGamma(A, B) in both fits "
                         "(the reward emission's scale_prior; default: the fixed scale)")
+    p.add_argument("--segmentation", choices=("marginal", "best"), default="marginal",
+                   help="the steps' skills npbrs's policies act by: each step's most probable skill under the "
+                        "run's posterior (FitResult.segment; the default) or the best draw's segmentation")
     p.add_argument("--save-runs", metavar="DIR", help="also save every fit as DIR/DOMAIN-RUN-METHOD.nc")
     p.add_argument("--out", default=os.path.join(os.path.dirname(__file__), "results", "transfer"))
     args = p.parse_args(argv)
@@ -187,7 +193,10 @@ def main(argv=None) -> int:
                               + (f", each skill's variance sampled under InvGamma{tuple(args.scale_prior)}"
                                  if args.scale_prior else "") + "; control reward as in the paper's Figures "
                               "7 and 10; each skill's policy from its posterior mean weights (FitResult.policies' "
-                              "default). "
+                              "default); the inferred skills act by "
+                              + ("the best draw's segmentation. " if args.segmentation == "best" else
+                                 "each step's most probable skill under the run's posterior (FitResult.segment). ")
+                              + 
                               f"Machine: {platform.machine()}, {os.cpu_count()} cores, shared with other jobs.",
                "settings": vars(args), "domains": {}}
     os.makedirs(args.out, exist_ok=True)
