@@ -133,6 +133,9 @@ def test_a_reproduction_scores_the_posterior_marginals_and_keeps_the_best_draws_
         reproduce("highway", 30, segmentation="mode", **options)
     with pytest.raises(ValueError, match="differs in segmentation"):
         reproduce("highway", 30, previous=best, **options)
+    # a result made before the setting existed scored the best draw's, and resumes as such
+    older = {k: v for k, v in best.items() if k != "segmentation"}
+    assert reproduce("highway", 30, previous=older, segmentation="best", **options)["per_run"] == best["per_run"]
 
 
 def test_bad_methods_and_settings_are_refused():
