@@ -196,8 +196,7 @@ def main(argv=None) -> int:
                               "default); the inferred skills act by "
                               + ("the best draw's segmentation. " if args.segmentation == "best" else
                                  "each step's most probable skill under the run's posterior (FitResult.segment). ")
-                              + 
-                              f"Machine: {platform.machine()}, {os.cpu_count()} cores, shared with other jobs.",
+                              + f"Machine: {platform.machine()}, {os.cpu_count()} cores, shared with other jobs.",
                "settings": vars(args), "domains": {}}
     os.makedirs(args.out, exist_ok=True)
     for name in args.domains.split(","):
