@@ -74,7 +74,7 @@ _cache = os.environ.get(CACHE_ENV) or os.path.join(tempfile.gettempdir(), "npbrs
 # worker could otherwise read another's half-written file
 _worker = os.environ.get("PYTEST_XDIST_WORKER")
 jax.config.update("jax_compilation_cache_dir", os.path.join(_cache, _worker) if _worker else _cache)
-jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.5)
+jax.config.update("jax_persistent_cache_min_compile_time_secs", 0)
 jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
 
 # ArviZ 0.23 writes a once-a-day stamp file at import through a temporary file of a fixed name:
