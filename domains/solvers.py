@@ -578,6 +578,46 @@ def _check_options(tol, max_iter, krylov_dim, max_restarts, degree):
         raise ValueError(f"krylov_dim and max_restarts must be >= 1, got {krylov_dim}, {max_restarts}")
 
 
+# ------------------------------------------------------------- vmap folded into the batch
+def fold_vmap(fn):
+    """``fn(op, *arrays)``, every array (leaves of pytrees) and every output with a leading axis of
+    K systems solved in lock-step, made to fold a ``vmap``'s mapped axis into that axis: under
+    ``vmap`` (n-way) it runs once on n * K systems instead of being batched loop by loop.
+
+    JAX batches a ``while_loop`` whose condition depends on the mapped values by running it until
+    every member is done and masking each step's carry with a select; nested in the solver's
+    Newton, GMRES and L-BFGS loops that doubles the work of a solve and grows the compiled
+    program. The solver already solves its K systems together, so a vmapped call (the sampler's
+    chains, a Jacobian's tangents) is simply more systems. The numbers can differ from a
+    one-by-one solve in the last bits: a system that converged keeps iterating until the batch
+    has (each iterate is a fixed point to the tolerance). An operator ``op`` (a pytree) that is
+    itself mapped (dynamics that differ between members) is vmapped as usual."""
+
+    def call(op, *args):
+        leaves, treedef = jax.tree.flatten(op)  # (the operator's arrays, passed as leaves)
+        unflat = lambda ls, *a: fn(jax.tree.unflatten(treedef, ls), *a)  # noqa: E731
+        folded = jax.custom_batching.custom_vmap(unflat)
+
+        @folded.def_vmap
+        def rule(axis_size, in_batched, ls, *a):
+            if any(in_batched[0]):
+                in_axes = tuple(jax.tree.map(lambda b: 0 if b else None, ib) for ib in in_batched)
+                out = jax.vmap(unflat, in_axes=in_axes)(ls, *a)
+                return out, jax.tree.map(lambda _: True, out)
+
+            def fold(x, batched):
+                x = x if batched else jnp.broadcast_to(x, (axis_size,) + jnp.shape(x))
+                return x.reshape((axis_size * x.shape[1],) + x.shape[2:])
+
+            out = unflat(ls, *[jax.tree.map(fold, x, b) for x, b in zip(a, in_batched[1:])])
+            out = jax.tree.map(lambda x: x.reshape((axis_size, x.shape[0] // axis_size) + x.shape[1:]), out)
+            return out, jax.tree.map(lambda _: True, out)
+
+        return folded(leaves, *args)
+
+    return call
+
+
 # ------------------------------------------------------------------------ soft solver
 @jax.jit
 def _solve_batch(solver, r, v0):
@@ -681,7 +721,7 @@ class SoftSolver(Pytree):
         # is ignored: the dynamics are data, not parameters).
         gamma, A = self.discount, self.num_actions
         dim, cycles, gtol, degree = self.krylov_dim, self.max_restarts, self.grad_tol, self.precondition_degree
-        precision, core = self.krylov_precision, self._core
+        precision, core = self.krylov_precision, fold_vmap(self._core)
 
         @jax.custom_jvp
         def fixed_point(op, r, v0):
@@ -701,15 +741,16 @@ class SoftSolver(Pytree):
                 return x - gamma * _policy_apply(op, pi, transpose)(x)
 
             def solve(b, transpose):
-                x = _policy_solve(op, gamma, pi, b, gtol, degree, dim, cycles, transpose, precision=precision)[0]
+                one = fold_vmap(lambda o, p, c: _policy_solve(o, gamma, p, c, gtol, degree, dim, cycles, transpose,
+                                                              precision=precision)[0])
+                x = one(op, pi, b)
                 if precision == "float32":
                     # one step of iterative refinement: the float64 residual's correction solved in
                     # float32 again (relative 1e-5 of 1e-5). A gradient of a log-likelihood sums
                     # large terms that cancel near its optimum: at float32's 1e-5 alone it was wrong
                     # by its own size there, and IRL fits' line searches failed (56 evaluations
                     # for a 20-step fit at 10^5 states, against 13 in float64)
-                    x = x + _policy_solve(op, gamma, pi, b - operator(x, transpose), gtol, degree, dim, cycles,
-                                          transpose, precision=precision)[0]
+                    x = x + one(op, pi, b - operator(x, transpose))
                 return x
 
             dV = jax.lax.custom_linear_solve(

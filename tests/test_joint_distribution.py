@@ -48,7 +48,6 @@ import numpy as np
 import pytest
 from scipy import stats
 
-from compiling import RUN_BOUND
 from npbrs.inference.sampler.kernel import BPHMMKernel
 from npbrs.models.bphmm import Hyper
 from npbrs.models.emissions import HMMData, PolicyEmission
@@ -200,7 +199,7 @@ def statistics(state, coordinate):
                       state.hyper.alpha, state.hyper.kappa, state.hyper.gamma])
 
 
-@partial(jax.jit, static_argnames=("sweeps", "coordinate"), compiler_options=RUN_BOUND)
+@partial(jax.jit, static_argnames=("sweeps", "coordinate"))
 def run_chains(kernel, P, key, start, sweeps, coordinate):
     """Successive-conditional chains, one per prior draw in ``start`` = (alpha, kappa, gamma,
     omega, F, eta, params) (a leading chain axis), of ``sweeps`` steps each (redraw the skill

@@ -10,7 +10,6 @@ import pytest
 from scipy.special import betaln, gammaln
 from scipy.stats import chi2
 
-from compiling import RUN_BOUND
 from npbrs.inference.sampler.kernel import BPHMMKernel
 from npbrs.models.emissions import HMMData, PolicyEmission
 
@@ -98,7 +97,7 @@ def test_sampler_visits_segmentations_in_proportion_to_their_posterior(moves):
         _, zs = jax.lax.scan(body, state, None, length=sweeps)
         return zs
 
-    zs = np.asarray(jax.jit(jax.vmap(run), compiler_options=RUN_BOUND)(jax.random.split(jax.random.PRNGKey(0), chains)))
+    zs = np.asarray(jax.jit(jax.vmap(run))(jax.random.split(jax.random.PRNGKey(0), chains)))
     assert np.all(zs[:, :, ~mask] == -1)
     zs = zs[:, 200:, :N, :T].reshape(-1, N, T)
     index = {k: j for j, k in enumerate(keys)}
@@ -145,7 +144,7 @@ def test_split_merge_trial_leaves_the_exact_posterior_invariant():
         new, info = split_merge(k_move, MoveState(f, eta, z, params, log_lik), em, data, hyper, 2)
         return new.z, info.accepted, info.is_split
 
-    z2, accepted, is_split = jax.jit(jax.vmap(one), compiler_options=RUN_BOUND)(jax.random.split(jax.random.PRNGKey(1), M), F, Z)
+    z2, accepted, is_split = jax.jit(jax.vmap(one))(jax.random.split(jax.random.PRNGKey(1), M), F, Z)
     accepted, is_split = np.asarray(accepted), np.asarray(is_split)
     assert accepted[is_split].mean() > 0.05 and accepted[~is_split].mean() > 0.05, (accepted[is_split].mean(),
                                                                                     accepted[~is_split].mean())

@@ -78,6 +78,39 @@ def test_batched_solves_equal_single_solves_and_warm_starts_agree(problem):
     np.testing.assert_allclose(grid.V[:, 0], batch.V, rtol=1e-11)
 
 
+def test_a_vmapped_solve_is_one_batched_solve_with_the_same_values_and_derivatives(problem):
+    """Under vmap the solver folds the mapped axis into its own batch (``fold_vmap``): one solve
+    of n x K systems, not a loop batched step by step. Values, reverse-mode gradients and
+    forward-mode Jacobians (whose tangents are a vmap too) equal the unmapped ones, and a
+    mapped operator (dynamics that differ between members) falls back to a plain vmap."""
+    mdp, _, solver, R = problem
+    S, D = mdp.num_states, mdp.num_features
+    R2 = jnp.asarray(np.stack([R, 0.5 * R[::-1]]))  # (2, 3, S, A)
+    np.testing.assert_allclose(jax.jit(jax.vmap(lambda r: solver(r).V))(R2), solver(R2).V, rtol=1e-10)
+    loops = [line.split("= while[")[0] for line in str(jax.make_jaxpr(jax.vmap(lambda r: solver(r).V))(R2)).splitlines()
+             if "= while[" in line]  # each while loop's results
+    # folded: the solve's loops carry the 2 x 3 systems as one axis of 6
+    assert loops and any(f"f64[6,{S}]" in out for out in loops) and not any("[2,3," in out for out in loops)
+    # reverse mode under vmap (the transposed derivative solve) against the unmapped batch's
+    # gradient (the loss is a sum over the members, so its gradient stacks theirs)
+    w = jnp.asarray(np.random.default_rng(5).normal(size=(3, S)))
+    loss = lambda r: jnp.sum(w * solver(r).V)  # noqa: E731
+    np.testing.assert_allclose(jax.jit(jax.vmap(jax.grad(loss)))(R2), jax.jit(jax.grad(loss))(R2), rtol=1e-8,
+                               atol=1e-10)
+    # forward mode: jacfwd maps the tangent directions (the derivative solve under vmap); its
+    # product with a direction is that direction's plain jvp
+    rng = np.random.default_rng(6)
+    theta, e = jnp.asarray(rng.normal(size=(3, D))), jnp.asarray(rng.normal(size=(3, D)))
+    f = lambda th: jnp.sum(w * solver(solver.rewards(th)).V, -1)  # noqa: E731
+    jac = jax.jit(jax.jacfwd(f))(theta)  # (3, 3, D)
+    np.testing.assert_allclose(jnp.einsum("ikd,kd->i", jac, e), jax.jit(lambda t, v: jax.jvp(f, (t,), (v,))[1])(theta, e),
+                               rtol=1e-8, atol=1e-10)
+    # a mapped operator: the solver's arrays stacked twice (the same dynamics), mapped with the rewards
+    stacked = jax.tree.map(lambda x: jnp.stack([x, x]), solver)
+    mapped = jax.jit(jax.vmap(lambda sv, r: sv(r).V))(stacked, R2)
+    np.testing.assert_allclose(mapped, solver(R2).V, rtol=1e-10)
+
+
 def test_solver_is_pure_and_jittable_inside_lax_loops(problem):
     mdp, _, solver, R = problem
 
