@@ -650,9 +650,9 @@ class SoftSolver(Pytree):
     """Soft value iteration for one MDP as a pure, jit-able, differentiable function.
 
     ``solver(rewards, v0)`` maps reward tables (..., S, A) and a warm start (..., S) (or None:
-    zeros) to a :class:`SolveResult`. Leading axes are solved together, in lock-step (pass a
-    batch rather than ``vmap`` the solver: under ``vmap`` every loop counter becomes per-system
-    and costs about twice as much). It can be called inside ``jax.jit``, ``vmap`` and ``lax``
+    zeros) to a :class:`SolveResult`. Leading axes are solved together, in lock-step; under
+    ``vmap`` the mapped axis joins them (:func:`fold_vmap`: one solve of all the systems, not a
+    loop batched step by step). It can be called inside ``jax.jit``, ``vmap`` and ``lax``
     loops, and differentiated (forward or reverse) with respect to the rewards by implicit
     differentiation at the fixed point. Outside a trace the inputs are checked (shape,
     finiteness) and a ValueError names what is wrong.
