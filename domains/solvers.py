@@ -609,7 +609,8 @@ def fold_vmap(fn):
                 x = x if batched else jnp.broadcast_to(x, (axis_size,) + jnp.shape(x))
                 return x.reshape((axis_size * x.shape[1],) + x.shape[2:])
 
-            out = unflat(ls, *[jax.tree.map(fold, x, b) for x, b in zip(a, in_batched[1:])])
+            # (through ``folded`` again, so that an enclosing vmap folds its axis in too)
+            out = folded(ls, *[jax.tree.map(fold, x, b) for x, b in zip(a, in_batched[1:])])
             out = jax.tree.map(lambda x: x.reshape((axis_size, x.shape[0] // axis_size) + x.shape[1:]), out)
             return out, jax.tree.map(lambda _: True, out)
 

@@ -91,6 +91,11 @@ def test_a_vmapped_solve_is_one_batched_solve_with_the_same_values_and_derivativ
              if "= while[" in line]  # each while loop's results
     # folded: the solve's loops carry the 2 x 3 systems as one axis of 6
     assert loops and any(f"f64[6,{S}]" in out for out in loops) and not any("[2,3," in out for out in loops)
+    # nested maps (the chains around a Jacobian's tangents) fold too: 2 x 2 x 3 systems as 12
+    R4 = jnp.stack([R2, R2])
+    loops = [line.split("= while[")[0] for line in
+             str(jax.make_jaxpr(jax.vmap(jax.vmap(lambda r: solver(r).V)))(R4)).splitlines() if "= while[" in line]
+    assert any(f"f64[12,{S}]" in out for out in loops) and not any("[2," in out for out in loops)
     # reverse mode under vmap (the transposed derivative solve) against the unmapped batch's
     # gradient (the loss is a sum over the members, so its gradient stacks theirs)
     w = jnp.asarray(np.random.default_rng(5).normal(size=(3, S)))
