@@ -106,9 +106,14 @@ def test_greedy_merges_run_only_in_warmup_and_remove_a_copy_gibbs_keeps():
     a = b = stack
     skills_gibbs, skills_greedy = [], []
     for step in range(8):
+        before = b
         a, b = run_gibbs(a), run_greedy(b)
         skills_gibbs.append(np.asarray(a.num_skills).tolist())
         skills_greedy.append(np.asarray(b.num_skills).tolist())
+        # greedy_idle counts the greedy sweeps in a row that kept nothing (sweeps 1-3 here)
+        kept = np.asarray(b.greedy_merges) > np.asarray(before.greedy_merges)
+        idle = np.asarray(before.greedy_idle)
+        np.testing.assert_array_equal(b.greedy_idle, np.where(kept, 0, idle + 1) if 1 <= step < 4 else idle)
         if step < 1:  # before greedy_from * warmup = sweep 1: the same sweeps (two programs, so
             # the floats may differ in rounding)
             assert _tree_close(a, b), step
@@ -117,6 +122,18 @@ def test_greedy_merges_run_only_in_warmup_and_remove_a_copy_gibbs_keeps():
     # the state counts the moves kept (warmup's totals): a merge per chain, no splits (off)
     assert np.all(np.asarray(b.greedy_merges) >= 1) and not np.any(np.asarray(b.greedy_splits))
     assert not np.any(np.asarray(a.greedy_merges)) and not np.any(np.asarray(a.greedy_splits))
+    # a chain whose last greedy_patience greedy sweeps kept nothing stops trying: its sweep is
+    # the Gibbs sweep, while the other chain, vectorised beside it, still merges the copy
+    patience = greedy.moves["greedy_patience"]
+    closed = stack._replace(step=jnp.full(2, 2, jnp.int32), greedy_idle=jnp.array([patience, patience - 1]))
+    out, ref = run_greedy(closed), run_gibbs(closed)
+    first = lambda s, c: jax.tree.map(lambda x: x[c], s)  # noqa: E731
+    assert _tree_close(first(out, 0), first(ref, 0)) and int(out.greedy_idle[0]) == patience
+    assert int(out.greedy_merges[1]) == 1 and int(out.num_skills[1]) == 3 and int(out.greedy_idle[1]) == 0
+    both = closed._replace(greedy_idle=jnp.full(2, patience))  # all closed: the trials are skipped
+    assert _tree_close(run_greedy(both), run_gibbs(both))
+    with pytest.raises(ValueError, match="greedy_patience"):
+        BPHMMKernel(PolicyEmission(4, 3), data3, max_skills=3, moves={"greedy_patience": -1})
     # after warmup the greedy kernel's sweep is the Gibbs sweep, even from the copy (up to rounding)
     for seed in range(3):
         late = stack._replace(step=jnp.full(2, 4, jnp.int32), rng_key=jax.random.split(jax.random.PRNGKey(seed), 2))

@@ -689,8 +689,9 @@ def fit(mdp, demos: Demonstrations, config: Union[ModelConfig, dict, str, os.Pat
             it says otherwise, greedy merges and splits run late in warmup
             (:data:`DEFAULT_GREEDY_TRIALS` from ``MOVE_DEFAULTS["greedy_from"]`` x warmup on,
             see :func:`default_moves`) for emissions with ``fit_evidence`` and ``fit_point``
-            (the reward and policy emissions); ``{"greedy_merge": 0, "greedy_split": 0}`` turns
-            them off. The other options' defaults: ``npbrs.inference.sampler.options.MOVE_DEFAULTS``.
+            (the reward and policy emissions), in each chain until ``greedy_patience`` (10)
+            greedy sweeps in a row have kept nothing; ``{"greedy_merge": 0, "greedy_split": 0}``
+            turns them off. The other options' defaults: ``npbrs.inference.sampler.options.MOVE_DEFAULTS``.
         bucket: pad the demonstrations to shape buckets (a quarter at most more trajectories
             and steps), so that another data set of similar size reuses the compiled sampler
             (see :class:`~npbrs.inference.driver.config.SamplerConfig`; off by default).

@@ -62,7 +62,8 @@ class BPHMMState(NamedTuple):
     switches per trajectory, accept: the emission move's mean acceptance, birth_accept: the
     fraction of birth/death trials accepted in the last sweep, split_accept: likewise for
     split-merge trials, greedy_merges, greedy_splits: the greedy merges and splits kept so far
-    (they run in warmup only, so a draw shows warmup's totals), best_*: the
+    (they run in warmup only, so a draw shows warmup's totals), greedy_idle: the greedy sweeps
+    in a row that kept nothing (``moves["greedy_patience"]``), best_*: the
     highest-log-joint state seen after warmup.
     """
 
@@ -86,6 +87,7 @@ class BPHMMState(NamedTuple):
     split_accept: jax.Array
     greedy_merges: jax.Array
     greedy_splits: jax.Array
+    greedy_idle: jax.Array
     best_log_joint: jax.Array
     best_z: jax.Array
     best_params: Dict[str, jax.Array]
@@ -131,7 +133,10 @@ class BPHMMKernel(MCMCKernel, Pytree):
             off; the emission needs ``fit_evidence``; see ``npbrs.inference.sampler.greedy``:
             not an MCMC move, so it never runs in the sampling sweeps), "greedy_split": greedy
             split trials per sweep there (the emission also needs ``fit_point``),
-            "greedy_from": that fraction of warmup, in [0, 1), "redraw_unused": the sweeps
+            "greedy_from": that fraction of warmup, in [0, 1), "greedy_patience": a chain's
+            greedy moves stop for the rest of warmup after this many greedy sweeps in a row that
+            kept nothing (0: never; a long warmup's chains have mostly settled by then, and a
+            greedy sweep costs several plain ones), "redraw_unused": the sweeps
             between prior redraws of the parameters of skills without steps (their exact
             conditional; kept as they are in between, also exact: a redraw's likelihoods cost
             new solves for the reward emission, half of a sweep's time on the highway),
@@ -236,8 +241,9 @@ class BPHMMKernel(MCMCKernel, Pytree):
     def sample(self, state, model_args, model_kwargs):
         if jnp.ndim(state.step) > 0:
             # the chains sweep in lock-step: one unbatched "moves on" flag keeps the moves a real
-            # conditional under vmap (a batched predicate would run them in every sweep)
-            clock = (state.step[0], state.num_warmup[0])
+            # conditional under vmap (a batched predicate would run them in every sweep); the
+            # greedy trials run while any chain's are still on (each chain keeps its own result)
+            clock = (state.step[0], state.num_warmup[0], jnp.any(self._greedy_open(state)))
             return jax.vmap(self.sweep, in_axes=(0, None))(state, clock)
         return self.sweep(state)
 
@@ -251,6 +257,11 @@ class BPHMMKernel(MCMCKernel, Pytree):
         the log joint count the real trajectories only, and every random draw is numbered per
         trajectory, so a padded run's draws of the real trajectories are the unpadded run's."""
         return jnp.any(self.data.mask, axis=1)
+
+    def _greedy_open(self, state: BPHMMState):
+        """Whether the chain's greedy moves still run (``moves["greedy_patience"]``)."""
+        patience = self.moves["greedy_patience"]
+        return state.greedy_idle < patience if patience else jnp.ones(jnp.shape(state.greedy_idle), bool)
 
     def gate(self, state: BPHMMState):
         """(N, T, K) every step's end probabilities under ``state``'s ends (the filters' gate),
@@ -306,7 +317,8 @@ class BPHMMKernel(MCMCKernel, Pytree):
             cache=self.emission.init_cache(K), hyper=hyper, z=z,
             log_lik=jnp.zeros((N, T, K)), log_marginals=jnp.zeros(N), log_joint=zero,
             num_skills=jnp.int32(0), num_switches=zero, accept=zero, birth_accept=zero, split_accept=zero,
-            greedy_merges=jnp.int32(0), greedy_splits=jnp.int32(0), best_log_joint=jnp.float64(-jnp.inf), best_z=z,
+            greedy_merges=jnp.int32(0), greedy_splits=jnp.int32(0), greedy_idle=jnp.int32(0),
+            best_log_joint=jnp.float64(-jnp.inf), best_z=z,
             best_params=params, best_features=features, ends=ends, end_mean=end_mean)
         return self._finish(state)
 
@@ -419,7 +431,8 @@ class BPHMMKernel(MCMCKernel, Pytree):
         batched predicate would run both branches in every sweep)."""
         N, K = state.features.shape
         mask = self.data.mask
-        step, num_warmup = (state.step, state.num_warmup) if clock is None else clock
+        step, num_warmup, greedy_any = ((state.step, state.num_warmup, self._greedy_open(state)) if clock is None
+                                        else clock)
         model_kappa = state.hyper.kappa
         sticky = self.moves["sticky_start"] > 1.0 and "kappa" not in self.hyperpriors
         if sticky:
@@ -479,16 +492,22 @@ class BPHMMKernel(MCMCKernel, Pytree):
             moved, splits = gated(splits_run, moved, splits)
         if self.moves["greedy_merge"] or self.moves["greedy_split"]:
             greedy_on = (step < num_warmup) & (step >= jnp.floor(self.moves["greedy_from"] * num_warmup))
+            mine = self._greedy_open(state)  # this chain's greedy moves still run
 
             def greedy_run(ops):
                 k_merge, k_split = jax.random.split(k_gm)
-                ops, merged, split = greedy_trials(k_merge, k_split, ops, self.emission, self.data, state.hyper,
+                new, merged, split = greedy_trials(k_merge, k_split, ops, self.emission, self.data, state.hyper,
                                                    self.moves["greedy_merge"], self.moves["greedy_split"], blocks)
-                return ops, (merged, split)
+                # vectorised chains run the trials while any chain's are on; one whose are off
+                # keeps its state, so its draws are those of a sweep without them
+                return select(mine, new, ops), (jnp.where(mine, merged, 0), jnp.where(mine, split, 0))
 
             moved, (merged, split) = jax.lax.cond(
-                greedy_on, greedy_run, lambda ops: (ops, (jnp.int32(0), jnp.int32(0))), moved)
-            greedy_kept = dict(greedy_merges=state.greedy_merges + merged, greedy_splits=state.greedy_splits + split)
+                greedy_on & greedy_any, greedy_run, lambda ops: (ops, (jnp.int32(0), jnp.int32(0))), moved)
+            ran = greedy_on & mine
+            idle = jnp.where(ran, jnp.where(merged + split > 0, 0, state.greedy_idle + 1), state.greedy_idle)
+            greedy_kept = dict(greedy_merges=state.greedy_merges + merged, greedy_splits=state.greedy_splits + split,
+                               greedy_idle=idle.astype(jnp.int32))
         else:
             greedy_kept = {}
         features, z, params = moved.features, moved.z, moved.params

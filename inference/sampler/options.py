@@ -19,10 +19,12 @@ __all__ = ["MOVE_DEFAULTS", "check_moves"]
 #: ``greedy_from``, the fraction of warmup from which the greedy moves run; ``redraw_unused``, the
 #: sweeps between prior redraws of the parameters of skills without steps (1: every sweep; in
 #: between they are kept as they are); ``sticky_start``, a factor on a fixed kappa at the first
-#: warmup sweep that falls linearly to 1 at mid-warmup (1: off; a search aid of warmup only).
+#: warmup sweep that falls linearly to 1 at mid-warmup (1: off; a search aid of warmup only);
+#: ``greedy_patience``, the greedy sweeps in a row that keep nothing after which a chain's greedy
+#: moves stop for the rest of warmup (0: they never stop).
 MOVE_DEFAULTS = {"birth_death": 0, "window": (10, 50), "split_merge": 0, "blocks": 2, "start": 0,
                  "greedy_merge": 0, "greedy_split": 0, "greedy_from": 0.75, "redraw_unused": 1,
-                 "sticky_start": 1.0}
+                 "sticky_start": 1.0, "greedy_patience": 10}
 
 
 def check_moves(moves) -> dict:
@@ -39,6 +41,9 @@ def check_moves(moves) -> dict:
         raise ValueError(f"moves.blocks must be an integer >= 1, got {out['blocks']!r}")
     if not isinstance(out["redraw_unused"], int) or isinstance(out["redraw_unused"], bool) or out["redraw_unused"] < 1:
         raise ValueError(f"moves.redraw_unused must be a number of sweeps >= 1, got {out['redraw_unused']!r}")
+    p = out["greedy_patience"]
+    if not isinstance(p, int) or isinstance(p, bool) or p < 0:
+        raise ValueError(f"moves.greedy_patience must be a number of greedy sweeps >= 0 (0: never stop), got {p!r}")
     if not isinstance(out["start"], int) or isinstance(out["start"], bool) or out["start"] < 0:
         raise ValueError(f"moves.start must be a sweep number >= 0, got {out['start']!r}")
     f = out["sticky_start"]
