@@ -122,16 +122,23 @@ def test_greedy_merges_run_only_in_warmup_and_remove_a_copy_gibbs_keeps():
     # the state counts the moves kept (warmup's totals): a merge per chain, no splits (off)
     assert np.all(np.asarray(b.greedy_merges) >= 1) and not np.any(np.asarray(b.greedy_splits))
     assert not np.any(np.asarray(a.greedy_merges)) and not np.any(np.asarray(a.greedy_splits))
-    # a chain whose last greedy_patience greedy sweeps kept nothing stops trying: its sweep is
-    # the Gibbs sweep, while the other chain, vectorised beside it, still merges the copy
+    # the greedy moves stop once every chain's last greedy_patience greedy sweeps kept nothing:
+    # while one chain's have not, both chains try (and merge the copy) ...
     patience = greedy.moves["greedy_patience"]
-    closed = stack._replace(step=jnp.full(2, 2, jnp.int32), greedy_idle=jnp.array([patience, patience - 1]))
-    out, ref = run_greedy(closed), run_gibbs(closed)
-    first = lambda s, c: jax.tree.map(lambda x: x[c], s)  # noqa: E731
-    assert _tree_close(first(out, 0), first(ref, 0)) and int(out.greedy_idle[0]) == patience
-    assert int(out.greedy_merges[1]) == 1 and int(out.num_skills[1]) == 3 and int(out.greedy_idle[1]) == 0
-    both = closed._replace(greedy_idle=jnp.full(2, patience))  # all closed: the trials are skipped
-    assert _tree_close(run_greedy(both), run_gibbs(both))
+    mixed = stack._replace(step=jnp.full(2, 2, jnp.int32), greedy_idle=jnp.array([patience, patience - 1]))
+    out = run_greedy(mixed)
+    np.testing.assert_array_equal(out.greedy_merges, [1, 1])
+    np.testing.assert_array_equal(out.num_skills, [3, 3])
+    np.testing.assert_array_equal(out.greedy_idle, [0, 0])
+    # ... and fit's sequential driver, which sweeps one chain at a time, does the same
+    from npbrs.inference.driver.fit import _Chains, _Compiled
+    chains = _Chains(_Compiled(greedy, ()), "sequential", mixed)
+    chains.advance()
+    assert _tree_close(chains.state(), out)
+    # once all have stopped, a sweep is the Gibbs sweep
+    stopped = mixed._replace(greedy_idle=jnp.full(2, patience))
+    out = run_greedy(stopped)
+    assert _tree_close(out, run_gibbs(stopped)) and np.all(np.asarray(out.greedy_idle) == patience)
     with pytest.raises(ValueError, match="greedy_patience"):
         BPHMMKernel(PolicyEmission(4, 3), data3, max_skills=3, moves={"greedy_patience": -1})
     # after warmup the greedy kernel's sweep is the Gibbs sweep, even from the copy (up to rounding)

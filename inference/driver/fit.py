@@ -200,8 +200,9 @@ class _Compiled:
         return _to_host(_init_chains(self.placed(mesh), keys, z0, jnp.int32(num_warmup), mesh))
 
     def step(self, method: str, mesh: Optional[Mesh] = None):
-        """state -> (next state, record): batched over chains ("vectorized"), or one chain
-        ("sequential"); on ``mesh``'s devices when given (state and data placed there)."""
+        """state -> (next state, record): batched over chains ("vectorized"), or (state,
+        greedy_open) -> (next state, record) of one chain ("sequential"; greedy_open: the run's
+        ``BPHMMKernel.greedy_open``); on ``mesh``'s devices when given (state and data placed there)."""
         fn = {"vectorized": _sweep_batched, "sequential": _sweep_one}[method]
         if mesh is None:
             return partial(fn, self.kernel, self.hyper_names)
@@ -233,9 +234,10 @@ def _init_chains(kernel, keys, z0, num_warmup, mesh=None):
     return _constrain(state, mesh, batched=True)
 
 
-@partial(jax.jit, static_argnums=(1, 3))
-def _sweep_one(kernel, hyper_names, state, mesh=None):
-    new = _constrain(_strong(kernel.sample(state, (), {})), mesh, batched=False)
+@partial(jax.jit, static_argnums=(1, 4))
+def _sweep_one(kernel, hyper_names, state, greedy_open, mesh=None):
+    # greedy_open: the run's (every chain's) BPHMMKernel.greedy_open
+    new = _constrain(_strong(kernel.sweep(state, (state.step, state.num_warmup, greedy_open))), mesh, batched=False)
     return new, _record(kernel, hyper_names, new)
 
 
@@ -505,6 +507,7 @@ class _Chains:
 
     def __init__(self, compiled: _Compiled, method: str, state, mesh: Optional[Mesh] = None):
         self.method = method
+        self.kernel = compiled.kernel
         self.fn = compiled.step(method, mesh)
         self.num_chains = int(np.shape(jax.tree_util.tree_leaves(state)[0])[0])
         if method == "sequential":
@@ -517,9 +520,11 @@ class _Chains:
     def advance(self):
         """One sweep of every chain; returns the records (a list of per-chain dicts or one batched dict)."""
         if self.method == "sequential":
+            # the chains' greedy moves stop together, as vectorised chains' do (the same draws)
+            greedy = jnp.any(jnp.stack([self.kernel.greedy_open(s) for s in self.states]))
             records = []
             for c, s in enumerate(self.states):
-                self.states[c], rec = self.fn(s)
+                self.states[c], rec = self.fn(s, greedy)
                 records.append(rec)
             return records
         self.states, rec = self.fn(self.states)
@@ -689,8 +694,8 @@ def fit(mdp, demos: Demonstrations, config: Union[ModelConfig, dict, str, os.Pat
             it says otherwise, greedy merges and splits run late in warmup
             (:data:`DEFAULT_GREEDY_TRIALS` from ``MOVE_DEFAULTS["greedy_from"]`` x warmup on,
             see :func:`default_moves`) for emissions with ``fit_evidence`` and ``fit_point``
-            (the reward and policy emissions), in each chain until ``greedy_patience`` (10)
-            greedy sweeps in a row have kept nothing; ``{"greedy_merge": 0, "greedy_split": 0}``
+            (the reward and policy emissions), until no chain has kept one in its last
+            ``greedy_patience`` (10) greedy sweeps; ``{"greedy_merge": 0, "greedy_split": 0}``
             turns them off. The other options' defaults: ``npbrs.inference.sampler.options.MOVE_DEFAULTS``.
         bucket: pad the demonstrations to shape buckets (a quarter at most more trajectories
             and steps), so that another data set of similar size reuses the compiled sampler

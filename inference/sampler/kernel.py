@@ -133,10 +133,10 @@ class BPHMMKernel(MCMCKernel, Pytree):
             off; the emission needs ``fit_evidence``; see ``npbrs.inference.sampler.greedy``:
             not an MCMC move, so it never runs in the sampling sweeps), "greedy_split": greedy
             split trials per sweep there (the emission also needs ``fit_point``),
-            "greedy_from": that fraction of warmup, in [0, 1), "greedy_patience": a chain's
-            greedy moves stop for the rest of warmup after this many greedy sweeps in a row that
-            kept nothing (0: never; a long warmup's chains have mostly settled by then, and a
-            greedy sweep costs several plain ones), "redraw_unused": the sweeps
+            "greedy_from": that fraction of warmup, in [0, 1), "greedy_patience": the greedy
+            moves stop for the rest of warmup once every chain's last this many greedy sweeps
+            have kept nothing (0: never; a long warmup's chains have mostly settled by then, and
+            a greedy sweep costs several plain ones), "redraw_unused": the sweeps
             between prior redraws of the parameters of skills without steps (their exact
             conditional; kept as they are in between, also exact: a redraw's likelihoods cost
             new solves for the reward emission, half of a sweep's time on the highway),
@@ -241,9 +241,9 @@ class BPHMMKernel(MCMCKernel, Pytree):
     def sample(self, state, model_args, model_kwargs):
         if jnp.ndim(state.step) > 0:
             # the chains sweep in lock-step: one unbatched "moves on" flag keeps the moves a real
-            # conditional under vmap (a batched predicate would run them in every sweep); the
-            # greedy trials run while any chain's are still on (each chain keeps its own result)
-            clock = (state.step[0], state.num_warmup[0], jnp.any(self._greedy_open(state)))
+            # conditional under vmap (a batched predicate would run them in every sweep), and one
+            # for the greedy moves of all chains (see :meth:`greedy_open`)
+            clock = (state.step[0], state.num_warmup[0], self.greedy_open(state))
             return jax.vmap(self.sweep, in_axes=(0, None))(state, clock)
         return self.sweep(state)
 
@@ -258,10 +258,15 @@ class BPHMMKernel(MCMCKernel, Pytree):
         trajectory, so a padded run's draws of the real trajectories are the unpadded run's."""
         return jnp.any(self.data.mask, axis=1)
 
-    def _greedy_open(self, state: BPHMMState):
-        """Whether the chain's greedy moves still run (``moves["greedy_patience"]``)."""
+    def greedy_open(self, state: BPHMMState):
+        """Whether the greedy moves still run (``moves["greedy_patience"]``): while some chain of
+        ``state`` (one chain, or chains stacked on axis 0) has kept a greedy move in its last
+        ``greedy_patience`` greedy sweeps. The chains of a run stop them together (vectorised,
+        skipping them saves time only then), so a driver that sweeps the chains one at a time
+        passes this of all of them as the sweep's ``clock`` (numpyro's sequential chains, which
+        see one chain at a time, stop each chain's on its own)."""
         patience = self.moves["greedy_patience"]
-        return state.greedy_idle < patience if patience else jnp.ones(jnp.shape(state.greedy_idle), bool)
+        return jnp.any(state.greedy_idle < patience) if patience else jnp.bool_(True)
 
     def gate(self, state: BPHMMState):
         """(N, T, K) every step's end probabilities under ``state``'s ends (the filters' gate),
@@ -425,13 +430,13 @@ class BPHMMKernel(MCMCKernel, Pytree):
     def sweep(self, state: BPHMMState, clock=None) -> BPHMMState:
         """One full sweep: features, birth/death, skill sequences, split-merge, greedy merges
         (warmup only), eta and omega, emission parameters, hyperparameters. The moves run from
-        sweep ``moves["start"]`` on. ``clock``: (sweep, warmup sweeps) as unbatched scalars
-        that replace the state's own for those tests: :meth:`sample` passes the first chain's,
+        sweep ``moves["start"]`` on. ``clock``: (sweep, warmup sweeps, :meth:`greedy_open`) as
+        unbatched scalars that replace the state's own for those tests: :meth:`sample` passes the first chain's,
         shared by vectorised chains so that the tests stay real conditionals under vmap (a
         batched predicate would run both branches in every sweep)."""
         N, K = state.features.shape
         mask = self.data.mask
-        step, num_warmup, greedy_any = ((state.step, state.num_warmup, self._greedy_open(state)) if clock is None
+        step, num_warmup, greedy_any = ((state.step, state.num_warmup, self.greedy_open(state)) if clock is None
                                         else clock)
         model_kappa = state.hyper.kappa
         sticky = self.moves["sticky_start"] > 1.0 and "kappa" not in self.hyperpriors
@@ -492,19 +497,18 @@ class BPHMMKernel(MCMCKernel, Pytree):
             moved, splits = gated(splits_run, moved, splits)
         if self.moves["greedy_merge"] or self.moves["greedy_split"]:
             greedy_on = (step < num_warmup) & (step >= jnp.floor(self.moves["greedy_from"] * num_warmup))
-            mine = self._greedy_open(state)  # this chain's greedy moves still run
 
             def greedy_run(ops):
                 k_merge, k_split = jax.random.split(k_gm)
-                new, merged, split = greedy_trials(k_merge, k_split, ops, self.emission, self.data, state.hyper,
+                ops, merged, split = greedy_trials(k_merge, k_split, ops, self.emission, self.data, state.hyper,
                                                    self.moves["greedy_merge"], self.moves["greedy_split"], blocks)
-                # vectorised chains run the trials while any chain's are on; one whose are off
-                # keeps its state, so its draws are those of a sweep without them
-                return select(mine, new, ops), (jnp.where(mine, merged, 0), jnp.where(mine, split, 0))
+                return ops, (merged, split)
 
-            moved, (merged, split) = jax.lax.cond(
-                greedy_on & greedy_any, greedy_run, lambda ops: (ops, (jnp.int32(0), jnp.int32(0))), moved)
-            ran = greedy_on & mine
+            # the trials stop for every chain at once (``greedy_any``: while any chain's last
+            # ``greedy_patience`` greedy sweeps kept something), so that skipping them saves time
+            ran = greedy_on & greedy_any
+            moved, (merged, split) = jax.lax.cond(ran, greedy_run, lambda ops: (ops, (jnp.int32(0), jnp.int32(0))),
+                                                  moved)
             idle = jnp.where(ran, jnp.where(merged + split > 0, 0, state.greedy_idle + 1), state.greedy_idle)
             greedy_kept = dict(greedy_merges=state.greedy_merges + merged, greedy_splits=state.greedy_splits + split,
                                greedy_idle=idle.astype(jnp.int32))

@@ -20,8 +20,8 @@ __all__ = ["MOVE_DEFAULTS", "check_moves"]
 #: sweeps between prior redraws of the parameters of skills without steps (1: every sweep; in
 #: between they are kept as they are); ``sticky_start``, a factor on a fixed kappa at the first
 #: warmup sweep that falls linearly to 1 at mid-warmup (1: off; a search aid of warmup only);
-#: ``greedy_patience``, the greedy sweeps in a row that keep nothing after which a chain's greedy
-#: moves stop for the rest of warmup (0: they never stop).
+#: ``greedy_patience``: the greedy moves stop for the rest of warmup once no chain has kept one in
+#: its last this many greedy sweeps (0: they never stop).
 MOVE_DEFAULTS = {"birth_death": 0, "window": (10, 50), "split_merge": 0, "blocks": 2, "start": 0,
                  "greedy_merge": 0, "greedy_split": 0, "greedy_from": 0.75, "redraw_unused": 1,
                  "sticky_start": 1.0, "greedy_patience": 10}
