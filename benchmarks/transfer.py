@@ -75,7 +75,7 @@ def one_run(name, run, args, worlds):
     from npbrs.domains.demos import Demonstrations, generate_demonstrations
     from npbrs.domains.registry import get_domain
     from npbrs.inference.driver.fit import fit
-    from npbrs.inference.cli.reproduce import default_settings
+    from npbrs.inference.cli.reproduce import default_settings, run_segmentation
 
     domain = get_domain(name)
     demos = generate_demonstrations(domain, num_trajectories=args.trajectories, length=args.length, seed=run)
@@ -99,8 +99,8 @@ def one_run(name, run, args, worlds):
     npbrs, irl = fits["npbrs"], fits["irl"]
     carried = npbrs.policies(domain.mdp, greedy=True)
     # the segmentation the inferred skills act by: each step's most probable skill under the
-    # run's posterior (FitResult.segment; as npbrs reproduce scores), or the best draw's
-    labels = npbrs.segmentation if args.segmentation == "best" else npbrs.segment(domain.mdp).labels
+    # run's posterior (FitResult.segment), or the best draw's, as npbrs reproduce scores
+    labels = run_segmentation(npbrs, domain.mdp, args.segmentation)
     cloned = cloned_policies(domain.mdp, demos, labels, carried)
     # replay from the recorded start states and label timeline: the demonstrations themselves
     # belong to the paper's world, so they are used without their MDP fingerprint

@@ -41,7 +41,7 @@ from npbrs.domains.files import atomic_write
 
 from .arguments import at_least
 
-__all__ = ["reproduce", "default_settings", "format_markdown", "save_json", "load_json", "add_parser",
+__all__ = ["reproduce", "default_settings", "run_segmentation", "format_markdown", "save_json", "load_json", "add_parser",
            "reproduce_command", "METHODS", "SEGMENTATIONS", "EMISSIONS", "ROWS", "COLUMNS", "PAPER", "QUICK_DATA"]
 
 #: How a run's segmentation is read off its posterior (see :func:`reproduce`).
@@ -153,14 +153,17 @@ def _skill_rewards(method: str, domain, result, emission) -> Optional[np.ndarray
     return None
 
 
-def _segmentation(result, domain, emission, segmentation: str):
+def run_segmentation(result, mdp, segmentation: str = "marginal", emission=None):
     """The run's segmentation by ``segmentation``: "marginal", each step's most probable skill
     under the run's posterior (``FitResult.segment``: the skill probabilities averaged over the
     draws, the estimate that maximises the expected number of correctly labelled steps), or
-    "best", the best draw's (``FitResult.segmentation``)."""
+    "best", the best draw's (``FitResult.segmentation``). The tables and
+    ``benchmarks/transfer.py`` score by it."""
+    if segmentation not in ("marginal", "best"):
+        raise ValueError(f"segmentation must be 'marginal' or 'best', got {segmentation!r}")
     if segmentation == "best" or result.num_skills < 2:
         return result.segmentation
-    return result.segment(domain.mdp, emission=emission).labels
+    return result.segment(mdp, emission=emission).labels
 
 
 def _run(domain, run: int, seed: int, length: int, num_trajectories: int, switch_prob: float, settings: dict,
@@ -195,7 +198,7 @@ def _run(domain, run: int, seed: int, length: int, num_trajectories: int, switch
                         hungarian_accuracy=hungarian_accuracy(true, seg))
 
         start = time.perf_counter()
-        seg = _segmentation(result, domain, emission, segmentation)
+        seg = run_segmentation(result, domain.mdp, segmentation, emission)
         record["methods"][method] = dict(scores(seg), skills=int(result.num_skills), wall_time=wall,
                                          segment_time=time.perf_counter() - start,
                                          best_log_joint=float(result.best_log_joint))
