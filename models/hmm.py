@@ -236,29 +236,48 @@ def smooth(log_trans, log_alpha, mask=None, active=None, gate=None) -> jax.Array
         active: (K,) bool, as given to :func:`forward_filter`.
         gate: (T, K) or None, as given to :func:`forward_filter`.
     Returns:
-        (T, K) normalised log-probabilities; ``NEG_LOG`` everywhere at masked steps.
+        (T, K) normalised log-probabilities (below the smallest normal float: that float's log;
+        an inactive skill's: ``NEG_LOG``); ``NEG_LOG`` everywhere at masked steps.
+
+    In probability space, as the filter: each column of the transition matrix in units of its
+    largest entry (the scale cancels between a step's prediction and its ratio), the
+    prediction floored at ``_FLOOR`` for an active skill as the filter floors it, and no
+    exponential or logarithm inside the loop (a third of the log-space recursion's cost).
     """
     log_alpha = jnp.asarray(log_alpha)
     T, K = log_alpha.shape
+    dtype = log_alpha.dtype
     mask = jnp.ones(T, dtype=bool) if mask is None else jnp.asarray(mask, dtype=bool)
-    _, log_trans = _prepare(None, jnp.asarray(log_trans), active)
-
-    ends = _gate_logs(gate, T, K, log_alpha.dtype) if gate is not None else ()
+    active, log_trans = _prepare(None, jnp.asarray(log_trans), active)
+    shift = jnp.max(log_trans, axis=0)
+    trans = jnp.exp(log_trans - shift)  # as the filter's: 0 for inactive skills
+    alpha = jnp.where(active, jnp.exp(log_alpha), 0.0)
+    if gate is not None:
+        end_next = _next_gate(gate, T, K, dtype)  # at step t, the gate of leaving it
+        unshift = jnp.where(active, jnp.exp(-jnp.maximum(shift, -700.0)), 0.0)
+        ends = (end_next, 1.0 - end_next)
+    else:
+        ends = ()
 
     def step(carry, inputs):
         after, seen = carry  # the next real step's marginals, and whether there is one
         filt, real, *gate_t = inputs
-        lt = log_trans if gate is None else _gated_trans(log_trans, *gate_t)
-        pred = jax.nn.logsumexp(filt[:, None] + lt, axis=0)
-        back = jax.nn.logsumexp(lt + jnp.maximum(after - pred, NEG_LOG)[None, :], axis=1)
-        post = jnp.where(seen, filt + back, filt)
-        post = post - jax.nn.logsumexp(post)
-        new = (jnp.where(real, post, after), seen | real)
-        return new, jnp.where(real, post, NEG_LOG)
+        if gate is None:
+            pred = filt @ trans
+        else:
+            end, stay = gate_t
+            pred = (filt * end) @ trans + filt * stay * unshift
+        pred = jnp.where(active, jnp.maximum(pred, _FLOOR), 0.0)
+        ratio = jnp.where(active, after / jnp.where(active, pred, 1.0), 0.0)
+        back = trans @ ratio if gate is None else end * (trans @ ratio) + stay * unshift * ratio
+        post = jnp.where(seen, filt * back, filt)
+        post = post / jnp.sum(post)
+        return (jnp.where(real, post, after), seen | real), post
 
-    init = (jnp.zeros(K, log_alpha.dtype), jnp.bool_(False))
-    _, out = jax.lax.scan(step, init, (log_alpha, mask) + tuple(ends), reverse=True)
-    return out
+    init = (jnp.zeros(K, dtype), jnp.bool_(False))
+    _, probs = jax.lax.scan(step, init, (alpha, mask) + tuple(ends), reverse=True)
+    log_post = jnp.where(active, jnp.log(jnp.maximum(probs, jnp.finfo(dtype).tiny)), NEG_LOG)
+    return jnp.where(mask[:, None], log_post, NEG_LOG)
 
 
 def path_log_prob(log_init, log_trans, log_lik, z, mask=None, active=None, gate=None) -> jax.Array:

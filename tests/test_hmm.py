@@ -389,6 +389,9 @@ def test_gated_filters_skip_padding_inactive_skills_and_batch():
     np.testing.assert_allclose(alphas[0, :5], a, atol=1e-12)
     post = batch_smooth(log_trans, alphas, mask, act, gates)
     np.testing.assert_allclose(np.exp(post[0, :5]), np.exp(smooth(log_trans, a, active=active, gate=gate)), atol=1e-12)
+    weights = np.exp(logp - logsumexp(logp))  # the smoother's marginals by enumeration
+    expected = np.array([[weights[paths[:, t] == k].sum() for k in range(3)] for t in range(5)])
+    np.testing.assert_allclose(np.exp(post[0, :5]), expected, atol=1e-12)
     zs, ps = batch_viterbi(log_init, log_trans, lls, mask, act, gates)
     np.testing.assert_array_equal(zs[0], np.concatenate([paths[np.argmax(logp)], [-1] * 3]))
     draws = batch_backward_sample(jax.random.key(0), log_trans, alphas, mask, act, gates)
