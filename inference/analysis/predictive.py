@@ -201,18 +201,24 @@ def _draw_moments(result, mdp, demos, idx, num_samples, seed, emission, leave_on
     one_draw_marginals = partial(_one_draw_marginals, emission, num_samples=num_samples)
 
     draws = _each_draw(samples, params_all, hyper_fixed, idx, seed, C)
+    # each draw's likelihood solves start from the previous draw's values (the emission's cache;
+    # a chain's consecutive draws are close): the same likelihoods to the solver's tolerance
+    cache = emission.init_cache(K)
     if marginals:
         def marginal_draws():
+            nonlocal cache
             for c, j, key, params, f, hyper, ends in draws:
                 p_on = f if own_features else feature_predictive(f.sum(0), others, float(hyper.alpha))
-                lm, post = one_draw_marginals(key, params, jnp.asarray(p_on, jnp.float64), hyper, data, ends)
+                lm, post, cache = one_draw_marginals(key, params, jnp.asarray(p_on, jnp.float64), hyper, data, ends,
+                                                     cache)
                 yield c, j, np.asarray(lm), np.asarray(post)
         return marginal_draws()
     out = np.empty((C, len(idx), 2, len(demos.lengths)))
     for c, j, key, params, f, hyper, ends in draws:
         # a fitted trajectory's own row is left out of the popularity counts
         counts = jnp.asarray(f.sum(0) - f if leave_one_out else f.sum(0), jnp.float64)
-        out[c, j] = np.asarray(one_draw(key, params, counts, hyper, data, ends))
+        moments, cache = one_draw(key, params, counts, hyper, data, ends, cache)
+        out[c, j] = np.asarray(moments)
     return out
 
 
@@ -222,23 +228,21 @@ _lse = jax.scipy.special.logsumexp
 # compiled per emission structure and shapes: the emission (its MDP's arrays), the draw and the
 # demonstrations are arguments, so every draw, run and data set of the same shapes shares one
 @partial(jax.jit, static_argnames="num_samples")
-def _one_draw(emission, key, params, counts, hyper, data, ends, *, num_samples, others):
-    K = counts.shape[-1]
-    log_lik, _ = emission.log_likelihoods(params, data, emission.init_cache(K))
+def _one_draw(emission, key, params, counts, hyper, data, ends, cache, *, num_samples, others):
+    log_lik, cache = emission.log_likelihoods(params, data, cache)
     p_on = feature_predictive(counts, others, hyper.alpha)
     gate = None if ends is None else end_gate(ends, data.states, data.mask)
     lm = predictive_log_likelihoods(key, log_lik, data.mask, p_on, hyper, num_samples, gate=gate)  # (M, n)
-    return jnp.stack([_lse(lm, axis=0), _lse(2 * lm, axis=0)]) - jnp.log(num_samples)
+    return jnp.stack([_lse(lm, axis=0), _lse(2 * lm, axis=0)]) - jnp.log(num_samples), cache
 
 
 @partial(jax.jit, static_argnames="num_samples")
-def _one_draw_marginals(emission, key, params, p_on, hyper, data, ends, *, num_samples):
-    K = p_on.shape[-1]
-    log_lik, _ = emission.log_likelihoods(params, data, emission.init_cache(K))
+def _one_draw_marginals(emission, key, params, p_on, hyper, data, ends, cache, *, num_samples):
+    log_lik, cache = emission.log_likelihoods(params, data, cache)
     gate = None if ends is None else end_gate(ends, data.states, data.mask)
     lm, post = predictive_log_likelihoods(key, log_lik, data.mask, p_on, hyper, num_samples, marginals=True,
                                           gate=gate)
-    return _lse(lm, axis=0), _lse(lm[..., None, None] + post, axis=0)
+    return _lse(lm, axis=0), _lse(lm[..., None, None] + post, axis=0), cache
 
 
 def _each_draw(samples, params_all, hyper_fixed, idx, seed, C):
