@@ -94,6 +94,30 @@ def _prepare_lik(log_lik, active):
     return jnp.where(active, jnp.maximum(log_lik, NEG_LOG), 0.0)
 
 
+def _scaled_transitions(log_trans, active):
+    """The probability-space recursions' transition matrix: (shift (K,), each column's largest
+    log weight (NEG_LOG: an inactive skill); trans (K, K), the matrix in units of it, 0 for
+    inactive skills; unshift (K,), exp(-shift) for an active skill (at most exp(700)), else 0)."""
+    shift = jnp.max(log_trans, axis=0)
+    trans = jnp.exp(log_trans - shift)  # P = trans * exp(shift) column by column
+    unshift = jnp.where(active, jnp.exp(-jnp.maximum(shift, -700.0)), 0.0)
+    return shift, trans, unshift
+
+
+def _predict(p, trans, unshift, active, gate_t=()):
+    """A step's prediction from the previous step's filtered probabilities p (K,), in units of
+    each column's largest transition weight, floored at ``_FLOOR`` for an active skill; gate_t:
+    (end, stay) (K,) of leaving the previous step, with state-dependent ends: p(z_t+1 = j) =
+    sum_k p_k g_k pi_kj + p_j (1 - g_j), those that end through the matrix, those that continue
+    divided by their column's exp(shift)."""
+    if gate_t:
+        end, stay = gate_t
+        pred = (p * end) @ trans + p * stay * unshift
+    else:
+        pred = p @ trans
+    return jnp.where(active, jnp.maximum(pred, _FLOOR), 0.0)
+
+
 def forward_filter(log_init, log_trans, log_lik, mask=None, active=None, gate=None) -> Tuple[jax.Array, jax.Array]:
     """Forward filter: the marginal likelihood with the skill sequence summed out.
 
@@ -132,18 +156,14 @@ def forward_filter(log_init, log_trans, log_lik, mask=None, active=None, gate=No
     mask = jnp.ones(T, dtype=bool) if mask is None else jnp.asarray(mask, dtype=bool)
     active, log_trans, log_init = _prepare(jnp.asarray(log_init), jnp.asarray(log_trans), active)
     log_lik = _prepare_lik(log_lik, active)
-    shift = jnp.max(log_trans, axis=0)  # (K,) each column's largest entry (NEG_LOG: an inactive skill)
-    trans = jnp.exp(log_trans - shift)  # P = trans * exp(shift) column by column; 0 for inactive skills
+    shift, trans, unshift = _scaled_transitions(log_trans, active)
     # every step's likelihoods times exp(shift), over the step's largest (the shift's other half)
     shifted = jnp.where(active, log_lik + shift, -jnp.inf)
     top = jnp.max(shifted, axis=1)  # (T,)
     lik = jnp.exp(shifted - top[:, None])  # (T, K) in [0, 1]
     if gate is not None:
+        # the gate of entering each step, from the previous step's skill
         end_next = _next_gate(gate, T, K, dtype)
-        # p(z_t+1 = j) = sum_k p_k g_k pi_kj + p_j (1 - g_j): those that end through the matrix,
-        # those that continue divided by their column's exp(shift) (a shift is at least
-        # exp(-700) short of an inactive skill's)
-        unshift = jnp.where(active, jnp.exp(-jnp.maximum(shift, -700.0)), 0.0)
         ends = (jnp.concatenate([jnp.zeros((1, K), dtype), end_next[:-1]]),
                 jnp.concatenate([jnp.zeros((1, K), dtype), 1.0 - end_next[:-1]]))
     else:
@@ -161,13 +181,7 @@ def forward_filter(log_init, log_trans, log_lik, mask=None, active=None, gate=No
     def step(carry, inputs):
         p, total = carry
         lik_t, top_t, real, before, *gate_t = inputs
-        if gate is None:
-            pred = p @ trans
-        else:
-            end, stay = gate_t  # the gate of entering this step, from the previous step's skill
-            pred = (p * end) @ trans + p * stay * unshift
-        pred = jnp.where(active, jnp.maximum(pred, _FLOOR), 0.0)
-        joint = pred * lik_t
+        joint = _predict(p, trans, unshift, active, tuple(gate_t)) * lik_t
         c = jnp.sum(joint)
         p = jnp.where(real, joint / c, p)
         return (p, total + jnp.where(real, jnp.log(c) + top_t, 0.0)), jnp.where(before, p_init, p)
@@ -249,12 +263,10 @@ def smooth(log_trans, log_alpha, mask=None, active=None, gate=None) -> jax.Array
     dtype = log_alpha.dtype
     mask = jnp.ones(T, dtype=bool) if mask is None else jnp.asarray(mask, dtype=bool)
     active, log_trans = _prepare(None, jnp.asarray(log_trans), active)
-    shift = jnp.max(log_trans, axis=0)
-    trans = jnp.exp(log_trans - shift)  # as the filter's: 0 for inactive skills
+    _, trans, unshift = _scaled_transitions(log_trans, active)
     alpha = jnp.where(active, jnp.exp(log_alpha), 0.0)
     if gate is not None:
         end_next = _next_gate(gate, T, K, dtype)  # at step t, the gate of leaving it
-        unshift = jnp.where(active, jnp.exp(-jnp.maximum(shift, -700.0)), 0.0)
         ends = (end_next, 1.0 - end_next)
     else:
         ends = ()
@@ -262,14 +274,13 @@ def smooth(log_trans, log_alpha, mask=None, active=None, gate=None) -> jax.Array
     def step(carry, inputs):
         after, seen = carry  # the next real step's marginals, and whether there is one
         filt, real, *gate_t = inputs
+        pred = _predict(filt, trans, unshift, active, tuple(gate_t))
+        ratio = jnp.where(active, after / jnp.where(active, pred, 1.0), 0.0)
         if gate is None:
-            pred = filt @ trans
+            back = trans @ ratio
         else:
             end, stay = gate_t
-            pred = (filt * end) @ trans + filt * stay * unshift
-        pred = jnp.where(active, jnp.maximum(pred, _FLOOR), 0.0)
-        ratio = jnp.where(active, after / jnp.where(active, pred, 1.0), 0.0)
-        back = trans @ ratio if gate is None else end * (trans @ ratio) + stay * unshift * ratio
+            back = end * (trans @ ratio) + stay * unshift * ratio
         post = jnp.where(seen, filt * back, filt)
         post = post / jnp.sum(post)
         return (jnp.where(real, post, after), seen | real), post
