@@ -83,6 +83,27 @@ def test_log_predictive_equals_enumeration_within_its_standard_error():
     np.testing.assert_array_equal(again.per_trajectory, out.per_trajectory)  # the same seed, the same answer
 
 
+@pytest.mark.parametrize("gamma", [1.0, 0.7])
+def test_prior_eta_draws_follow_their_gamma_prior(gamma):
+    """The predictive's transition weights: Gamma(gamma + kappa, 1) on the diagonal, Gamma(gamma,
+    1) off it (at gamma = 1 drawn as Exponential(1)); Kolmogorov-Smirnov against scipy's Gamma,
+    and independent of each other. (Exponential draws at gamma 0.7, or on the diagonal, fail.)"""
+    import jax
+    from scipy import stats
+
+    from npbrs.models.bphmm import Hyper, sample_prior_eta
+
+    eta = np.asarray(sample_prior_eta(jax.random.PRNGKey(0), Hyper(1.0, 3.0, gamma), (500, 4, 3, 3)))
+    assert eta.shape == (500, 4, 3, 3) and eta.dtype == np.float64
+    diag = np.eye(3, dtype=bool)
+    for values, shape in ((eta[..., diag], gamma + 3.0), (eta[..., ~diag], gamma)):
+        assert stats.kstest(values.ravel(), stats.gamma(shape).cdf).pvalue > 1e-3, shape
+    off = eta[..., ~diag].reshape(-1, 6)
+    assert abs(np.corrcoef(off[:, 0], off[:, 1])[0, 1]) < 0.05  # not one draw repeated
+    again = sample_prior_eta(jax.random.PRNGKey(0), Hyper(1.0, 3.0, gamma), (500, 4, 3, 3))
+    np.testing.assert_array_equal(np.asarray(again), eta)
+
+
 def test_the_generating_policies_score_above_wrong_ones_on_held_out_data():
     rng = np.random.default_rng(3)
     true = np.array([[[0.9, 0.1], [0.9, 0.1]], [[0.1, 0.9], [0.1, 0.9]]])  # skill 0: action 0; skill 1: action 1
