@@ -239,8 +239,70 @@ def feature_predictive(counts, num_trajectories, alpha):
     return (counts + a) / (num_trajectories + 1.0 + a)
 
 
+def _guided_eta(key, hyper: Hyper, features, eta, log_lik, mask):
+    """Importance sampling of the transition weights around each trajectory's own stays:
+    (eta, log importance weight (M, n)).
+
+    Drawn from their prior alone, the weights rarely fit a long trajectory (a skill's hundreds of
+    stays each contribute log pi_kk: a 500-step trajectory's log-likelihood varies with an sd of
+    about 30 nats over prior draws), and the log of the Monte Carlo mean falls below its stated
+    error. The likelihood sees only each row's proportions over the active skills (the row
+    totals are not identified; their posterior is their prior). A row's Dirichlet(c_j)
+    proportions split into the self share pi_jj ~ Beta(c_jj, sum of the others' c) and the
+    others' shares among themselves, independent of it. So each (sample, trajectory) keeps, with
+    probability 1/2, its prior draw; else every active row's self share is redrawn from
+    Beta(c_jj + n_jj, sum over the other active skills of c_jl + n_jl), with n the transitions
+    along the Viterbi path under the prior mean transitions and the sample's skill set
+    (deterministic given the data), keeping the prior draw's total and other shares. The weight
+    is the self shares' prior Beta density over the mixture's (at most 2). Unbiased at every
+    length; its draws are 2 x (M, n, K) Gammas, not (M, n, K, K)."""
+    from .hmm import batch_viterbi, transition_counts
+
+    M, n, K = features.shape
+    dtype = eta.dtype
+    eye = jnp.eye(K, dtype=bool)
+    conc = hyper.gamma + hyper.kappa * jnp.eye(K, dtype=dtype)
+
+    def counts_of(f):
+        log_init, log_trans, active = hmm_parameters(f, jnp.broadcast_to(conc, (n, K, K)))
+        z, _ = batch_viterbi(log_init, log_trans, log_lik, mask, active)
+        return transition_counts(z, mask, K).astype(dtype)
+
+    counts = jax.vmap(counts_of)(features)  # (M, n, K, K)
+    on_row = features > 0  # (M, n, K)
+    on = on_row[..., None, :] & ~eye  # the other active skills of each row
+    rows = on_row & jnp.any(on, -1)  # active rows with somewhere to switch to
+    a0 = hyper.gamma + hyper.kappa
+    b0 = jnp.sum(jnp.where(on, hyper.gamma, 0.0), -1)
+    a1 = a0 + jnp.diagonal(counts, axis1=-2, axis2=-1)
+    b1 = b0 + jnp.sum(jnp.where(on, counts, 0.0), -1)
+    k_use, k_a, k_b = jax.random.split(key, 3)
+    use = jax.random.bernoulli(k_use, 0.5, (M, n))
+    ga = jax.random.gamma(k_a, a1, dtype=dtype)
+    gb = jax.random.gamma(k_b, jnp.where(rows, b1, 1.0), dtype=dtype)
+    self_new = jnp.clip(ga / (ga + gb), 1e-300, 1.0 - 1e-16)
+    diag = jnp.diagonal(eta, axis1=-2, axis2=-1)
+    rest = jnp.sum(jnp.where(on, eta, 0.0), -1)
+    self_old = diag / (diag + rest)
+    redraw = use[..., None] & rows
+    self_share = jnp.where(redraw, self_new, self_old)
+    total = diag + rest
+    new_diag = self_share * total
+    scale = jnp.where(rows, (1.0 - self_share) * total / jnp.where(rest > 0, rest, 1.0), 1.0)
+    out = jnp.where(eye, new_diag[..., :, None], jnp.where(on, eta * scale[..., None], eta))
+    logit = jnp.log(self_share), jnp.log1p(-self_share)
+
+    def log_beta(a, b):
+        from jax.scipy.special import betaln
+        per_row = (a - 1.0) * logit[0] + (b - 1.0) * logit[1] - betaln(a, jnp.where(rows, b, 1.0))
+        return jnp.sum(jnp.where(rows, per_row, 0.0), -1)
+
+    log_p, log_q = log_beta(a0, b0), log_beta(a1, b1)
+    return out, log_p - jnp.logaddexp(log_p, log_q) + jnp.log(2.0)
+
+
 def predictive_log_likelihoods(key, log_lik, mask, p_on, hyper: Hyper, num_samples: int, marginals: bool = False,
-                               gate=None):
+                               gate=None, guided: bool = False):
     """log p(x_i | f, eta, params) of trajectories for ``num_samples`` draws of their skill sets
     and transition weights: f_k ~ Bernoulli(p_on[k]) independently (``feature_predictive`` for a
     new trajectory; 0/1 for a known skill set), eta from its prior (``sample_prior_eta``);
@@ -255,6 +317,9 @@ def predictive_log_likelihoods(key, log_lik, mask, p_on, hyper: Hyper, num_sampl
         marginals: also return the posterior marginals of the skill sequence.
         gate: (n, T, K) :func:`end_gate` of the draw's end probabilities at the trajectories'
             states, with state-dependent ends; else None.
+        guided: importance-sample eta's self shares around each trajectory's own stays
+            (:func:`_guided_eta`; the values then include the importance weights) instead of
+            drawing it from its prior alone; without ``gate`` only.
     Returns:
         (num_samples, n) log-likelihoods, one per (f, eta) sample; with ``marginals``, also
         (num_samples, n, T, K) log p(z_t | x, f, eta, params) (``NEG_LOG`` at padding).
@@ -265,6 +330,9 @@ def predictive_log_likelihoods(key, log_lik, mask, p_on, hyper: Hyper, num_sampl
     k_f, k_eta = jax.random.split(key)
     features = jax.random.bernoulli(k_f, p_on, (num_samples, n, K)).astype(log_lik.dtype)
     eta = jnp.maximum(sample_prior_eta(k_eta, hyper, (num_samples, n, K, K)), 1e-300)
+    log_w = 0.0
+    if guided and gate is None:  # (the same prior draws as without: f and eta's other entries)
+        eta, log_w = _guided_eta(jax.random.fold_in(k_eta, 1), hyper, features, eta, log_lik, mask)
 
     def one(f, e):
         log_init, log_trans, active = hmm_parameters(f, e, gate is not None)
@@ -272,7 +340,7 @@ def predictive_log_likelihoods(key, log_lik, mask, p_on, hyper: Hyper, num_sampl
         return log_marg, (batch_smooth(log_trans, log_alpha, mask, active, gate) if marginals else None)
 
     log_marg, post = jax.vmap(one)(features, eta)
-    log_marg = jnp.where(jnp.sum(features, -1) > 0, log_marg, -jnp.inf)
+    log_marg = jnp.where(jnp.sum(features, -1) > 0, log_marg + log_w, -jnp.inf)
     return (log_marg, post) if marginals else log_marg
 
 

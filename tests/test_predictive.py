@@ -104,6 +104,24 @@ def test_prior_eta_draws_follow_their_gamma_prior(gamma):
     np.testing.assert_array_equal(np.asarray(again), eta)
 
 
+def test_log_predictive_of_a_long_trajectory_does_not_move_with_the_number_of_samples():
+    """A 400-step trajectory of two sticky skills: the held-out value with 16 samples a draw
+    agrees with 1024 samples within their stated errors. Drawn from their prior alone, the
+    transition weights rarely fit so many stays, and 16 samples fell far below 1024 (the
+    guided rows of ``_guided_eta`` are what keeps the estimate where it belongs)."""
+    rng = np.random.default_rng(5)
+    policies = np.array([[[0.9, 0.1], [0.85, 0.15]], [[0.1, 0.9], [0.2, 0.8]]])  # (K, S, A)
+    z = np.repeat([0, 1, 0, 1], 100)
+    states = rng.integers(0, S, z.size)
+    actions = (rng.random(z.size) < policies[z, states, 1]).astype(np.int64)
+    run = policy_run(np.broadcast_to(policies, (1, 2, K, S, A)).copy(), np.ones((1, 2, 4, K)))
+    demos = Demonstrations([states], [actions])
+    few = run.log_predictive(two_state_mdp(), demos, num_samples=16, seed=2)
+    many = run.log_predictive(two_state_mdp(), demos, num_samples=1024, seed=3)
+    gap = abs(few.per_trajectory[0] - many.per_trajectory[0])
+    assert gap < 4 * np.hypot(few.per_trajectory_se[0], many.per_trajectory_se[0]) + 0.05, (few, many)
+
+
 def test_the_generating_policies_score_above_wrong_ones_on_held_out_data():
     rng = np.random.default_rng(3)
     true = np.array([[[0.9, 0.1], [0.9, 0.1]], [[0.1, 0.9], [0.1, 0.9]]])  # skill 0: action 0; skill 1: action 1

@@ -8,7 +8,11 @@ the expectation over the run's posterior draws s. Given draw s, the new trajecto
 follows the weak-limit beta-Bernoulli predictive of the draw's features F_s, its transition
 weights eta their Gamma prior, and the skill sequence is summed out by the forward filter
 (``npbrs.models.bphmm.predictive_log_likelihoods``). f and eta are integrated by Monte Carlo,
-``num_samples`` independent samples per draw, so the estimate of log p(x | fit), the average
+``num_samples`` independent samples per draw (for ``log_predictive`` and the pointwise
+log-likelihood, eta's self shares are importance-sampled around each trajectory's own stays,
+``npbrs.models.bphmm._guided_eta``: drawn from the prior alone they rarely fit a long
+trajectory, and 64 samples fell several nats per 500-step trajectory below the value; ``segment``
+still draws eta from its prior, which its labels, the tables' scores, were made with), so the estimate of log p(x | fit), the average
 over the run's draws, carries a Monte Carlo standard error: from the samples' variance within
 each draw, by the delta method on the log. It is consistent, and biased low by about se^2 / 2
 (Jensen). (The draws themselves are taken as given, as ``az.loo`` takes them; more draws
@@ -232,7 +236,8 @@ def _one_draw(emission, key, params, counts, hyper, data, ends, cache, *, num_sa
     log_lik, cache = emission.log_likelihoods(params, data, cache)
     p_on = feature_predictive(counts, others, hyper.alpha)
     gate = None if ends is None else end_gate(ends, data.states, data.mask)
-    lm = predictive_log_likelihoods(key, log_lik, data.mask, p_on, hyper, num_samples, gate=gate)  # (M, n)
+    lm = predictive_log_likelihoods(key, log_lik, data.mask, p_on, hyper, num_samples, gate=gate,
+                                    guided=True)  # (M, n)
     return jnp.stack([_lse(lm, axis=0), _lse(2 * lm, axis=0)]) - jnp.log(num_samples), cache
 
 
