@@ -39,7 +39,7 @@ import numpyro
 import numpyro.distributions as dist
 from jax.scipy.special import betaln
 
-from .hmm import NEG_LOG, batch_forward_filter
+from .hmm import NEG_LOG, batch_forward_filter, batch_viterbi, transition_counts
 from npbrs.domains.options import arrival_counts
 from npbrs.domains.precision import float64_all
 
@@ -256,8 +256,6 @@ def _guided_eta(key, hyper: Hyper, features, eta, log_lik, mask):
     (deterministic given the data), keeping the prior draw's total and other shares. The weight
     is the self shares' prior Beta density over the mixture's (at most 2). Unbiased at every
     length; its draws are 2 x (M, n, K) Gammas, not (M, n, K, K)."""
-    from .hmm import batch_viterbi, transition_counts
-
     M, n, K = features.shape
     dtype = eta.dtype
     eye = jnp.eye(K, dtype=bool)
@@ -274,30 +272,18 @@ def _guided_eta(key, hyper: Hyper, features, eta, log_lik, mask):
     rows = on_row & jnp.any(on, -1)  # active rows with somewhere to switch to
     a0 = hyper.gamma + hyper.kappa
     b0 = jnp.sum(jnp.where(on, hyper.gamma, 0.0), -1)
-    a1 = a0 + jnp.diagonal(counts, axis1=-2, axis2=-1)
-    b1 = b0 + jnp.sum(jnp.where(on, counts, 0.0), -1)
-    k_use, k_a, k_b = jax.random.split(key, 3)
-    use = jax.random.bernoulli(k_use, 0.5, (M, n))
-    ga = jax.random.gamma(k_a, a1, dtype=dtype)
-    gb = jax.random.gamma(k_b, jnp.where(rows, b1, 1.0), dtype=dtype)
-    self_new = jnp.clip(ga / (ga + gb), 1e-300, 1.0 - 1e-16)
+    prior = dist.Beta(a0, jnp.where(rows, b0, 1.0))
+    guide = dist.Beta(a0 + jnp.diagonal(counts, axis1=-2, axis2=-1),
+                      jnp.where(rows, b0 + jnp.sum(jnp.where(on, counts, 0.0), -1), 1.0))
+    k_use, k_draw = jax.random.split(key)
+    redraw = jax.random.bernoulli(k_use, 0.5, (M, n))[..., None] & rows
     diag = jnp.diagonal(eta, axis1=-2, axis2=-1)
     rest = jnp.sum(jnp.where(on, eta, 0.0), -1)
-    self_old = diag / (diag + rest)
-    redraw = use[..., None] & rows
-    self_share = jnp.where(redraw, self_new, self_old)
     total = diag + rest
-    new_diag = self_share * total
-    scale = jnp.where(rows, (1.0 - self_share) * total / jnp.where(rest > 0, rest, 1.0), 1.0)
-    out = jnp.where(eye, new_diag[..., :, None], jnp.where(on, eta * scale[..., None], eta))
-    logit = jnp.log(self_share), jnp.log1p(-self_share)
-
-    def log_beta(a, b):
-        from jax.scipy.special import betaln
-        per_row = (a - 1.0) * logit[0] + (b - 1.0) * logit[1] - betaln(a, jnp.where(rows, b, 1.0))
-        return jnp.sum(jnp.where(rows, per_row, 0.0), -1)
-
-    log_p, log_q = log_beta(a0, b0), log_beta(a1, b1)
+    share = jnp.clip(jnp.where(redraw, guide.sample(k_draw), diag / total), 1e-300, 1.0 - 1e-16)
+    scale = jnp.where(rows, (1.0 - share) * total / jnp.where(rest > 0, rest, 1.0), 1.0)
+    out = jnp.where(eye, (share * total)[..., :, None], jnp.where(on, eta * scale[..., None], eta))
+    log_p, log_q = (jnp.sum(jnp.where(rows, d.log_prob(share), 0.0), -1) for d in (prior, guide))
     return out, log_p - jnp.logaddexp(log_p, log_q) + jnp.log(2.0)
 
 
