@@ -61,6 +61,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .pytree import Pytree
+from .compiling import jit
 from .precision import float64_all
 
 __all__ = ["next_value_operator", "soft_value_iteration", "value_iteration", "SolveResult",
@@ -620,7 +621,7 @@ def fold_vmap(fn):
 
 
 # ------------------------------------------------------------------------ soft solver
-@jax.jit
+@jit
 def _solve_batch(solver, r, v0):
     """A solver's ``_solve_batch``, compiled per solver kind, options and shapes (the solver's
     arrays are arguments: another MDP of the same shapes reuses the program)."""

@@ -42,6 +42,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..domains.solvers import SoftSolver, make_soft_solver
+from npbrs.domains.compiling import jit
 from npbrs.domains.precision import float64_all
 
 __all__ = ["PRIOR_SCALE", "count_table", "log_policy", "step_log_likelihoods", "count_log_likelihood",
@@ -313,7 +314,7 @@ def _ll_and_grad(solver, theta, counts, v0, epsilon=0.0):
     return _ll_grad_residual(solver, theta, counts, v0, epsilon)[:3]
 
 
-_LL_AND_GRAD = jax.jit(_ll_and_grad, static_argnums=4)
+_LL_AND_GRAD = jit(_ll_and_grad, static_argnums=4)
 
 
 def fisher_information(solver: SoftSolver, theta, counts, v0=None, temperature: float = 1.0) -> jax.Array:
@@ -552,7 +553,7 @@ def _fit_jit(solver, counts, theta0, v0, prior_scale, num_steps, history, epsilo
                     epsilon, temperature)
 
 
-_FIT_JIT = jax.jit(fit_reward, static_argnums=(5, 6, 7, 8))  # temperature is traced
+_FIT_JIT = jit(fit_reward, static_argnums=(5, 6, 7, 8))  # temperature is traced
 
 
 float64_all(globals())  # npbrs.domains.precision: float64 inside, the user's setting outside

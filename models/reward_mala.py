@@ -33,6 +33,7 @@ import numpy as np
 
 from .mcmc import metropolis_accept, select
 from .reward import PRIOR_SCALE, Posterior, as_solver, log_posterior
+from npbrs.domains.compiling import jit
 from npbrs.domains.precision import float64_all
 
 __all__ = ["RewardMALAState", "RewardMALAInfo", "init", "build_kernel"]
@@ -65,7 +66,7 @@ class RewardMALAInfo(NamedTuple):
     solver_failed: jax.Array
 
 
-_POSTERIOR = jax.jit(log_posterior, static_argnums=6)  # epsilon static (0 skips the mixture)
+_POSTERIOR = jit(log_posterior, static_argnums=6)  # epsilon static (0 skips the mixture)
 
 # Skills solved together when only some are active: a batched solve costs about its batch size
 # times one skill's once a skill's policy has this many (state, action) entries (measured on the

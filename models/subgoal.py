@@ -52,6 +52,7 @@ import numpy as np
 from npbrs.domains.solvers import make_soft_solver
 
 from .emissions import Emission, EmissionInfo, HMMData, register_emission
+from npbrs.domains.compiling import jit
 from npbrs.domains.precision import float64_all
 
 __all__ = ["SubgoalEmission", "visited_states"]
@@ -161,7 +162,7 @@ class SubgoalEmission(Emission):
         self.precompute = bool(table_mb <= max_table_mb) if precompute == "auto" else bool(precompute)
         self._values = None
         if self.precompute:
-            self._values = jax.jit(SubgoalEmission._solve_candidates)(self)
+            self._values = jit(SubgoalEmission._solve_candidates)(self)
 
     @classmethod
     def from_mdp(cls, mdp, **options):

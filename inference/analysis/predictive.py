@@ -8,11 +8,11 @@ the expectation over the run's posterior draws s. Given draw s, the new trajecto
 follows the weak-limit beta-Bernoulli predictive of the draw's features F_s, its transition
 weights eta their Gamma prior, and the skill sequence is summed out by the forward filter
 (``npbrs.models.bphmm.predictive_log_likelihoods``). f and eta are integrated by Monte Carlo,
-``num_samples`` independent samples per draw (for ``log_predictive`` and the pointwise
-log-likelihood, eta's self shares are importance-sampled around each trajectory's own stays,
-``npbrs.models.bphmm._guided_eta``: drawn from the prior alone they rarely fit a long
-trajectory, and 64 samples fell several nats per 500-step trajectory below the value; ``segment``
-still draws eta from its prior, which its labels, the tables' scores, were made with), so the estimate of log p(x | fit), the average
+``num_samples`` independent samples per draw (eta's self shares are importance-sampled around
+each trajectory's own stays, ``npbrs.models.bphmm._guided_eta``: drawn from the prior alone they
+rarely fit a long trajectory, and 64 samples fell several nats per 500-step trajectory below the
+value; ``segment`` weights its skill probabilities by the same importance weights), so the
+estimate of log p(x | fit), the average
 over the run's draws, carries a Monte Carlo standard error: from the samples' variance within
 each draw, by the delta method on the log. It is consistent, and biased low by about se^2 / 2
 (Jensen). (The draws themselves are taken as given, as ``az.loo`` takes them; more draws
@@ -30,6 +30,7 @@ import numpy as np
 
 from npbrs.models.bphmm import Hyper, end_gate, feature_predictive, predictive_log_likelihoods
 from npbrs.models.emissions import Emission, HMMData
+from npbrs.domains.compiling import jit
 from npbrs.domains.precision import float64_all
 
 __all__ = ["HeldOut", "SkillProbabilities", "log_predictive", "pointwise_log_likelihood", "segment"]
@@ -127,7 +128,9 @@ def segment(result, mdp, demos=None, *, num_samples: int = 32, num_draws: int = 
     each draw's features and its transition weights their prior; for the fitted ones
     (``demos=None``), its skill set is the draw's own. Either way the transition weights and
     (for new ones) the skill set are integrated by self-normalised importance sampling
-    (``num_samples`` per draw, weighted by the trajectory's likelihood), and the skill sequence's
+    (``num_samples`` per draw, the self shares of the transition weights proposed around the
+    trajectory's own stays as for :func:`log_predictive`, each sample weighted by the
+    trajectory's likelihood and its importance weight), and the skill sequence's
     marginals come from the forward filter and smoother. Every chain's skill slots are mapped
     to the run's skills by :func:`npbrs.inference.analysis.diagnostics.relabel`.
 
@@ -231,7 +234,7 @@ _lse = jax.scipy.special.logsumexp
 
 # compiled per emission structure and shapes: the emission (its MDP's arrays), the draw and the
 # demonstrations are arguments, so every draw, run and data set of the same shapes shares one
-@partial(jax.jit, static_argnames="num_samples")
+@partial(jit, static_argnames="num_samples")
 def _one_draw(emission, key, params, counts, hyper, data, ends, cache, *, num_samples, others):
     log_lik, cache = emission.log_likelihoods(params, data, cache)
     p_on = feature_predictive(counts, others, hyper.alpha)
@@ -241,12 +244,12 @@ def _one_draw(emission, key, params, counts, hyper, data, ends, cache, *, num_sa
     return jnp.stack([_lse(lm, axis=0), _lse(2 * lm, axis=0)]) - jnp.log(num_samples), cache
 
 
-@partial(jax.jit, static_argnames="num_samples")
+@partial(jit, static_argnames="num_samples")
 def _one_draw_marginals(emission, key, params, p_on, hyper, data, ends, cache, *, num_samples):
     log_lik, cache = emission.log_likelihoods(params, data, cache)
     gate = None if ends is None else end_gate(ends, data.states, data.mask)
     lm, post = predictive_log_likelihoods(key, log_lik, data.mask, p_on, hyper, num_samples, marginals=True,
-                                          gate=gate)
+                                          gate=gate, guided=True)
     return _lse(lm, axis=0), _lse(lm[..., None, None] + post, axis=0), cache
 
 

@@ -36,6 +36,7 @@ from npbrs.domains.demos import Demonstrations
 from npbrs.models.bphmm import Termination
 from npbrs.models.emissions import Emission, HMMData, get_emission_class
 
+from npbrs.domains.compiling import jit
 from npbrs.domains.precision import float64_all
 
 from ..sampler.kernel import BPHMMKernel
@@ -228,20 +229,20 @@ def _record(kernel: BPHMMKernel, hyper_names, state) -> dict:
     return out
 
 
-@partial(jax.jit, static_argnums=4)
+@partial(jit, static_argnums=4)
 def _init_chains(kernel, keys, z0, num_warmup, mesh=None):
     state = _strong(kernel.init(keys, num_warmup, None if z0 is None else {"z": z0}, (), {}))
     return _constrain(state, mesh, batched=True)
 
 
-@partial(jax.jit, static_argnums=(1, 4))
+@partial(jit, static_argnums=(1, 4))
 def _sweep_one(kernel, hyper_names, state, greedy_open, mesh=None):
     # greedy_open: the run's (every chain's) BPHMMKernel.greedy_open
     new = _constrain(_strong(kernel.sweep(state, (state.step, state.num_warmup, greedy_open))), mesh, batched=False)
     return new, _record(kernel, hyper_names, new)
 
 
-@partial(jax.jit, static_argnums=(1, 3))
+@partial(jit, static_argnums=(1, 3))
 def _sweep_batched(kernel, hyper_names, state, mesh=None):
     new = _constrain(_strong(kernel.sample(state, (), {})), mesh, batched=True)
     return new, jax.vmap(partial(_record, kernel, hyper_names))(new)

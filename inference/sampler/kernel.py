@@ -39,6 +39,7 @@ from npbrs.models.mcmc import metropolis_accept, select
 from npbrs.models.emissions import Emission, EmissionInfo, HMMData
 from npbrs.models.hmm import batch_backward_sample, batch_forward_filter, transition_counts
 
+from npbrs.domains.compiling import jit
 from npbrs.domains.precision import float64_all
 
 from .birth_death import birth_death
@@ -581,7 +582,7 @@ class BPHMMKernel(MCMCKernel, Pytree):
         return hyper
 
 
-@partial(jax.jit, static_argnums=4)
+@partial(jit, static_argnums=4)
 def _init_state(kernel: BPHMMKernel, rng_key, z0, num_warmup, batched: bool):
     """The initial state(s), compiled per kernel structure and shapes (the kernel's data and
     emission are arguments, so a new dataset of the same shapes reuses the program)."""

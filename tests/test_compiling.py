@@ -1,0 +1,57 @@
+"""npbrs compiles its own programs with LLVM's optimisation level 1 on the CPU
+(:mod:`npbrs.domains.compiling`), as a per-program compile option: the user's ``XLA_FLAGS``
+win, other backends are left alone, and the wrapped functions work where ``jax.jit`` does,
+inside other traces too (JAX refuses compile options on a nested jit)."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from npbrs.domains import compiling
+from npbrs.domains.compiling import compiler_options, jit
+
+
+def test_the_level_is_set_on_the_cpu_unless_xla_flags_choose_one():
+    assert compiler_options("cpu", {}) == {"xla_backend_optimization_level": 1}
+    assert compiler_options("cpu", {"XLA_FLAGS": "--xla_force_host_platform_device_count=4"}) == \
+        {"xla_backend_optimization_level": 1}
+    assert compiler_options("cpu", {"XLA_FLAGS": "--xla_backend_optimization_level=3"}) == {}
+    assert compiler_options("gpu", {}) == {} and compiler_options("tpu", {}) == {}
+
+
+def test_a_wrapped_function_gets_the_options_at_the_top_and_none_when_nested(monkeypatch):
+    made = []
+    real = jax.jit
+
+    def recording_jit(fn, **kwargs):
+        made.append(kwargs.get("compiler_options"))
+        return real(fn, **kwargs)
+
+    monkeypatch.setattr(compiling.jax, "jit", recording_jit)
+    monkeypatch.setattr(compiling, "compiler_options", lambda: {"xla_backend_optimization_level": 1})
+
+    def f(x, n):
+        return jnp.sin(x) * n
+
+    g = jit(f, static_argnums=1)
+    x = jnp.linspace(0.0, 1.0, 5)
+    np.testing.assert_allclose(g(x, 3), jnp.sin(x) * 3, rtol=1e-12)  # compiled alone: with the option
+    assert made == [{"xla_backend_optimization_level": 1}]
+    # inside another jit, a vmap and a scan: a plain nested jit (the option would be an error there)
+    outer = real(lambda x: jax.vmap(lambda y: g(y, 2))(x[:, None]).sum() + jax.lax.scan(
+        lambda c, y: (c + g(y, 1), None), 0.0, x)[0])
+    np.testing.assert_allclose(outer(x), 3 * jnp.sum(jnp.sin(x)), rtol=1e-12)
+    assert made[1:] == [None]  # one nested jit, made once
+    assert g.__name__ == "f" and g.lower(x, 3) is not None  # the jitted function's attributes
+
+
+def test_fit_and_the_solvers_compile_through_it():
+    from npbrs.domains import solvers
+    from npbrs.inference.analysis import predictive
+    from npbrs.inference.driver import fit
+    from npbrs.inference.sampler import kernel
+    from npbrs.models import reward
+
+    for fn in (fit._sweep_batched, fit._sweep_one, fit._init_chains, kernel._init_state, solvers._solve_batch,
+               predictive._one_draw, predictive._one_draw_marginals, reward._FIT_JIT, reward._LL_AND_GRAD):
+        assert isinstance(fn, compiling._Jit), fn
