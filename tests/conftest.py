@@ -110,32 +110,35 @@ def pytest_configure(config):
 
 
 # The test files that take longest from an empty compilation cache, longest first, with the
-# seconds one worker spent in each in a cold run on this project's 2-core machine (2026-12-03,
-# ``NPBRS_TEST_COMPILE_LOG``; module fixtures estimated from ``--durations``). The suite runs each
+# seconds one worker spent in each (module fixtures included) in a cold run on this project's
+# 2-core machine (2026-12-04, ``NPBRS_TEST_COMPILE_LOG`` and ``--durations``). The suite runs each
 # file in one of two pytest-xdist workers, taking files in collection order
 # (``--no-loadscope-reorder`` in ``addopts``: xdist would otherwise order them by their number of
 # tests, which put the three-test file of default fits, the longest, near the end). Starting
-# with the long ones balances the two workers (they finished 14 s apart). Files not named here
-# follow in their usual order.
-LONGEST_FIRST = ("test_worlds_recovery.py",  # 162
-                 "test_termination.py",  # 137
-                 "test_reward_emission.py",  # 83
-                 "test_notebooks.py",  # 71 (its fixture: two notebook kernels at once)
-                 "test_greedy.py",  # 64
-                 "test_reward_fit.py",  # 50
-                 "test_reward.py",  # 44
-                 "test_reward_mala.py",  # 42
-                 "test_joint_distribution.py",  # 39
-                 "test_split_merge.py",  # 37
-                 "test_kernel.py",  # 33
-                 "test_devices.py",  # 30 (its fixture: a four-device subprocess)
-                 "test_runs.py",  # 27
-                 "test_posterior.py",  # 25
-                 "test_cli.py",  # 24
-                 "test_hmm.py",  # 24
-                 "test_subgoal.py",  # 20
-                 "test_grow.py",  # 19
-                 "test_autoregressive.py")  # 18
+# with the long ones balances the two workers. Files not named here follow in their usual order.
+LONGEST_FIRST = ("test_worlds_recovery.py",  # 82
+                 "test_greedy.py",  # 57
+                 "test_termination.py",  # 53
+                 "test_notebooks.py",  # 49 (its fixture: two notebook kernels at once)
+                 "test_kernel.py",  # 39
+                 "test_reward_emission.py",  # 37
+                 "test_joint_distribution.py",  # 33
+                 "test_cli.py",  # 31
+                 "test_reward.py",  # 29
+                 "test_solvers.py",  # 28
+                 "test_reward_fit.py",  # 24
+                 "test_posterior.py",  # 24
+                 "test_split_merge.py",  # 23
+                 "test_predictive.py",  # 22
+                 "test_runs.py",  # 21
+                 "test_hmm.py",  # 19
+                 "test_reward_mala.py",  # 18
+                 "test_devices.py",  # 18 (its fixture: a four-device subprocess)
+                 "test_reproduce.py",  # 16
+                 "test_subgoal.py",  # 15
+                 "test_grow.py",  # 13
+                 "test_autoregressive.py",  # 11
+                 "test_config.py")  # 8
 
 
 def pytest_collection_modifyitems(session, config, items):
@@ -236,3 +239,4 @@ def pytest_terminal_summary(terminalreporter, exitstatus, config):
     workers = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 1024 ** 2
     terminalreporter.write_line(f"npbrs: peak memory of the test process {own:.2f} GB, of its largest finished "
                                 f"child process {workers:.2f} GB")
+
