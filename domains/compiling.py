@@ -4,9 +4,9 @@ XLA compiles a CPU program's kernels with LLVM at optimisation level 2 by defaul
 programs (a sampler sweep, an IRL fit, the predictive's draws) are large and are run a few
 hundred times, so compiling them is a large part of a fit: at level 1 a fit compiles about a
 sixth faster and samples no slower (``benchmarks/NOTES.md``, session 28; e.g. highway 16 x 500
-with 4 chains, 20 + 20 sweeps: 55 s against 64 s, 27 s of compiling against 32 s). The same
-arithmetic in the same order: LLVM does not reassociate floating point at either level, and the
-draws measured were the same.
+with 4 chains, 20 + 20 sweeps: 55 s against 64 s, 27 s of compiling against 32 s; its sweeps
+were no slower). Results agree with level 2's to rounding, not bit for bit (a log joint by about
+1e-8 after 20 sweeps; the paper's tables' 40 fits found the same best draws).
 
 The level is a per-program compile option (``jax.jit(..., compiler_options=...)``), so it
 changes only npbrs's programs and leaves the user's process alone. It is not set
