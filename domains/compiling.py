@@ -43,9 +43,9 @@ def compiler_options(backend: str | None = None, environ=None) -> dict:
 
 class _Jit:
     """``jax.jit(fn, **options)`` with :func:`compiler_options` where it is compiled as a program
-    of its own; called inside another trace (a tracer among its arguments) it is a plain nested
-    jit, whose code joins the enclosing program (JAX takes compile options at the top level
-    only). Made on the first call (the backend is not chosen at import); other attributes
+    of its own; called inside another trace (a tracer among its arguments, or JAX's refusal of
+    the options when all of them are constants) it is a plain nested jit, whose code joins the
+    enclosing program (JAX takes compile options at the top level only). Made on the first call (the backend is not chosen at import); other attributes
     (``lower``, ``trace``, ...) are the top-level jitted function's."""
 
     def __init__(self, fn, options):
@@ -58,11 +58,15 @@ class _Jit:
         return self._top
 
     def __call__(self, *args, **kwargs):
-        if any(isinstance(x, jax.core.Tracer) for x in jax.tree.leaves((args, kwargs))):
-            if self._nested is None:
-                self._nested = jax.jit(self._fn, **self._options)
-            return self._nested(*args, **kwargs)
-        return self._get()(*args, **kwargs)
+        if not any(isinstance(x, jax.core.Tracer) for x in jax.tree.leaves((args, kwargs))):
+            try:
+                return self._get()(*args, **kwargs)
+            except ValueError as e:  # inside a trace all the same (constant arguments): nested
+                if "compiler_options" not in str(e):
+                    raise
+        if self._nested is None:
+            self._nested = jax.jit(self._fn, **self._options)
+        return self._nested(*args, **kwargs)
 
     def __getattr__(self, name):
         if name.startswith("__"):

@@ -42,6 +42,9 @@ def test_a_wrapped_function_gets_the_options_at_the_top_and_none_when_nested(mon
         lambda c, y: (c + g(y, 1), None), 0.0, x)[0])
     np.testing.assert_allclose(outer(x), 3 * jnp.sum(jnp.sin(x)), rtol=1e-12)
     assert made[1:] == [None]  # one nested jit, made once
+    # inside a jit with constant arguments only (no tracer to see): JAX refuses the option, so nested
+    np.testing.assert_allclose(real(lambda: g(x, 4))(), jnp.sin(x) * 4, rtol=1e-12)
+    assert made[1:] == [None]
     assert g.__name__ == "f" and g.lower(x, 3) is not None  # the jitted function's attributes
 
 
