@@ -45,8 +45,9 @@ class _Jit:
     """``jax.jit(fn, **options)`` with :func:`compiler_options` where it is compiled as a program
     of its own; called inside another trace (a tracer among its arguments, or JAX's refusal of
     the options when all of them are constants) it is a plain nested jit, whose code joins the
-    enclosing program (JAX takes compile options at the top level only). Made on the first call (the backend is not chosen at import); other attributes
-    (``lower``, ``trace``, ...) are the top-level jitted function's."""
+    enclosing program (JAX takes compile options at the top level only). Made on the first call
+    (the backend is not chosen at import); other attributes (``lower``, ``trace``, ...) are the
+    top-level jitted function's."""
 
     def __init__(self, fn, options):
         functools.update_wrapper(self, fn)
