@@ -23,7 +23,12 @@ reports per world:
 
     python benchmarks/bench_worlds.py --json benchmarks/results/bench_worlds.json
         [--worlds tabular_grid,labyrinth] [--quick] [--seed 0] [--note "what ran, how"]
-        [--fit-options '{"switching": "state"}']
+        [--fit-options '{"switching": "state"}'] [--cache]
+
+JAX's persistent compilation cache is off unless ``--cache``: ``fit`` would otherwise reuse the
+programs an earlier run left in npbrs's folder, and the wall time and peak memory would say
+whether one had (session 28: the labyrinth's default fit 66 s and 1.0 GB with a warm cache,
+84-90 s and 1.9-2.2 GB cold).
 
 ``--fit-options`` (JSON) gives the fitted model's ``fit`` keyword arguments (for a model variant
 measured the same way: the single-reward comparison keeps the defaults); the JSON records them.
@@ -215,8 +220,14 @@ def main(argv=None):
                                        "JSON's meta and printed under the markdown's heading")
     parser.add_argument("--fit-options", default="{}", metavar="JSON",
                         help="fit's keyword arguments for the fitted model, e.g. '{\"switching\": \"state\"}'")
+    parser.add_argument("--cache", action="store_true",
+                        help="keep JAX's persistent compilation cache on (npbrs's folder); by default it is off, so "
+                             "every fit compiles as on a new machine and wall times and peak memory compare across "
+                             "runs (a warm cache hid a fit's compile and about 1 GB of its peak memory)")
     parser.add_argument("--child", metavar="WORLD", help=argparse.SUPPRESS)  # one world in this process
     args = parser.parse_args(argv)
+    if not args.cache:
+        os.environ["NPBRS_CACHE_DIR"] = "off"  # (the world processes inherit it)
     try:
         options = json.loads(args.fit_options)
     except json.JSONDecodeError as e:
@@ -264,6 +275,7 @@ def main(argv=None):
                  "python": sys.version.split()[0], "seed": args.seed, "note": UNKNOWN_LOAD,
                  "command": " ".join([os.path.basename(sys.executable), *sys.argv])})
     meta.pop("run_note", None)  # a note describes the run that passes it
+    meta["persistent_cache"] = bool(args.cache)
     if args.note:
         meta["run_note"] = args.note
     try:
