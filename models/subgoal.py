@@ -162,7 +162,7 @@ class SubgoalEmission(Emission):
         self.precompute = bool(table_mb <= max_table_mb) if precompute == "auto" else bool(precompute)
         self._values = None
         if self.precompute:
-            self._values = jit(SubgoalEmission._solve_candidates)(self)
+            self._values = _SOLVE_CANDIDATES(self)
 
     @classmethod
     def from_mdp(cls, mdp, **options):
@@ -289,5 +289,8 @@ class SubgoalEmission(Emission):
                 "precompute": self._precompute_option, "max_table_mb": self.max_table_mb,
                 "chunk_size": self.chunk_size, "tol": self.tol}
 
+
+# one compiled candidate table per emission structure and shapes, not a new jit per emission
+_SOLVE_CANDIDATES = jit(SubgoalEmission._solve_candidates)
 
 float64_all(globals())  # npbrs.domains.precision: float64 inside, the user's setting outside
