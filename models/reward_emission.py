@@ -70,6 +70,8 @@ _STARTS = ("auto", "draw", "fit")
 # around the fit otherwise (a handful of features: the paper's domains, where starting at the
 # fit gave the quadcopter a fourth skill in 2 of 10 runs)
 START_FIT_FEATURES = 16
+# the initial segmentation's windows for such rewards (RewardEmission.init_window)
+SHORT_INIT_WINDOW = 5
 
 
 def auto_prior_scale(num_features: int) -> float:
@@ -299,6 +301,16 @@ class RewardEmission(Emission):
     # sweeps between prior redraws of unused skills in ``fit`` (a redraw's likelihoods are cold
     # solves: on the highway they took half of a sweep when redrawn every sweep)
     redraw_unused = 5
+
+    @property
+    def init_window(self):
+        """``fit``'s window length for the initial segmentation: ``SHORT_INIT_WINDOW`` (5) steps
+        for rewards of more than ``START_FIT_FEATURES`` (16) weights, None (the kernel's 25)
+        otherwise. With one weight per state each window's skill is fitted at the start
+        (``start="auto"``); windows of 25 steps gave each starting skill the rewards of a few
+        long runs, from which the benchmark worlds' chains did not find their way
+        (``benchmarks/NOTES.md``, session 29)."""
+        return SHORT_INIT_WINDOW if self.num_features > START_FIT_FEATURES else None
 
     def tune(self, params, cache, data, weights):
         """The MALA preconditioner from the Fisher information at the skills' current weights:

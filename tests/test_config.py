@@ -75,6 +75,29 @@ def test_defaults_fill_missing_keys_and_nested_options_survive_toml():
     assert ModelConfig.from_toml_string(odd.to_toml()) == odd
 
 
+def test_the_initial_windows_are_the_emissions_unless_the_configuration_sets_them():
+    """``init_window`` left open: ``fit`` takes the emission's (5 steps for rewards of one weight
+    per state, whose windows are each fitted at the start), else the kernel's 25, and records
+    it; a value the configuration gives wins, and bad ones are refused by name."""
+    from gridworld import gridworld
+
+    from npbrs.inference import make_emission
+    from npbrs.inference.driver.fit import default_moves
+
+    dom = gridworld(size=5)  # 25 states
+    onehot = TabularMDP.from_dense(dom.mdp.dense_transitions(), features=np.eye(25))
+    assert SamplerConfig().init_window is None and "init_window" not in ModelConfig().to_toml()
+    for mdp, emission, window in ((onehot, "reward", 5), (dom.mdp, "reward", 25), (onehot, "policy", 25)):
+        em = make_emission(emission, mdp)
+        cfg = default_moves(ModelConfig(emission=emission), em)
+        assert cfg.sampler.init_window == window, (emission, mdp.num_features)
+        given = ModelConfig(emission=emission, sampler=SamplerConfig(init_window=12))
+        assert default_moves(given, em).sampler.init_window == 12
+        assert ModelConfig.from_toml_string(cfg.to_toml()) == cfg  # the resolved value round-trips
+    with pytest.raises(ValueError, match="sampler.init_window: expected an integer >= 1"):
+        SamplerConfig(init_window=0)
+
+
 @pytest.mark.parametrize("text, message", [
     ('[prior]\nkappa = "abc"', "prior.kappa: expected a number, got 'abc'"),
     ("[sampler]\nchainz = 3", "sampler.chainz: unknown key"),

@@ -32,7 +32,7 @@ A TOML variant (every key optional; these are the defaults)::
     warmup = 200
     seed = 0
     chain_method = "vectorized"   # or "sequential", "parallel" (chains over the local devices)
-    init_window = 25
+    # init_window = 25           # default: the emission's (rewards of one weight per state: 5), else 25
     # init_skills = 4             # default: (max_skills + 1) // 2
 
     [sampler.moves]            # the kernel's trans-dimensional moves (BPHMMKernel's ``moves``), e.g.
@@ -306,7 +306,9 @@ class SamplerConfig:
     chains, samples, warmup: number of chains and of sweeps per chain kept / discarded;
     seed: the random seed; chain_method: "vectorized", "sequential" or "parallel" (the vectorized
     sweep with the chains spread over the local devices, ``jax.sharding``; see ``fit``'s ``mesh``);
-    init_skills, init_window: the initial segmentation (skills used; window length);
+    init_skills, init_window: the initial segmentation (skills used, default (max_skills + 1)
+    // 2; window length, default the emission's ``init_window`` where it has one, else 25: ``fit``
+    records the value it used);
     moves: options of the kernel's trans-dimensional moves, passed to ``BPHMMKernel(moves=...)``
     and checked against :mod:`npbrs.inference.sampler.options`, the table the kernel reads
     (defaults: ``MOVE_DEFAULTS`` there, every move off).
@@ -333,7 +335,7 @@ class SamplerConfig:
     seed: int = 0
     chain_method: str = "vectorized"
     init_skills: Optional[int] = None
-    init_window: int = 25
+    init_window: Optional[int] = None
     moves: Dict[str, Any] = field(default_factory=dict)
     bucket: bool = False
     max_samples: int = 0
@@ -350,7 +352,8 @@ class SamplerConfig:
                              f"got {_describe(self.chain_method)}")
         if self.init_skills is not None:
             self.init_skills = _integer("sampler.init_skills", self.init_skills, 1)
-        self.init_window = _integer("sampler.init_window", self.init_window, 1)
+        if self.init_window is not None:
+            self.init_window = _integer("sampler.init_window", self.init_window, 1)
         self.moves = _plain("sampler.moves", _table("sampler.moves", self.moves))
         _check_moves(self.moves)
         if not isinstance(self.bucket, bool):

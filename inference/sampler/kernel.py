@@ -48,6 +48,10 @@ from .options import check_moves
 from .split_merge import split_merge
 from .state import MoveState
 
+#: The initial segmentation's window length where none is given (``fit`` takes the emission's
+#: ``init_window`` first where it has one).
+DEFAULT_INIT_WINDOW = 25
+
 __all__ = ["BPHMMState", "BPHMMKernel", "skill_weights"]
 
 
@@ -123,7 +127,7 @@ class BPHMMKernel(MCMCKernel, Pytree):
         init_skills: skills used by the initial state (data-driven: trajectories cut into
             windows of ``init_window`` steps assigned to skills at random, each skill's
             parameters proposed from its windows).
-        init_window: window length of the initial segmentation.
+        init_window: window length of the initial segmentation (None: ``DEFAULT_INIT_WINDOW``).
         sample_features: Gibbs on the features (off only for tests of the other steps).
         moves: trans-dimensional moves, {"birth_death": trials per sweep (0: off),
             "window": (min, max) length of a birth's window, "split_merge": trials per sweep
@@ -156,7 +160,7 @@ class BPHMMKernel(MCMCKernel, Pytree):
 
     def __init__(self, emission: Emission, data: HMMData, max_skills: int, alpha=1.0, kappa=10.0,
                  gamma=1.0, hyperpriors: Optional[Dict] = None, init_skills: Optional[int] = None,
-                 init_window: int = 25, sample_features: bool = True, moves: Optional[Dict] = None,
+                 init_window: Optional[int] = None, sample_features: bool = True, moves: Optional[Dict] = None,
                  termination: Optional[Termination] = None):
         self.emission = emission
         self.termination = None if termination is None else Termination(
@@ -167,7 +171,7 @@ class BPHMMKernel(MCMCKernel, Pytree):
         self.hyper0 = Hyper(jnp.float64(alpha), jnp.float64(kappa), jnp.float64(gamma))
         self.hyperpriors = dict(hyperpriors or {})
         self.init_skills = int(init_skills if init_skills is not None else max(1, (self.max_skills + 1) // 2))
-        self.init_window = int(init_window)
+        self.init_window = int(init_window if init_window is not None else DEFAULT_INIT_WINDOW)
         self.sample_features = bool(sample_features)
         self.moves = check_moves(moves)
         if self.moves["split_merge"] and not emission.supports_split_merge():
