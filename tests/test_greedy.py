@@ -305,5 +305,6 @@ def test_fit_runs_greedy_merges_by_default_where_the_emission_supports_them():
         fit_point = Emission.fit_point
 
     assert moves(ModelConfig(), NoPoint(9, 5)) == {"greedy_merge": 1, "greedy_from": 0.75}  # splits need fit_point
-    cfg = ModelConfig()
+    # (an emission without fit_evidence: no greedy moves; the windows are the only default left open)
+    cfg = ModelConfig.from_dict({"sampler": {"init_window": 25}})
     assert fit_module.default_moves(cfg, AutoregressiveEmission.__new__(AutoregressiveEmission)) is cfg
