@@ -83,6 +83,7 @@ def test_the_initial_windows_are_the_emissions_unless_the_configuration_sets_the
 
     from npbrs.inference import make_emission
     from npbrs.inference.driver.fit import default_moves
+    from npbrs.inference.sampler.kernel import initial_window
 
     dom = gridworld(size=5)  # 25 states
     onehot = TabularMDP.from_dense(dom.mdp.dense_transitions(), features=np.eye(25))
@@ -91,6 +92,7 @@ def test_the_initial_windows_are_the_emissions_unless_the_configuration_sets_the
         em = make_emission(emission, mdp)
         cfg = default_moves(ModelConfig(emission=emission), em)
         assert cfg.sampler.init_window == window, (emission, mdp.num_features)
+        assert initial_window(em) == window and initial_window(em, 12) == 12  # the kernel's, used directly
         given = ModelConfig(emission=emission, sampler=SamplerConfig(init_window=12))
         assert default_moves(given, em).sampler.init_window == 12
         assert ModelConfig.from_toml_string(cfg.to_toml()) == cfg  # the resolved value round-trips

@@ -39,7 +39,7 @@ from npbrs.models.emissions import Emission, HMMData, get_emission_class
 from npbrs.domains.compiling import jit
 from npbrs.domains.precision import float64_all
 
-from ..sampler.kernel import DEFAULT_INIT_WINDOW, BPHMMKernel
+from ..sampler.kernel import BPHMMKernel, initial_window
 from ..sampler.options import MOVE_DEFAULTS
 from .config import EmissionConfig, ModelConfig, PriorConfig
 from .results import LABEL_INVARIANT, FitResult, label_invariant_diagnostic
@@ -437,13 +437,10 @@ def default_moves(cfg: ModelConfig, emission: Emission) -> ModelConfig:
     ``MOVE_DEFAULTS["greedy_from"]`` x warmup on (unless ``greedy_from`` is set; see
     ``npbrs.inference.sampler.greedy``), the emission's ``redraw_unused`` (sweeps between
     prior redraws of unused skills' parameters) where it is above the kernel's 1, and the
-    initial segmentation's window length where the configuration leaves it open: the emission's
-    ``init_window`` where it has one (rewards of one weight per state: 5), else the kernel's
-    ``DEFAULT_INIT_WINDOW`` (25). The run's configuration records them."""
-    sampler = cfg.sampler
-    if sampler.init_window is None:
-        window = getattr(emission, "init_window", None)
-        cfg = cfg.replace(sampler=dataclasses.replace(sampler, init_window=int(window or DEFAULT_INIT_WINDOW)))
+    initial segmentation's window length where the configuration leaves it open (the kernel's
+    :func:`~npbrs.inference.sampler.kernel.initial_window`). The run's configuration records them."""
+    if cfg.sampler.init_window is None:
+        cfg = cfg.replace(sampler=dataclasses.replace(cfg.sampler, init_window=initial_window(emission)))
     moves = dict(cfg.sampler.moves)
     if int(getattr(emission, "redraw_unused", 1)) > 1:
         moves.setdefault("redraw_unused", int(emission.redraw_unused))

@@ -48,11 +48,19 @@ from .options import check_moves
 from .split_merge import split_merge
 from .state import MoveState
 
-#: The initial segmentation's window length where none is given (``fit`` takes the emission's
-#: ``init_window`` first where it has one).
+#: The initial segmentation's window length where neither the caller nor the emission gives one.
 DEFAULT_INIT_WINDOW = 25
 
-__all__ = ["BPHMMState", "BPHMMKernel", "skill_weights"]
+
+def initial_window(emission: Emission, init_window: Optional[int] = None) -> int:
+    """The initial segmentation's window length: ``init_window`` when given, else the
+    emission's ``init_window`` where it has one (rewards of one weight per state: 5), else
+    ``DEFAULT_INIT_WINDOW``. The kernel and ``fit`` (which records it) both use this."""
+    if init_window is not None:
+        return int(init_window)
+    return int(getattr(emission, "init_window", None) or DEFAULT_INIT_WINDOW)
+
+__all__ = ["BPHMMState", "BPHMMKernel", "skill_weights", "initial_window", "DEFAULT_INIT_WINDOW"]
 
 
 class BPHMMState(NamedTuple):
@@ -127,7 +135,7 @@ class BPHMMKernel(MCMCKernel, Pytree):
         init_skills: skills used by the initial state (data-driven: trajectories cut into
             windows of ``init_window`` steps assigned to skills at random, each skill's
             parameters proposed from its windows).
-        init_window: window length of the initial segmentation (None: ``DEFAULT_INIT_WINDOW``).
+        init_window: window length of the initial segmentation (None: :func:`initial_window`'s).
         sample_features: Gibbs on the features (off only for tests of the other steps).
         moves: trans-dimensional moves, {"birth_death": trials per sweep (0: off),
             "window": (min, max) length of a birth's window, "split_merge": trials per sweep
@@ -171,7 +179,7 @@ class BPHMMKernel(MCMCKernel, Pytree):
         self.hyper0 = Hyper(jnp.float64(alpha), jnp.float64(kappa), jnp.float64(gamma))
         self.hyperpriors = dict(hyperpriors or {})
         self.init_skills = int(init_skills if init_skills is not None else max(1, (self.max_skills + 1) // 2))
-        self.init_window = int(init_window if init_window is not None else DEFAULT_INIT_WINDOW)
+        self.init_window = initial_window(emission, init_window)
         self.sample_features = bool(sample_features)
         self.moves = check_moves(moves)
         if self.moves["split_merge"] and not emission.supports_split_merge():
