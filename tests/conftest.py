@@ -198,8 +198,10 @@ COMPILE_LOG_ENV = "NPBRS_TEST_COMPILE_LOG"
 @pytest.fixture(autouse=True)
 def _compile_log(request):
     """With ``NPBRS_TEST_COMPILE_LOG=FILE``: append, per test, the seconds JAX spent tracing and
-    compiling and the number of programs compiled (cache hits are not compiles) as a JSON line,
-    to find what makes the suite slow."""
+    compiling, the number of programs compiled (cache hits are not compiles) and the CPU-seconds
+    of the process (all its threads) and of the subprocesses it waited for, as a JSON line, to
+    find what makes the suite slow (its two workers share two cores, so CPU-seconds, not wall
+    time, say what a test costs the suite)."""
     path = os.environ.get(COMPILE_LOG_ENV)
     if not path:
         yield
@@ -219,7 +221,7 @@ def _compile_log(request):
             seen["trace"] += duration
 
     jax.monitoring.register_event_duration_secs_listener(listen)
-    start = time.perf_counter()
+    start, cpu, children = time.perf_counter(), time.process_time(), _children_cpu()
     try:
         yield
     finally:
@@ -227,7 +229,34 @@ def _compile_log(request):
         with open(path, "a") as f:
             f.write(json.dumps({"test": request.node.nodeid, "worker": os.environ.get("PYTEST_XDIST_WORKER", ""),
                                 "end": round(time.time(), 1), "wall": round(time.perf_counter() - start, 2),
+                                "cpu": round(time.process_time() - cpu, 2),
+                                "child_cpu": round(_children_cpu() - children, 2),
                                 **{k: round(v, 2) for k, v in seen.items()}}) + "\n")
+
+
+def _children_cpu() -> float:
+    t = os.times()
+    return t.children_user + t.children_system
+
+
+@pytest.fixture(autouse=True, scope="module")
+def _module_log(request):
+    """With ``NPBRS_TEST_COMPILE_LOG``: a line per module with its wall and CPU seconds, its
+    module fixtures (e.g. the notebooks' kernels, the four-device subprocess) included."""
+    path = os.environ.get(COMPILE_LOG_ENV)
+    if not path:
+        yield
+        return
+    import json
+    import time
+
+    start, cpu, children = time.perf_counter(), time.process_time(), _children_cpu()
+    yield
+    with open(path, "a") as f:
+        f.write(json.dumps({"module": request.module.__name__, "worker": os.environ.get("PYTEST_XDIST_WORKER", ""),
+                            "end": round(time.time(), 1), "wall": round(time.perf_counter() - start, 2),
+                            "cpu": round(time.process_time() - cpu, 2),
+                            "child_cpu": round(_children_cpu() - children, 2)}) + "\n")
 
 
 def pytest_terminal_summary(terminalreporter, exitstatus, config):
