@@ -23,9 +23,11 @@ Under ``CI=true`` the cache must be a fresh, empty folder named by ``NPBRS_TEST_
 
 import ctypes
 import gc
+import json
 import os
 import sys
 import tempfile
+import time
 
 
 def _jaxlib_knows(flag: str) -> bool:
@@ -195,6 +197,26 @@ def _release_compiled_programs(request):
 COMPILE_LOG_ENV = "NPBRS_TEST_COMPILE_LOG"
 
 
+class _Usage:
+    """Wall and CPU seconds since it was made: the process's (all its threads) and those of the
+    subprocesses it waited for."""
+
+    def __init__(self):
+        self.start, self.cpu, self.children = time.perf_counter(), time.process_time(), self._children()
+
+    @staticmethod
+    def _children() -> float:
+        t = os.times()
+        return t.children_user + t.children_system
+
+    def record(self, **fields) -> str:
+        """A JSON line of ``fields``, the worker, and the seconds spent since."""
+        return json.dumps({**fields, "worker": os.environ.get("PYTEST_XDIST_WORKER", ""), "end": round(time.time(), 1),
+                           "wall": round(time.perf_counter() - self.start, 2),
+                           "cpu": round(time.process_time() - self.cpu, 2),
+                           "child_cpu": round(self._children() - self.children, 2)}) + "\n"
+
+
 @pytest.fixture(autouse=True)
 def _compile_log(request):
     """With ``NPBRS_TEST_COMPILE_LOG=FILE``: append, per test, the seconds JAX spent tracing and
@@ -206,9 +228,6 @@ def _compile_log(request):
     if not path:
         yield
         return
-    import json
-    import time
-
     from jax._src.dispatch import BACKEND_COMPILE_EVENT, JAXPR_TRACE_EVENT
 
     seen = {"compile": 0.0, "trace": 0.0, "programs": 0}
@@ -221,22 +240,13 @@ def _compile_log(request):
             seen["trace"] += duration
 
     jax.monitoring.register_event_duration_secs_listener(listen)
-    start, cpu, children = time.perf_counter(), time.process_time(), _children_cpu()
+    usage = _Usage()
     try:
         yield
     finally:
         jax.monitoring.unregister_event_duration_listener(listen)
         with open(path, "a") as f:
-            f.write(json.dumps({"test": request.node.nodeid, "worker": os.environ.get("PYTEST_XDIST_WORKER", ""),
-                                "end": round(time.time(), 1), "wall": round(time.perf_counter() - start, 2),
-                                "cpu": round(time.process_time() - cpu, 2),
-                                "child_cpu": round(_children_cpu() - children, 2),
-                                **{k: round(v, 2) for k, v in seen.items()}}) + "\n")
-
-
-def _children_cpu() -> float:
-    t = os.times()
-    return t.children_user + t.children_system
+            f.write(usage.record(test=request.node.nodeid, **{k: round(v, 2) for k, v in seen.items()}))
 
 
 @pytest.fixture(autouse=True, scope="module")
@@ -247,16 +257,10 @@ def _module_log(request):
     if not path:
         yield
         return
-    import json
-    import time
-
-    start, cpu, children = time.perf_counter(), time.process_time(), _children_cpu()
+    usage = _Usage()
     yield
     with open(path, "a") as f:
-        f.write(json.dumps({"module": request.module.__name__, "worker": os.environ.get("PYTEST_XDIST_WORKER", ""),
-                            "end": round(time.time(), 1), "wall": round(time.perf_counter() - start, 2),
-                            "cpu": round(time.process_time() - cpu, 2),
-                            "child_cpu": round(_children_cpu() - children, 2)}) + "\n")
+        f.write(usage.record(module=request.module.__name__))
 
 
 def pytest_terminal_summary(terminalreporter, exitstatus, config):

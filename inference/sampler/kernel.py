@@ -60,6 +60,7 @@ def initial_window(emission: Emission, init_window: Optional[int] = None) -> int
         return int(init_window)
     return int(getattr(emission, "init_window", None) or DEFAULT_INIT_WINDOW)
 
+
 __all__ = ["BPHMMState", "BPHMMKernel", "skill_weights", "initial_window", "DEFAULT_INIT_WINDOW"]
 
 
