@@ -130,6 +130,40 @@ def test_solver_is_pure_and_jittable_inside_lax_loops(problem):
     np.testing.assert_allclose(chain(jnp.asarray(R)), solver(R).V, rtol=1e-10)
 
 
+def test_the_solves_are_traced_once_per_shape_not_at_every_site(monkeypatch):
+    """The Newton loop and the GMRES solve run their Python once per (shapes, options, JAX
+    context), not again at every solve site, ``vmap`` fold and derivative rule: a solve under
+    ``vmap`` and a forward-mode Jacobian (the sampler's chains and the Fisher information),
+    differentiated, ran the Newton loop's Python 7 times and GMRES's 19 before the solves' traces
+    were kept (``_soft_newton_traced``, ``_policy_solve_traced``), 4 and 10 after (a tiny fit: 63
+    GMRES traces before, 34 after). The bounds leave a little room for JAX's own contexts."""
+    from npbrs.domains import solvers
+
+    calls = {"backup": 0, "gmres": 0}
+    # (the Newton loop's soft backups: two a trace, before the loop and in its body)
+    for name, key in (("_soft_backup", "backup"), ("_gmres", "gmres")):
+        original = getattr(solvers, name)
+
+        def counted(*args, _original=original, _key=key, **kwargs):
+            calls[_key] += 1
+            return _original(*args, **kwargs)
+
+        monkeypatch.setattr(solvers, name, counted)
+    # (shapes no other test uses: the kept traces are per process)
+    mdp, _ = random_mdp(3, S=13, A=2, D=3)
+    solver = make_soft_solver(mdp)
+    r = jnp.asarray(np.random.default_rng(0).normal(size=(2, 13, 2)))
+
+    def loss(r):
+        V = jax.vmap(lambda x: solver(x).V)(r)  # folded into one batched solve
+        J = jax.jacfwd(lambda x: solver(x).V)(r)  # the tangents folded in
+        return jnp.sum(V ** 2) + jnp.sum(J)
+
+    with jax.enable_x64(True):  # as inside npbrs's entry points (traces are kept per context)
+        assert jax.jit(jax.grad(loss)).lower(r) is not None
+    assert calls["backup"] <= 10 and calls["gmres"] <= 13, calls
+
+
 @pytest.mark.parametrize("name", ["highway", "quadcopter"])
 def test_factored_next_value_operator_equals_successor_gather(name):
     from npbrs.domains import get_domain
