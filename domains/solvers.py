@@ -432,6 +432,12 @@ def _policy_apply(op: _Columns, pi, transpose: bool = False):
     return op.policy(pi, transpose)
 
 
+# (``_policy_solve`` and ``_soft_newton`` are jitted so that their traces are kept per argument
+# shapes and static options: a fit calls them at dozens of sites, and again inside every vmap
+# fold and implicit-derivative rule, and each trace ran the Python of the loops anew (a tiny
+# fit traced GMRES 63 times, 34 since). Nested in an enclosing trace their code joins the
+# enclosing program as before.)
+@partial(jit, static_argnums=(1, 5, 6, 7, 8), static_argnames=("precision",))
 def _policy_solve(op: _Columns, gamma, pi, b, rtol, degree: int, dim: int, max_cycles: int,
                   transpose: bool = False, basis=None, precision: str = "float64"):
     """Solve (I - gamma P_pi) x = b (or its transpose) for K systems by GMRES,
@@ -466,6 +472,7 @@ def _policy_solve(op: _Columns, gamma, pi, b, rtol, degree: int, dim: int, max_c
     return x.astype(out_dtype), k * degree + degree - 1, basis
 
 
+@partial(jit, static_argnums=(1, 4, 5, 6, 7, 8, 9, 10))  # (see _policy_solve)
 def _soft_newton(op, gamma, r_cols, v0, tol, max_iter, degree, dim, max_cycles, eta, precision="float64"):
     """Inexact Newton (soft policy iteration) for K reward tables in lock-step. Returns the
     last iterates' Q columns, their backups T(V) = logsumexp(Q) (K, S), and per system the
@@ -503,8 +510,8 @@ def _soft_newton(op, gamma, r_cols, v0, tol, max_iter, degree, dim, max_cycles, 
         rtol = jnp.where(it == 0, jnp.minimum(eta, res), jnp.minimum(eta, ew))
         rtol = jnp.clip(jnp.maximum(rtol, 0.1 * tol / jnp.maximum(res, 1e-300)), 1e-14, eta)
         rhs = jnp.where(active[:, None], V - TV, 0.0)
-        step, k, basis = _policy_solve_traced(op, gamma, pi, rhs, rtol, degree, dim, max_cycles, False, basis,
-                                              precision=precision)
+        step, k, basis = _policy_solve(op, gamma, pi, rhs, rtol, degree, dim, max_cycles, False, basis,
+                                       precision=precision)
         V = V - step
         Q, TV_new, pi = _soft_backup(r_cols, op.apply(V), gamma)
         res_new = jnp.where(active, _relative(TV_new - V, TV_new), res)
@@ -516,15 +523,6 @@ def _soft_newton(op, gamma, r_cols, v0, tol, max_iter, degree, dim, max_cycles, 
     init = (v0, Q, TV, pi, zeros, res, zeros, res, jnp.full(K, eta, res.dtype), basis, jnp.asarray(0))
     _, Q, TV, _, it, res, nmv, *_ = jax.lax.while_loop(cond, body, init)
     return Q, TV, it, res, nmv
-
-
-# The two solves' traces, kept per shapes and options: a fit traces the policy solve dozens of
-# times (each solve site, and again in each vmap fold and implicit-derivative rule that calls it),
-# and every trace runs the Python of the Newton and GMRES loops anew. Nested in an enclosing
-# trace, a jitted function's program is looked up by its arguments' shapes and its static
-# options, and joins the enclosing program's code as before.
-_policy_solve_traced = jax.jit(_policy_solve, static_argnums=(1, 5, 6, 7, 8), static_argnames=("precision",))
-_soft_newton_traced = jax.jit(_soft_newton, static_argnums=(1, 4, 5, 6, 7, 8, 9, 10))
 
 
 def _soft_vi(op, gamma, r_cols, v0, tol, max_iter):
@@ -720,7 +718,7 @@ class SoftSolver(Pytree):
     def _core(self, op, r, v0):
         r_cols = tuple(r[..., a] for a in range(self.num_actions))
         if self.method == "newton":
-            return _soft_newton_traced(op, self.discount, r_cols, v0, self.tol, self.max_iter,
+            return _soft_newton(op, self.discount, r_cols, v0, self.tol, self.max_iter,
                                 self.precondition_degree, self.krylov_dim, self.max_restarts, self.forcing,
                                 self.krylov_precision)
         return _soft_vi(op, self.discount, r_cols, v0, self.tol, self.max_iter)
@@ -752,8 +750,8 @@ class SoftSolver(Pytree):
                 return x - gamma * _policy_apply(op, pi, transpose)(x)
 
             def solve(b, transpose):
-                one = fold_vmap(lambda o, p, c: _policy_solve_traced(o, gamma, p, c, gtol, degree, dim, cycles,
-                                                                     transpose, precision=precision)[0])
+                one = fold_vmap(lambda o, p, c: _policy_solve(o, gamma, p, c, gtol, degree, dim, cycles, transpose,
+                                                              precision=precision)[0])
                 x = one(op, pi, b)
                 if precision == "float32":
                     # one step of iterative refinement: the float64 residual's correction solved in
@@ -877,7 +875,7 @@ def _hard_policy_iteration(op, gamma, r_cols, v0, tol, max_iter, degree, dim, ma
         onehot = tuple((policy == a).astype(V.dtype) for a in range(A))
         r_pi = sum(o * r for o, r in zip(onehot, r_cols))
         residual = jnp.where(changed[:, None], r_pi - V + gamma * _policy_apply(op, onehot)(V), 0.0)
-        step, k, _ = _policy_solve_traced(op, gamma, onehot, residual, 1e-14, degree, dim, max_cycles)
+        step, k, _ = _policy_solve(op, gamma, onehot, residual, 1e-14, degree, dim, max_cycles)
         V = V + step
         Q = qcols(V)
         new = greedy(Q, policy, V)

@@ -135,7 +135,7 @@ def test_the_solves_are_traced_once_per_shape_not_at_every_site(monkeypatch):
     context), not again at every solve site, ``vmap`` fold and derivative rule: a solve under
     ``vmap`` and a forward-mode Jacobian (the sampler's chains and the Fisher information),
     differentiated, ran the Newton loop's Python 7 times and GMRES's 19 before the solves' traces
-    were kept (``_soft_newton_traced``, ``_policy_solve_traced``), 4 and 10 after (a tiny fit: 63
+    were kept (``_soft_newton`` and ``_policy_solve`` are jitted), 4 and 10 after (a tiny fit: 63
     GMRES traces before, 34 after). The bounds leave a little room for JAX's own contexts."""
     from npbrs.domains import solvers
 
