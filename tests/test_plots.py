@@ -56,6 +56,28 @@ def test_plot_segmentation_writes_a_png(tmp_path):
         plot_segmentation(TRUE, {"NPBRS": [INFERRED[0], np.zeros(3, int)]}, tmp_path / "bad.png")
 
 
+def test_many_trajectories_are_drawn_as_one_raster_of_a_viewable_size(tmp_path):
+    """Behaviour data (hundreds of short trajectories): one raster, not a panel per trajectory
+    (200 panels made a PNG 12,000 pixels tall); every trajectory's colours are in it."""
+    from matplotlib.image import imread
+
+    from npbrs.inference.analysis.plots import PANELS
+
+    N = 48
+    assert PANELS < N
+    rng = np.random.default_rng(0)
+    true = [np.repeat([0, 1], 10) for _ in range(N)]
+    true[-1] = np.full(20, 2)  # only the last trajectory has true skill 2
+    inferred = [t.copy() for t in true]
+    path = tmp_path / "many.png"
+    styles = plot_segmentation(true, {"npbrs": inferred}, path, trajectories=rng.permutation(N))
+    image = imread(str(path))
+    assert image.shape[0] < 1000, image.shape  # a panel each: about 3,100 pixels
+    colours = image[..., :3].reshape(-1, 3)
+    for style in styles["npbrs"].values():  # each skill's colour is drawn, the last trajectory's too
+        assert np.any(np.all(np.abs(colours - np.array(style.colour[:3])) < 0.02, axis=1)), style
+
+
 def test_plot_trace_and_skill_rewards_write_pngs(tmp_path):
     rng = np.random.default_rng(0)
     C, D = 2, 30

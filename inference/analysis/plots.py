@@ -29,6 +29,7 @@ __all__ = ["SkillStyle", "skill_styles", "true_styles", "plot_segmentation", "pl
 # tab10 without its grey, which is kept for unmatched skills
 PALETTE = ("#1f77b4", "#ff7f0e", "#2ca02c", "#d62728", "#9467bd", "#8c564b", "#e377c2", "#bcbd22", "#17becf")
 UNMATCHED = (0.62, 0.62, 0.62, 1.0)
+PANELS = 16  # plot_segmentation: a panel per trajectory up to this many, one raster beyond
 
 
 class SkillStyle(NamedTuple):
@@ -143,7 +144,10 @@ def plot_segmentation(true, inferred: Dict[str, Sequence], path, labels: Optiona
     """Draw segmentations as in the paper's Figures 4 and 9 and save them as a PNG.
 
     Per trajectory, one row per method (the true sequence first), each step coloured by its
-    skill's label (see the module docstring).
+    skill's label (see the module docstring). Up to ``PANELS`` trajectories get a panel each;
+    more (behaviour data: hundreds of short trajectories) are stacked in one raster, a block of
+    rows per trajectory, so that the picture stays a picture (200 panels were a PNG 12,000
+    pixels tall that took 6 s to draw).
 
     Args:
         true: per-trajectory true skill sequences, or None.
@@ -172,21 +176,43 @@ def plot_segmentation(true, inferred: Dict[str, Sequence], path, labels: Optiona
         if not 0 <= i < len(lengths):
             raise ValueError(f"trajectory {i} is outside 0..{len(lengths) - 1}")
     T = max(lengths[i] for i in chosen)
-    row_h = 0.22
-    fig = Figure(figsize=(10, len(chosen) * (len(rows) * row_h + 0.25) + 0.9), dpi=100)
-    axes = fig.subplots(len(chosen), 1, squeeze=False)[:, 0]
-    for ax, i in zip(axes, chosen):
+
+    def block(i):  # (rows, T, RGBA): trajectory i's rows, white past its end
         image = np.ones((len(rows), T, 4))
         for r, (_, seqs, style) in enumerate(rows):
             image[r, :lengths[i]] = [style[int(k)].colour for k in seqs[i]]
-        ax.imshow(image, aspect="auto", interpolation="nearest", extent=(0, T, len(rows), 0))
-        ax.set_yticks(np.arange(len(rows)) + 0.5)
-        ax.set_yticklabels([name for name, _, _ in rows], fontsize=7)
-        ax.set_ylabel(f"{i}", rotation=0, ha="right", va="center", fontsize=8)
-        ax.tick_params(axis="x", labelsize=7, labelbottom=ax is axes[-1])
+        return image
+
+    if len(chosen) <= PANELS:
+        row_h = 0.22
+        fig = Figure(figsize=(10, len(chosen) * (len(rows) * row_h + 0.25) + 0.9), dpi=100)
+        axes = fig.subplots(len(chosen), 1, squeeze=False)[:, 0]
+        for ax, i in zip(axes, chosen):
+            ax.imshow(block(i), aspect="auto", interpolation="nearest", extent=(0, T, len(rows), 0))
+            ax.set_yticks(np.arange(len(rows)) + 0.5)
+            ax.set_yticklabels([name for name, _, _ in rows], fontsize=7)
+            ax.set_ylabel(f"{i}", rotation=0, ha="right", va="center", fontsize=8)
+            ax.tick_params(axis="x", labelsize=7, labelbottom=ax is axes[-1])
+            ax.set_xlim(0, T)
+            for r in range(1, len(rows)):
+                ax.axhline(r, color="white", linewidth=0.8)
+        hspace = 0.35
+    else:  # one raster: per trajectory its rows and a white gap row
+        height = len(rows) + 1
+        image = np.ones((len(chosen) * height, T, 4))
+        for b, i in enumerate(chosen):
+            image[b * height:b * height + len(rows)] = block(i)
+        fig = Figure(figsize=(10, min(14.0, 2.0 + 0.012 * image.shape[0])), dpi=100)
+        ax = fig.subplots()
+        ax.imshow(image, aspect="auto", interpolation="nearest", extent=(0, T, image.shape[0], 0))
+        every = max(1, -(-len(chosen) // 40))  # at most about 40 tick labels
+        ticks = np.arange(0, len(chosen), every)
+        ax.set_yticks(ticks * height + len(rows) / 2)
+        ax.set_yticklabels([str(chosen[b]) for b in ticks], fontsize=7)
+        ax.set_ylabel(f"trajectory (rows: {', '.join(name for name, _, _ in rows)})", fontsize=8)
+        ax.tick_params(axis="x", labelsize=7)
         ax.set_xlim(0, T)
-        for r in range(1, len(rows)):
-            ax.axhline(r, color="white", linewidth=0.8)
+        axes, hspace = [ax], None
     axes[-1].set_xlabel("step")
     legend = {}
     for name, _, style in rows:
@@ -201,7 +227,7 @@ def plot_segmentation(true, inferred: Dict[str, Sequence], path, labels: Optiona
                ncol=min(len(order), 8), fontsize=8, frameon=False, bbox_to_anchor=(0.5, 1.0))
     if title:
         fig.suptitle(title, y=1.03)
-    fig.subplots_adjust(hspace=0.35, top=1 - 0.6 / fig.get_figheight())
+    fig.subplots_adjust(hspace=hspace, top=1 - 0.6 / fig.get_figheight())
     _save(fig, path)
     return styles
 
