@@ -95,6 +95,33 @@ def test_plot_trace_and_skill_rewards_write_pngs(tmp_path):
         plot_skill_rewards(theta, ["a", "b", "c"], tmp_path / "bad.png")
 
 
+def test_a_reward_per_state_is_drawn_as_a_heat_map_of_a_viewable_size(tmp_path):
+    """One-hot state features (127 in the labyrinth, up to a million in a robot world): a heat
+    map 14 inches wide (bars for 127 features were 25,000 pixels wide), its reddest cell the
+    largest weight, its bluest the smallest."""
+    from matplotlib import colormaps
+    from matplotlib.image import imread
+
+    from npbrs.inference.analysis.plots import BARS
+
+    K, D = 3, 127
+    assert D > BARS
+    theta = np.zeros((K, D))
+    theta[1, 40], theta[2, 90] = 8.0, -8.0
+    plot_skill_rewards(theta, [f"s{d}" for d in range(D)], tmp_path / "states.png")
+    image = imread(str(tmp_path / "states.png"))[..., :3]
+    assert image.shape[1] <= 1500, image.shape
+    image = image[:, :int(0.85 * image.shape[1])]  # the map, without its colour bar
+    for value in (1.0, 0.0):  # the colour map's ends: +8 and -8
+        target = np.array(colormaps["RdBu_r"](value)[:3])
+        close = np.all(np.abs(image - target) < 0.02, axis=-1)
+        rows, cols = np.nonzero(close)
+        assert rows.size > 20, value  # a cell of the map, not a stray pixel
+        assert np.ptp(cols) < image.shape[1] / D * 2 + 4  # one column wide
+    plot_skill_rewards(np.ones((2, 10 ** 5)), [str(d) for d in range(10 ** 5)], tmp_path / "million.png")
+    assert imread(str(tmp_path / "million.png")).shape[1] <= 1500
+
+
 def test_the_report_draws_rewards_as_posterior_means_in_the_segmentations_colours(tmp_path):
     """The reward plot's bars are the posterior means with their interval (not the best draw's
     weights), each skill in the colour and name the segmentation plot gave it; true skills

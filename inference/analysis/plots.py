@@ -30,6 +30,7 @@ __all__ = ["SkillStyle", "skill_styles", "true_styles", "plot_segmentation", "pl
 PALETTE = ("#1f77b4", "#ff7f0e", "#2ca02c", "#d62728", "#9467bd", "#8c564b", "#e377c2", "#bcbd22", "#17becf")
 UNMATCHED = (0.62, 0.62, 0.62, 1.0)
 PANELS = 16  # plot_segmentation: a panel per trajectory up to this many, one raster beyond
+BARS = 24  # plot_skill_rewards: bars up to this many features, a heat map beyond
 
 
 class SkillStyle(NamedTuple):
@@ -367,7 +368,11 @@ def plot_skill_ends(ends, path, skill_names: Optional[Sequence[str]] = None, tit
 
 def plot_skill_rewards(theta, feature_names: Sequence[str], path, skill_names: Optional[Sequence[str]] = None,
                        title: Optional[str] = None, interval=None, colours: Optional[Sequence] = None) -> None:
-    """Bar chart of each skill's reward weights over the features.
+    """Each skill's reward weights over the features: a bar chart up to ``BARS`` features (with
+    the interval as error bars), beyond that (a reward weight per state: hundreds to millions of
+    features) a heat map, skills in rows and features in columns, coloured by the weight on a
+    scale symmetric about zero (the interval is not drawn there). Either way the PNG stays at
+    most 14 inches wide: bars for 127 features were 25,000 pixels wide.
 
     Args:
         theta: (K, D) reward weights (e.g. posterior means).
@@ -396,7 +401,26 @@ def plot_skill_rewards(theta, feature_names: Sequence[str], path, skill_names: O
         lower, upper = (np.asarray(x, dtype=np.float64) for x in interval)
         if lower.shape != (K, D) or upper.shape != (K, D):
             raise ValueError(f"interval bounds must have shape ({K}, {D})")
-    fig = Figure(figsize=(max(5.0, 1.0 + 0.4 * K * D), 3.5), dpi=100)
+    if D > BARS:
+        fig = Figure(figsize=(14.0, 1.2 + 0.45 * K), dpi=100)
+        ax = fig.subplots()
+        top = float(np.max(np.abs(theta))) or 1.0
+        image = ax.imshow(theta, aspect="auto", interpolation="nearest", cmap="RdBu_r", vmin=-top, vmax=top)
+        ax.set_yticks(np.arange(K))
+        ax.set_yticklabels(names, fontsize=8)
+        for tick, colour in zip(ax.get_yticklabels(), colours):
+            tick.set_color(colour)
+        if D <= 3 * BARS:
+            ax.set_xticks(np.arange(D))
+            ax.set_xticklabels(list(feature_names), rotation=90, fontsize=6)
+        ax.set_xlabel("feature")
+        fig.colorbar(image, ax=ax, label="reward weight")
+        if title:
+            ax.set_title(title)
+        fig.tight_layout()
+        _save(fig, path)
+        return
+    fig = Figure(figsize=(min(14.0, max(5.0, 1.0 + 0.4 * K * D)), 3.5), dpi=100)
     ax = fig.subplots()
     width = 0.8 / K
     x = np.arange(D)
