@@ -59,6 +59,57 @@ def test_per_skill_rewards_pool_the_relabelled_chains():
         assert row["lower"] < truth < row["upper"] and row["upper"] - row["lower"] < 0.5
 
 
+def test_the_summary_is_each_entrys_mean_sd_and_quantiles_of_the_draws_that_hold_the_skill():
+    result, _ = switched_chains()
+    result.samples["skill_steps"][1, :10, :] = 0  # a chain without the skills in 10 draws
+    draws = relabelled_draws(result, "theta").reshape(-1, 3, 2)
+    table = skill_summary(result, prob=0.8)
+    for j in range(3):
+        held = draws[~np.isnan(draws[:, j]).any(-1), j]
+        for p, entry in enumerate(["right", "up"]):
+            row, v = table.loc[(j, entry)], held[:, p]
+            np.testing.assert_allclose([row["mean"], row["sd"], row["lower"], row["upper"]],
+                                       [np.mean(v), np.std(v, ddof=1), np.quantile(v, 0.1), np.quantile(v, 0.9)],
+                                       rtol=1e-12)
+            assert row["draws"] == len(v) == 110
+
+
+def test_top_keeps_each_skills_largest_weights_first():
+    """(``npbrs report`` prints these for a reward per state.)"""
+    result, _ = switched_chains()
+    full = skill_summary(result)
+    top = skill_summary(result, top=1)
+    assert list(top.index) == [(0, top.index[0][1]), (1, "right"), (2, "up")]  # skill 1's 5 is "right", 2's "up"
+    for key, row in top.iterrows():
+        np.testing.assert_array_equal(row.to_numpy(), full.loc[key].to_numpy())
+        others = full.loc[key[0]]["mean"].abs()
+        assert abs(row["mean"]) == others.max()
+    assert skill_summary(result, top=5).equals(full)
+    with pytest.raises(ValueError, match="top must be a positive number"):
+        skill_summary(result, top=0)
+
+
+def test_the_report_of_a_reward_per_state_prints_each_skills_largest_weights(tmp_path, capsys):
+    from npbrs.inference.cli.main import REPORT_FEATURES, REPORT_TOP, main
+
+    result, _ = switched_chains()
+    C, D = result.samples["theta"].shape[:2]
+    extra = REPORT_FEATURES + 6 - 2  # small weights on more features than the report lists
+    result.samples["theta"] = np.concatenate([result.samples["theta"],
+                                              np.random.default_rng(1).normal(size=(C, D, 4, extra))], -1)
+    result.skill_params["theta"] = np.concatenate([result.skill_params["theta"], np.zeros((3, extra))], -1)
+    result.feature_names = tuple(f"s{d}" for d in range(2 + extra))
+    result.save(tmp_path / "run.nc")
+    assert main(["report", str(tmp_path / "run.nc")]) == 0
+    out = capsys.readouterr().out
+    assert f"the {REPORT_TOP} largest in magnitude of {2 + extra}" in out
+    table = out.split("largest in magnitude")[1]
+    rows = [line.split() for line in table.splitlines() if line.strip().startswith(("0 ", "1 ", "2 ", "s"))
+            and not line.startswith("skill")]
+    assert len(rows) == 3 * REPORT_TOP
+    assert ["1", "s0"] == rows[REPORT_TOP][:2] and ["2", "s1"] == rows[2 * REPORT_TOP][:2]  # 5.0 heads the list
+
+
 def test_a_skill_missing_from_a_draw_does_not_enter_its_summary():
     result, _ = switched_chains()
     result.samples["skill_steps"][1, :10] = 0  # chain 1 uses no skill in its first 10 draws

@@ -142,7 +142,7 @@ def relabelled_draws(result: FitResult, site: str, by: str = "segmentation") -> 
 
 
 def skill_summary(result: FitResult, site: Optional[str] = None, prob: float = 0.9, by: str = "segmentation",
-                  names=None):
+                  names=None, top: Optional[int] = None):
     """Per-skill posterior summary of a parameter site, pooled over chains after relabelling.
 
     Args:
@@ -153,6 +153,9 @@ def skill_summary(result: FitResult, site: Optional[str] = None, prob: float = 0
         by: how chains are relabelled (see :func:`relabel`).
         names: names of the site's entries (default: the MDP's feature names when the site has
             one entry per feature, else their indices).
+        top: keep only each skill's ``top`` entries of largest absolute mean, largest first (a
+            reward weight per state: the states a skill seeks or avoids most); default all, in
+            order.
     Returns:
         a pandas DataFrame indexed by (skill, entry) with columns mean, sd, lower, upper and draws
         (the number of draws that used the skill).
@@ -161,6 +164,8 @@ def skill_summary(result: FitResult, site: Optional[str] = None, prob: float = 0
 
     if not 0 < prob < 1:
         raise ValueError(f"prob must lie in (0, 1), got {prob}")
+    if top is not None and (isinstance(top, bool) or not isinstance(top, (int, np.integer)) or top < 1):
+        raise ValueError(f"top must be a positive number of entries, got {top!r}")
     if site is None:
         site = "theta" if "theta" in result.skill_params else sorted(result.skill_params)[0]
     if site not in result.skill_params:
@@ -175,16 +180,22 @@ def skill_summary(result: FitResult, site: Optional[str] = None, prob: float = 0
     if len(names) != P:
         raise ValueError(f"{len(names)} names for {P} entries of {site!r}")
     lo, hi = (1 - prob) / 2, 1 - (1 - prob) / 2
-    rows = []
-    for j in range(L):
+    columns = {name: np.full((L, P), np.nan) for name in ("mean", "sd", "lower", "upper")}
+    counts = np.zeros(L, dtype=int)
+    for j in range(L):  # all entries at once (a reward per state: up to millions of them)
         x = flat[:, j]
         x = x[~np.isnan(x).any(-1)]
-        for p in range(P):
-            if len(x):
-                v = x[:, p]
-                rows.append((j, names[p], v.mean(), v.std(ddof=1) if len(v) > 1 else np.nan, np.quantile(v, lo),
-                             np.quantile(v, hi), len(v)))
-            else:
-                rows.append((j, names[p], np.nan, np.nan, np.nan, np.nan, 0))
-    frame = pd.DataFrame(rows, columns=["skill", "entry", "mean", "sd", "lower", "upper", "draws"])
-    return frame.set_index(["skill", "entry"])
+        counts[j] = len(x)
+        if len(x):
+            columns["mean"][j] = x.mean(0)
+            if len(x) > 1:
+                columns["sd"][j] = x.std(0, ddof=1)
+            columns["lower"][j], columns["upper"][j] = np.quantile(x, [lo, hi], axis=0)
+    index = pd.MultiIndex.from_arrays([np.repeat(np.arange(L), P), np.tile(np.asarray(names, dtype=object), L)],
+                                      names=["skill", "entry"])
+    frame = pd.DataFrame({**{k: v.reshape(-1) for k, v in columns.items()}, "draws": np.repeat(counts, P)},
+                         index=index)
+    if top is None or top >= P:
+        return frame
+    order = np.argsort(-np.nan_to_num(np.abs(columns["mean"]), nan=-1.0), axis=1, kind="stable")[:, :top]
+    return frame.iloc[(np.arange(L)[:, None] * P + order).reshape(-1)]
