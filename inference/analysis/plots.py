@@ -344,7 +344,6 @@ def plot_skill_ends(ends, path, skill_names: Optional[Sequence[str]] = None, tit
         skill_names: K names (default "skill 0", ...).
         title: optional title.
     """
-    from matplotlib.figure import Figure
 
     ends = np.asarray(ends, dtype=np.float64)
     if ends.ndim != 2 or not np.all(np.isfinite(ends)) or np.any(ends < 0) or np.any(ends > 1):
@@ -353,13 +352,29 @@ def plot_skill_ends(ends, path, skill_names: Optional[Sequence[str]] = None, tit
     names = [f"skill {k}" for k in range(K)] if skill_names is None else [str(s) for s in skill_names]
     if len(names) != K:
         raise ValueError(f"{len(names)} skill names for {K} skills")
-    fig = Figure(figsize=(min(14.0, max(5.0, 2.0 + 0.06 * S)), 1.2 + 0.45 * K), dpi=100)
+    _heat_map(ends, path, names, "state entered", "end probability", "viridis", (0.0, 1.0), title)
+
+
+def _heat_map(values, path, row_names, xlabel: str, label: str, cmap: str, limits, title=None, row_colours=None,
+              column_names=None) -> None:
+    """A (K, n) array as a heat map, skills in rows, at most 14 inches wide; ``limits``: the
+    colour scale's (min, max); ``row_colours``: the row names' colours; ``column_names``: the
+    columns' tick labels (default their indices)."""
+    from matplotlib.figure import Figure
+
+    K, n = values.shape
+    fig = Figure(figsize=(min(14.0, max(5.0, 2.0 + 0.06 * n)), 1.2 + 0.45 * K), dpi=100)
     ax = fig.subplots()
-    image = ax.imshow(ends, aspect="auto", interpolation="nearest", cmap="viridis", vmin=0.0, vmax=1.0)
+    image = ax.imshow(values, aspect="auto", interpolation="nearest", cmap=cmap, vmin=limits[0], vmax=limits[1])
     ax.set_yticks(np.arange(K))
-    ax.set_yticklabels(names)
-    ax.set_xlabel("state entered")
-    fig.colorbar(image, ax=ax, label="end probability")
+    ax.set_yticklabels(row_names, fontsize=8)
+    for tick, colour in zip(ax.get_yticklabels(), row_colours or ()):
+        tick.set_color(colour)
+    if column_names is not None:
+        ax.set_xticks(np.arange(n))
+        ax.set_xticklabels(list(column_names), rotation=90, fontsize=6)
+    ax.set_xlabel(xlabel)
+    fig.colorbar(image, ax=ax, label=label)
     if title:
         ax.set_title(title)
     fig.tight_layout()
@@ -402,23 +417,9 @@ def plot_skill_rewards(theta, feature_names: Sequence[str], path, skill_names: O
         if lower.shape != (K, D) or upper.shape != (K, D):
             raise ValueError(f"interval bounds must have shape ({K}, {D})")
     if D > BARS:
-        fig = Figure(figsize=(14.0, 1.2 + 0.45 * K), dpi=100)
-        ax = fig.subplots()
         top = float(np.max(np.abs(theta))) or 1.0
-        image = ax.imshow(theta, aspect="auto", interpolation="nearest", cmap="RdBu_r", vmin=-top, vmax=top)
-        ax.set_yticks(np.arange(K))
-        ax.set_yticklabels(names, fontsize=8)
-        for tick, colour in zip(ax.get_yticklabels(), colours):
-            tick.set_color(colour)
-        if D <= 3 * BARS:
-            ax.set_xticks(np.arange(D))
-            ax.set_xticklabels(list(feature_names), rotation=90, fontsize=6)
-        ax.set_xlabel("feature")
-        fig.colorbar(image, ax=ax, label="reward weight")
-        if title:
-            ax.set_title(title)
-        fig.tight_layout()
-        _save(fig, path)
+        _heat_map(theta, path, names, "feature", "reward weight", "RdBu_r", (-top, top), title, colours,
+                  feature_names if D <= 3 * BARS else None)
         return
     fig = Figure(figsize=(min(14.0, max(5.0, 1.0 + 0.4 * K * D)), 3.5), dpi=100)
     ax = fig.subplots()
