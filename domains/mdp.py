@@ -277,11 +277,24 @@ class TabularMDP(Pytree):
         return np.take_along_axis(self.successors[states, actions], idx[..., None], -1)[..., 0]
 
     def __repr__(self):
+        names = list(self.feature_names)
+        if len(names) > 8:  # a reward weight per state: not a million names
+            names = names[:3] + ["...", f"({len(names)} features)", "..."] + names[-2:]
         return (f"TabularMDP(name={self.name!r}, num_states={self.num_states}, num_actions={self.num_actions}, "
-                f"num_successors={self.num_successors}, features={list(self.feature_names)}, discount={self.discount})")
+                f"num_successors={self.num_successors}, features={names}, discount={self.discount})")
+
+
+ONE_HOT_MAX_BYTES = 2 ** 30  # the largest dense one-hot feature array made by default (1 GiB)
 
 
 def _one_hot_state_features(S: int, A: int, kwargs: dict):
+    size = 8 * S * A * S  # the (S, A, S) float64 array the MDP holds, and the solvers a copy of it
+    if size > ONE_HOT_MAX_BYTES:
+        raise ValueError(
+            f"one-hot state features (the default without features) for {S} states and {A} actions would be a "
+            f"dense ({S}, {A}, {S}) array of {size / 2 ** 30:.1f} GiB, and {S} reward weights per skill (the "
+            "sampler's curvature matrices are weights x weights per skill); give features=(S, A, D) or (S, D) of "
+            "your own with a few dozen features (e.g. distances to landmarks, cell types, regions)")
     kwargs = dict(kwargs)
     kwargs.setdefault("feature_names", tuple(f"state{s}" for s in range(S)))
     return np.eye(S), kwargs

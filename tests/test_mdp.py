@@ -19,6 +19,25 @@ def test_from_dense_round_trips_the_transition_tensor():
     assert (mdp.num_states, mdp.num_actions, mdp.num_features) == (5, 3, 2)
 
 
+def test_one_hot_features_too_large_to_hold_are_refused_and_names_are_summarised(monkeypatch):
+    """A robot world of 10^5 states without features of its own: not an 80 GB one-hot array (a
+    MemoryError deep in NumPy), but a ValueError that says what to give instead; and the MDP's
+    repr does not list one name per state."""
+    from npbrs.domains import mdp as mdp_module
+
+    S = 100_000
+    succ, probs = np.zeros((S, 2, 1), np.int64), np.ones((S, 2, 1))
+    with pytest.raises(ValueError, match=r"one-hot state features .* 100000 states .* give features=\(S, A, D\)"):
+        TabularMDP.from_successors(succ, probs)
+    small = TabularMDP.from_successors(succ[:40], probs[:40])  # 40 states: one-hot, 40 weights
+    assert small.num_features == 40 and small.features.shape == (40, 2, 40)
+    text = repr(small)
+    assert "state0" in text and "(40 features)" in text and "state39" in text and "state20" not in text
+    monkeypatch.setattr(mdp_module, "ONE_HOT_MAX_BYTES", 8 * 40 * 2 * 40 - 1)  # the bound is on the array's bytes
+    with pytest.raises(ValueError, match="40 states"):
+        TabularMDP.from_successors(succ[:40], probs[:40])
+
+
 def test_frozenlake_transition_probabilities_match():
     env = gym.make("FrozenLake-v1")
     mdp = TabularMDP.from_gymnasium(env)
