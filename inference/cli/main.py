@@ -202,8 +202,9 @@ def save_plots(result, directory, skill_names=None) -> dict:
                                      labels=skill_names)["npbrs"]
     if "theta" in result.skill_params:
         names, mean, interval, colours, labels = reward_plot_inputs(result, styles, with_true=true is not None)
+        drawn = "posterior mean and 90% interval" if len(names) <= plots.BARS else "posterior mean"  # (a heat map)
         plots.plot_skill_rewards(mean, names, paths["skill rewards"], skill_names=labels, interval=interval,
-                                 colours=colours, title="reward weights: posterior mean and 90% interval")
+                                 colours=colours, title=f"reward weights: {drawn}")
     else:
         del paths["skill rewards"]
     if "ends" in result.samples:
