@@ -265,16 +265,17 @@ def test_fit_starts_from_a_given_segmentation(tmp_path):
 
 def test_progress_in_a_log_shows_compiling_then_sweeps_with_an_eta(capsys):
     """Output that is not a terminal gets plain lines: the compiling first sweep named as such,
-    then every tenth of the sweeps with the rate and time left, then a closing line; no
-    carriage returns."""
+    then every tenth of the sweeps with the rate, the time left and the best chain's log joint
+    after that sweep, then a closing line; no carriage returns."""
     mdp, demos = small_problem()
-    fit(mdp, demos, TOY, num_samples=18, progress_bar=True)
+    result = fit(mdp, demos, TOY, num_samples=18, progress_bar=True)
     err = capsys.readouterr().err
     lines = [line for line in err.splitlines() if line.startswith("npbrs fit: ")]
     assert lines[0] == "npbrs fit: compiling the sampler (the first sweep); 20 sweeps to run"
     assert lines[1] == "npbrs fit: compiled; sweep 1/20 (warmup)"
     assert any(line.startswith("npbrs fit: sweep 2/20 (warmup), ") and "s per sweep, about" in line for line in lines)
-    assert any(line.startswith("npbrs fit: sweep 20/20 (sample), ") for line in lines)
+    last = [line for line in lines if line.startswith("npbrs fit: sweep 20/20 (sample), ")]
+    assert last and last[0].endswith(f", log joint {np.max(result.stats['log_joint'][:, -1]):.1f}"), last
     assert lines[-1].startswith("npbrs fit: done: 20 sweeps in ")
     assert len(lines) == 13 and "\r" not in err
 

@@ -651,6 +651,16 @@ class _Progress:
         self.bar = None
 
 
+def _latest_log_joint(records) -> Optional[float]:
+    """The best chain's log joint after the sweep that gave ``records`` (a dict batched over
+    chains, or a list of one chain's each), for the progress line; None where the records have
+    none, or where their arrays live partly on other processes' devices (a multi-host run)."""
+    values = [r.get("log_joint") for r in (records if isinstance(records, list) else [records])]
+    if any(v is None or not getattr(v, "is_fully_addressable", True) for v in values):
+        return None
+    return float(max(np.max(np.asarray(v)) for v in values))
+
+
 def _interactive(stream) -> bool:
     """A terminal, or a notebook (where tqdm draws a widget)."""
     try:
@@ -928,7 +938,7 @@ def _fit(mdp, demos, config, *, emission, emission_options, num_chains, num_samp
     if done > total:  # resumed after the planned sweeps: the extension's next point
         total = min(cap, total + -(-(done - total) // block) * block)
         bar.extend(total * (C if method == "sequential" else 1))
-    run_length = None
+    run_length, rhat_text = None, ""
     try:
         with _Interrupt() as interrupt:
             while True:
@@ -937,13 +947,14 @@ def _fit(mdp, demos, config, *, emission, emission_options, num_chains, num_samp
                     records = chains.advance()
                     if progress_bar:  # dispatch is asynchronous: time the sweep, not its dispatch
                         jax.block_until_ready(records)
+                        latest = _latest_log_joint(records)
+                        if latest is not None:
+                            bar.set_postfix("; ".join([f"log joint {latest:.1f}"] + ([rhat_text] if rhat_text else [])))
                     (pending if done >= W else warm).append(records)
                     done += 1
                     bar.update(C if method == "sequential" else 1)
                     if checkpoint_path is not None and (done % every == 0 or done == total):
                         checkpoint(done)
-                        bar.set_postfix(f"log joint {float(np.max(draws['log_joint'][:, -1])):.1f}"
-                                        if "log_joint" in draws else "")
                     elif len(pending) + len(warm) >= 100:
                         flush()
                     if interrupt.flag:
@@ -960,8 +971,9 @@ def _fit(mdp, demos, config, *, emission, emission_options, num_chains, num_samp
                     break
                 total = min(total + block, cap)
                 bar.extend(total * (C if method == "sequential" else 1))
-                bar.set_postfix("R-hat " + ", ".join(f"{k} {'undefined' if v is None else format(v, '.3f')}"
-                                                     for k, v in run_length["rhat"].items()))
+                rhat_text = "R-hat " + ", ".join(f"{k} {'undefined' if v is None else format(v, '.3f')}"
+                                                 for k, v in run_length["rhat"].items())
+                bar.set_postfix(rhat_text)
     finally:
         bar.close(f"done: {done} sweeps in {time.perf_counter() - start:.1f} s")
     wall += time.perf_counter() - start
