@@ -52,6 +52,8 @@ def test_plot_segmentation_writes_a_png(tmp_path):
     assert sorted(p.name for p in tmp_path.iterdir()) == ["segmentation.png"]  # no temporary left behind
     plot_segmentation(None, {"NPBRS": INFERRED}, tmp_path / "alone.png", trajectories=[1])
     assert is_png(tmp_path / "alone.png")
+    with pytest.raises(ValueError, match="no trajectories to plot"):
+        plot_segmentation(TRUE, {"NPBRS": INFERRED}, tmp_path / "none.png", trajectories=[])
     with pytest.raises(ValueError, match="trajectory 1: segmentation 'NPBRS' has shape \\(3,\\), expected \\(10,\\)"):
         plot_segmentation(TRUE, {"NPBRS": [INFERRED[0], np.zeros(3, int)]}, tmp_path / "bad.png")
 

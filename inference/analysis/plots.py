@@ -173,6 +173,8 @@ def plot_segmentation(true, inferred: Dict[str, Sequence], path, labels: Optiona
     rows = ([("true", true, true_styles(true, labels))] if true is not None else []) + \
         [(name, methods[name], styles[name]) for name in methods]
     chosen = list(range(len(lengths))) if trajectories is None else [int(i) for i in trajectories]
+    if not chosen:
+        raise ValueError("no trajectories to plot")
     for i in chosen:
         if not 0 <= i < len(lengths):
             raise ValueError(f"trajectory {i} is outside 0..{len(lengths) - 1}")
