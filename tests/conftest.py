@@ -30,24 +30,27 @@ import tempfile
 import time
 
 
-def _jaxlib_knows(flag: str) -> bool:
-    """Whether the installed jaxlib's XLA has this flag (an unknown flag in XLA_FLAGS aborts the
-    process): its name is in one of jaxlib's shared libraries."""
-    import importlib.util
-    import mmap
-    from pathlib import Path
-
-    spec = importlib.util.find_spec("jaxlib")
-    if spec is None or not spec.submodule_search_locations:
+def _xla_accepts(flag: str) -> bool:
+    """Whether the installed jaxlib's XLA accepts this flag: an unknown flag in XLA_FLAGS aborts
+    the process, and a flag's name can outlive the flag in jaxlib's binaries (jaxlib 0.12, on
+    Python 3.12, still holds the string ``xla_cpu_use_fusion_emitters`` but aborts on it), so a
+    short subprocess starts JAX's CPU backend with it. The answer is passed on to the test
+    workers and the processes they start (``_ACCEPTS_ENV``), so only the first process asks."""
+    known = os.environ.get(_ACCEPTS_ENV, "")
+    if f"+{flag}" in known:
+        return True
+    if f"-{flag}" in known:
         return False
-    for lib in Path(next(iter(spec.submodule_search_locations))).rglob("*.so"):
-        try:
-            with open(lib, "rb") as f, mmap.mmap(f.fileno(), 0, access=mmap.ACCESS_READ) as m:
-                if m.find(flag.encode()) >= 0:
-                    return True
-        except (OSError, ValueError):
-            continue
-    return False
+    import subprocess
+
+    probe = subprocess.run([sys.executable, "-c", "import jax; jax.devices('cpu')"], capture_output=True,
+                           env={**os.environ, "XLA_FLAGS": f"--{flag}", "JAX_PLATFORMS": "cpu"}, timeout=120)
+    accepted = probe.returncode == 0
+    os.environ[_ACCEPTS_ENV] = f"{known} {'+' if accepted else '-'}{flag}".strip()
+    return accepted
+
+
+_ACCEPTS_ENV = "NPBRS_TEST_XLA_FLAGS_CHECKED"
 
 
 def _fast_compile_flags(flags: str) -> str:
@@ -56,7 +59,7 @@ def _fast_compile_flags(flags: str) -> str:
     time in the suite's programs; results differ from the default emitters' only in rounding)."""
     if "xla_backend_optimization_level" not in flags:
         flags += " --xla_backend_optimization_level=0"
-    if "xla_cpu_use_fusion_emitters" not in flags and _jaxlib_knows("xla_cpu_use_fusion_emitters"):
+    if "xla_cpu_use_fusion_emitters" not in flags and _xla_accepts("xla_cpu_use_fusion_emitters=false"):
         flags += " --xla_cpu_use_fusion_emitters=false"
     return flags.strip()
 
