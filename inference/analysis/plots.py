@@ -419,7 +419,8 @@ def plot_skill_rewards(theta, feature_names: Sequence[str], path, skill_names: O
         if lower.shape != (K, D) or upper.shape != (K, D):
             raise ValueError(f"interval bounds must have shape ({K}, {D})")
     if D > BARS:
-        top = float(np.max(np.abs(theta))) or 1.0
+        finite = np.abs(theta[np.isfinite(theta)])
+        top = float(finite.max()) if finite.size and finite.max() > 0 else 1.0
         _heat_map(theta, path, names, "feature", "reward weight", "RdBu_r", (-top, top), title, colours,
                   feature_names if D <= 3 * BARS else None)
         return
