@@ -90,7 +90,8 @@ def test_top_keeps_each_skills_largest_weights_first():
 
 
 def test_the_report_of_a_reward_per_state_prints_each_skills_largest_weights(tmp_path, capsys):
-    from npbrs.inference.cli.main import REPORT_FEATURES, REPORT_TOP, main
+    from npbrs.inference.analysis.plots import BARS as REPORT_FEATURES  # (all weights up to the plot's bars)
+    from npbrs.inference.cli.main import REPORT_TOP, main
 
     result, _ = switched_chains()
     C, D = result.samples["theta"].shape[:2]

@@ -32,8 +32,9 @@ DEMO_DATA = {"num_trajectories": 8, "length": 200}
 QUICK_DEMO_CONFIG = {"emission": {"name": "reward"}, "max_skills": 3,
                      "sampler": {"chains": 1, "warmup": 3, "samples": 4, "seed": 0, "init_window": 10}}
 QUICK_DEMO_DATA = {"num_trajectories": 3, "length": 30}
-# `npbrs report` prints every reward weight up to this many features, else each skill's largest
-REPORT_FEATURES, REPORT_TOP = 24, 10
+# `npbrs report` prints every reward weight up to plots.BARS features (the plot draws them as
+# bars then), else each skill's REPORT_TOP largest
+REPORT_TOP = 10
 
 
 def compilation_cache_dir(environ=None) -> Optional[str]:
@@ -176,8 +177,10 @@ def report_command(args) -> int:
     with pd.option_context("display.width", 120, "display.max_columns", 20):
         print(diagnostics.convergence(result).to_string())
         if "theta" in result.skill_params:
+            from ..analysis.plots import BARS
+
             D = np.shape(result.skill_params["theta"])[-1]
-            top = None if D <= REPORT_FEATURES else REPORT_TOP  # a reward per state: the largest weights
+            top = None if D <= BARS else REPORT_TOP  # a reward per state: the largest weights
             which = "" if top is None else f", the {top} largest in magnitude of {D} (all: skill_summary)"
             print(f"\nreward weights per skill (mean, {args.prob:.0%} interval; chains relabelled{which}):")
             print(diagnostics.skill_summary(result, "theta", prob=args.prob, top=top).to_string())
