@@ -37,15 +37,18 @@ def _xla_accepts(flag: str) -> bool:
     short subprocess starts JAX's CPU backend with it. The answer is passed on to the test
     workers and the processes they start (``_ACCEPTS_ENV``), so only the first process asks."""
     known = os.environ.get(_ACCEPTS_ENV, "")
-    if f"+{flag}" in known:
+    if f"+{flag}" in known.split():
         return True
-    if f"-{flag}" in known:
+    if f"-{flag}" in known.split():
         return False
     import subprocess
 
-    probe = subprocess.run([sys.executable, "-c", "import jax; jax.devices('cpu')"], capture_output=True,
-                           env={**os.environ, "XLA_FLAGS": f"--{flag}", "JAX_PLATFORMS": "cpu"}, timeout=120)
-    accepted = probe.returncode == 0
+    try:
+        probe = subprocess.run([sys.executable, "-c", "import jax; jax.devices('cpu')"], capture_output=True,
+                               env={**os.environ, "XLA_FLAGS": f"--{flag}", "JAX_PLATFORMS": "cpu"}, timeout=120)
+        accepted = probe.returncode == 0
+    except subprocess.TimeoutExpired:  # (not worth a test run that does not start)
+        accepted = False
     os.environ[_ACCEPTS_ENV] = f"{known} {'+' if accepted else '-'}{flag}".strip()
     return accepted
 
