@@ -203,6 +203,10 @@ def test_fit_errors_name_what_is_wrong(demo, tmp_path):
     code, _, err = run_main(["fit", out / "demos.npz", "--domain", "highway", "--config", tmp_path / "ends.toml",
                              "--switching", "state", "-o", tmp_path / "x.nc"])
     assert code == 2 and "prior.end_concentration" in err, err
+    # --restart-margin reaches fit's configuration (a negative margin is named there)
+    code, _, err = run_main(["fit", out / "demos.npz", "--domain", "highway", "--restart-margin", "-5",
+                             "-o", tmp_path / "x.nc"])
+    assert code == 2 and "sampler.restart_margin" in err, err
     code, _, err = run_main(["report", tmp_path / "missing.nc"])
     assert code == 2 and "missing.nc" in err
     assert not (tmp_path / "x.nc").exists()

@@ -72,6 +72,9 @@ def _add_fit(sub):
     p.add_argument("--target-rhat", type=float, help="the R-hat a run extended with --max-samples stops at (1.05)")
     p.add_argument("--time-budget", type=float, metavar="SECONDS",
                    help="stop extending a --max-samples run after this many seconds (default: no budget)")
+    p.add_argument("--restart-margin", type=float, metavar="NATS",
+                   help="at warmup's end, chains whose segmentation scores more than NATS below the best chain's "
+                        "continue from its state (50; 0: off; see SamplerConfig.restart_margin)")
     p.add_argument("--grow", action="store_true",
                    help="while every skill slot is in use in most draws, refit with twice the slots from the "
                         "run's segmentation (up to 64; fit's grow=True; no checkpoints then)")
@@ -127,7 +130,8 @@ def fit_command(args) -> int:
                      progress_bar=not args.no_progress, checkpoint_path=checkpoint,
                      checkpoint_every=args.checkpoint_every or None, resume=args.resume, init_segmentation=init,
                      devices=args.devices, max_samples=args.max_samples, target_rhat=args.target_rhat,
-                     time_budget=args.time_budget, grow=args.grow, switching=args.switching)
+                     time_budget=args.time_budget, restart_margin=args.restart_margin, grow=args.grow,
+                     switching=args.switching)
     except (OSError, ValueError) as e:  # a missing or unreadable --config among them
         message = str(e)
         if args.config and message.startswith("emission.options") and os.fspath(args.config) not in message:

@@ -299,6 +299,10 @@ class PriorConfig:
         return out
 
 
+#: ``SamplerConfig.restart_margin``'s default, in nats (see ``benchmarks/NOTES.md``, session 33)
+RESTART_MARGIN = 50.0
+
+
 @dataclass
 class SamplerConfig:
     """MCMC settings.
@@ -327,6 +331,16 @@ class SamplerConfig:
     only, so the same seed gives the same run; the time budget depends on the machine. The
     result's ``run_length`` says which rule stopped the run and the R-hat reached. Needs at
     least 2 chains.
+    restart_margin: at the end of warmup, every chain's segmentation is scored by log p(x, z, F)
+    with the parameters, transition weights and feature popularities integrated out (the greedy
+    moves' score, :func:`npbrs.inference.sampler.greedy.merge_score`), and a chain more than this
+    many nats below the best chain continues from the best chain's state with its own random
+    key (0: off). The warmup's draws are discarded, so this changes where the sampling sweeps
+    start, not what they sample; a chain that far behind sits in a region of about exp(-margin)
+    times the best region's posterior mass, whose draws would only blur the estimates and hold
+    R-hat up. Chains within the margin keep their own states, so modes of comparable mass stay
+    visible to R-hat. The result's ``restart`` records the scores and which chains moved.
+    Needs an emission with ``fit_evidence`` (others: nothing happens) and at least 2 chains.
     """
 
     chains: int = 4
@@ -341,6 +355,7 @@ class SamplerConfig:
     max_samples: int = 0
     target_rhat: float = 1.05
     time_budget: float = 0.0
+    restart_margin: float = RESTART_MARGIN
 
     def __post_init__(self):
         self.chains = _integer("sampler.chains", self.chains, 1)
@@ -371,6 +386,7 @@ class SamplerConfig:
             raise ValueError(f"sampler.target_rhat: expected a number above 1 (R-hat is at least 1), got "
                              f"{self.target_rhat}")
         self.time_budget = _number("sampler.time_budget", self.time_budget, minimum=0.0)
+        self.restart_margin = _number("sampler.restart_margin", self.restart_margin, minimum=0.0)
 
     @classmethod
     def from_dict(cls, data) -> "SamplerConfig":

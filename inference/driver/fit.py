@@ -39,6 +39,7 @@ from npbrs.models.emissions import Emission, HMMData, get_emission_class
 from npbrs.domains.compiling import jit
 from npbrs.domains.precision import float64_all
 
+from ..sampler.greedy import merge_score
 from ..sampler.kernel import BPHMMKernel, initial_window
 from ..sampler.options import MOVE_DEFAULTS
 from .config import EmissionConfig, ModelConfig, PriorConfig
@@ -156,7 +157,7 @@ def resolve_config(config=None, **overrides) -> ModelConfig:
             data["prior"][name] = {"value": value, "shape": shape, "rate": rate}
     renames = {"num_chains": "chains", "num_samples": "samples", "num_warmup": "warmup"}
     for key in ("num_chains", "num_samples", "num_warmup", "seed", "chain_method", "init_skills", "init_window",
-                "moves", "bucket", "max_samples", "target_rhat", "time_budget"):
+                "moves", "bucket", "max_samples", "target_rhat", "time_budget", "restart_margin"):
         value = overrides.pop(key, None)
         if value is not None:
             data["sampler"][renames.get(key, key)] = value
@@ -246,6 +247,39 @@ def _sweep_one(kernel, hyper_names, state, greedy_open, mesh=None):
 def _sweep_batched(kernel, hyper_names, state, mesh=None):
     new = _constrain(_strong(kernel.sample(state, (), {})), mesh, batched=True)
     return new, jax.vmap(partial(_record, kernel, hyper_names))(new)
+
+
+@jit
+def _chain_scores(kernel, state):
+    """(C,) each chain's log p(x, z, F) with the parameters, eta and omega integrated out
+    (:func:`~npbrs.inference.sampler.greedy.merge_score`, the greedy moves' score; each skill's
+    fit started at the chain's current parameters, as the greedy moves' fits are), of a state
+    batched over chains, each at its own hyperparameters."""
+    def one(s):
+        return merge_score(kernel.emission, kernel.data, s.hyper, s.features, s.z, s.params, kernel.gate(s))
+
+    return jax.vmap(one)(state)
+
+
+def _restart_lagging(chains: "_Chains", compiled: "_Compiled", margin: float, mesh=None) -> dict:
+    """At the end of warmup: the chains whose score (:func:`_chain_scores`) is more than
+    ``margin`` nats below the best chain's continue from the best chain's state, with their own
+    random keys (``SamplerConfig.restart_margin``). Returns the record kept as the result's
+    ``restart``: the margin, each chain's score and the chain whose state it continues from."""
+    batched = chains.method != "sequential"
+    state = chains.states if batched else jax.tree.map(lambda *xs: jnp.stack(xs), *chains.states)
+    scores = np.asarray(_to_host(_chain_scores(compiled.placed(mesh), state)), dtype=np.float64)
+    best = int(np.nanargmax(np.where(np.isfinite(scores), scores, -np.inf))) if np.any(np.isfinite(scores)) else 0
+    lagging = ~(scores >= scores[best] - margin)  # (a NaN score lags)
+    source = np.where(lagging, best, np.arange(len(scores)))
+    if np.any(lagging):
+        index = jnp.asarray(source)
+        moved = jax.tree.map(lambda x: jnp.take(x, index, axis=0), state)._replace(rng_key=state.rng_key)
+        if batched:
+            chains.states = moved if mesh is None else _place_state(moved, mesh, batched=True)
+        else:
+            chains.states = [jax.tree.map(lambda x, c=c: x[c], moved) for c in range(len(scores))]
+    return {"margin": float(margin), "scores": [float(v) for v in scores], "from": [int(c) for c in source]}
 
 
 # ------------------------------------------------------------------------------ devices
@@ -680,9 +714,9 @@ def fit(mdp, demos: Demonstrations, config: Union[ModelConfig, dict, str, os.Pat
         kappa: Optional[float] = None, gamma: Optional[float] = None, hyperpriors: Optional[dict] = None,
         init_skills: Optional[int] = None, init_window: Optional[int] = None, moves: Optional[dict] = None,
         bucket: Optional[bool] = None, max_samples: Optional[int] = None, target_rhat: Optional[float] = None,
-        time_budget: Optional[float] = None, init_segmentation=None, progress_bar: bool = True, checkpoint_path=None,
-        checkpoint_every: Optional[int] = None, resume: bool = False, mesh: Optional[Mesh] = None,
-        devices=None, grow: bool = False, switching: Optional[str] = None) -> FitResult:
+        time_budget: Optional[float] = None, restart_margin: Optional[float] = None, init_segmentation=None,
+        progress_bar: bool = True, checkpoint_path=None, checkpoint_every: Optional[int] = None, resume: bool = False,
+        mesh: Optional[Mesh] = None, devices=None, grow: bool = False, switching: Optional[str] = None) -> FitResult:
     """Segment demonstrations into skills.
 
     The model and sampler come from ``config`` (defaults: :class:`ModelConfig`); the keyword
@@ -722,6 +756,11 @@ def fit(mdp, demos: Demonstrations, config: Union[ModelConfig, dict, str, os.Pat
             ``max_samples`` sweeps are drawn or ``time_budget`` seconds (0: none) have passed;
             the result's ``run_length`` says which (see
             :class:`~npbrs.inference.driver.config.SamplerConfig`). Off by default.
+        restart_margin: at the end of warmup, a chain whose segmentation scores more than this
+            many nats below the best chain's (log p(x, z, F), parameters integrated out)
+            continues from the best chain's state with its own random key; 0 turns it off
+            (default 50; see :class:`~npbrs.inference.driver.config.SamplerConfig`). The result's
+            ``restart`` records the scores and which chains moved.
         init_segmentation: start every chain from this segmentation instead of random windows:
             per trajectory an integer label per step (any integers, e.g. a previous result's
             ``segmentation`` or hand labels), or a FitResult. The skills' initial parameters are
@@ -818,7 +857,7 @@ def saturation(result: FitResult):
 
 def _fit(mdp, demos, config, *, emission, emission_options, num_chains, num_samples, num_warmup, max_skills, seed,
          chain_method, alpha, kappa, gamma, hyperpriors, init_skills, init_window, moves, bucket, max_samples,
-         target_rhat, time_budget, init_segmentation, progress_bar, checkpoint_path, checkpoint_every, resume, mesh,
+         target_rhat, time_budget, restart_margin, init_segmentation, progress_bar, checkpoint_path, checkpoint_every, resume, mesh,
          devices, switching) -> FitResult:
     use_compilation_cache()
     cfg = resolve_config(config, emission=emission, emission_options=emission_options, num_chains=num_chains,
@@ -826,7 +865,7 @@ def _fit(mdp, demos, config, *, emission, emission_options, num_chains, num_samp
                          chain_method=chain_method, alpha=alpha, kappa=kappa, gamma=gamma, hyperpriors=hyperpriors,
                          init_skills=init_skills, init_window=init_window, moves=moves, bucket=bucket,
                          max_samples=max_samples, target_rhat=target_rhat, time_budget=time_budget,
-                         switching=switching)
+                         restart_margin=restart_margin, switching=switching)
     if not isinstance(demos, Demonstrations):
         raise ValueError(f"demos must be npbrs.domains.Demonstrations, got {type(demos).__name__}")
     demos.validate(mdp)
@@ -883,7 +922,9 @@ def _fit(mdp, demos, config, *, emission, emission_options, num_chains, num_samp
             "init": None if z0 is None else hashlib.sha256(z0.tobytes()).hexdigest()}
     keys = jax.random.split(jax.random.PRNGKey(sampler.seed), C)
 
-    state, draws, done, wall = None, {}, 0, 0.0
+    state, draws, done, wall, restart = None, {}, 0, 0.0, None
+    # warmup's end: chains far behind the best continue from its state (SamplerConfig.restart_margin)
+    restarting = C > 1 and W > 0 and sampler.restart_margin > 0 and em.supports_greedy_merge()
     num_real = demos.num_trajectories
     if resume and os.path.exists(checkpoint_path):
         leaves, draws, saved = _read_checkpoint(checkpoint_path, meta)
@@ -899,6 +940,7 @@ def _fit(mdp, demos, config, *, emission, emission_options, num_chains, num_samp
             leaves = _resize_trajectories(leaves, like, compiled.init(keys, W, z0, mesh))
         state = restore_state(leaves, like, checkpoint_path)
         done, wall = int(saved["sweeps_done"]), float(saved["wall_time"])
+        restart = saved.get("restart")
 
     start = time.perf_counter()
     bar = _Progress(total * (C if method == "sequential" else 1), done * (C if method == "sequential" else 1),
@@ -928,7 +970,7 @@ def _fit(mdp, demos, config, *, emission, emission_options, num_chains, num_samp
 
     def checkpoint(done_now):
         flush()
-        write = dict(meta, sweeps_done=done_now, wall_time=wall + time.perf_counter() - start)
+        write = dict(meta, sweeps_done=done_now, wall_time=wall + time.perf_counter() - start, restart=restart)
         from .runs import write_checkpoint
 
         host_state = chains.state()  # (on several hosts every process takes part in the gather)
@@ -952,6 +994,8 @@ def _fit(mdp, demos, config, *, emission, emission_options, num_chains, num_samp
                             bar.set_postfix("; ".join([f"log joint {latest:.1f}"] + ([rhat_text] if rhat_text else [])))
                     (pending if done >= W else warm).append(records)
                     done += 1
+                    if done == W and restarting:
+                        restart = _restart_lagging(chains, compiled, sampler.restart_margin, mesh)
                     bar.update(C if method == "sequential" else 1)
                     if checkpoint_path is not None and (done % every == 0 or done == total):
                         checkpoint(done)
@@ -982,7 +1026,7 @@ def _fit(mdp, demos, config, *, emission, emission_options, num_chains, num_samp
                                  feature_names=tuple(getattr(mdp, "feature_names", ())), wall_time=wall,
                                  sample_names=compiled.hyper_names, init_segmentation=z0,
                                  mdp_fingerprint=mdp.fingerprint() if hasattr(mdp, "fingerprint") else "",
-                                 warmup_stats=warmup or None, run_length=run_length)
+                                 warmup_stats=warmup or None, run_length=run_length, restart=restart)
 
 
 def _run_length(draws: dict, sampler, drawn: int, most: int, elapsed: float) -> dict:

@@ -175,6 +175,11 @@ class FitResult:
         truncation: for a run whose skill slots grew (``fit(..., grow=True)``): the slots of
             each fit in turn ("max_skills", e.g. [8, 16]), the skills each found ("skills") and
             the share of its sampling draws that used every slot ("saturated"); None otherwise.
+        restart: for a run of several chains with ``restart_margin`` on (see
+            :class:`~npbrs.inference.driver.config.SamplerConfig`): the margin ("margin"), each
+            chain's score at the end of warmup ("scores", log p(x, z, F) with the parameters
+            integrated out) and the chain whose state each continued from ("from"; its own
+            number where it kept its own); None otherwise.
 
     The methods :meth:`policies`, :meth:`options`, :meth:`segment`, :meth:`log_predictive` and
     :meth:`add_log_likelihood` are shortcuts to the functions of :mod:`npbrs.inference.analysis`
@@ -202,13 +207,14 @@ class FitResult:
     warmup_stats: Optional[Dict[str, np.ndarray]] = None
     run_length: Optional[dict] = None
     truncation: Optional[dict] = None
+    restart: Optional[dict] = None
 
     @classmethod
     def from_states(cls, last_state, draws: Dict[str, np.ndarray], demos, *, config: Optional[dict] = None,
                     emission: Optional[dict] = None, feature_names=(), wall_time: float = float("nan"),
                     sample_names=(), init_segmentation=None, mdp_fingerprint: str = "",
                     warmup_stats: Optional[Dict[str, np.ndarray]] = None,
-                    run_length: Optional[dict] = None) -> "FitResult":
+                    run_length: Optional[dict] = None, restart: Optional[dict] = None) -> "FitResult":
         """Assemble a result from the chains' last kernel states and their draws.
 
         Args:
@@ -239,7 +245,8 @@ class FitResult:
                    trajectory_rows(np.asarray(init_segmentation)[:N, :T], demos.lengths),
                    mdp_fingerprint=str(mdp_fingerprint or ""),
                    warmup_stats=None if not warmup_stats else {k: np.asarray(v) for k, v in warmup_stats.items()},
-                   run_length=None if run_length is None else dict(run_length))
+                   run_length=None if run_length is None else dict(run_length),
+                   restart=None if restart is None else dict(restart))
 
     @property
     def model_config(self) -> ModelConfig:
@@ -296,6 +303,7 @@ class FitResult:
                 and (self.log_likelihood is None or same(self.log_likelihood, other.log_likelihood))
                 and json.dumps(self.run_length, sort_keys=True) == json.dumps(other.run_length, sort_keys=True)
                 and json.dumps(self.truncation, sort_keys=True) == json.dumps(other.truncation, sort_keys=True)
+                and json.dumps(self.restart, sort_keys=True) == json.dumps(other.restart, sort_keys=True)
                 and (not wall_time or same(self.wall_time, other.wall_time)))
 
     @property
@@ -432,6 +440,8 @@ class FitResult:
             attrs["run_length"] = json.dumps(self.run_length, sort_keys=True)
         if self.truncation is not None:
             attrs["truncation"] = json.dumps(self.truncation, sort_keys=True)
+        if self.restart is not None:
+            attrs["restart"] = json.dumps(self.restart, sort_keys=True)
         groups = {"posterior": xr.Dataset(posterior, coords=chain_draw),
                   "sample_stats": xr.Dataset(sample_stats, coords=chain_draw),
                   "constant_data": xr.Dataset(constant, attrs=attrs)}
@@ -497,7 +507,8 @@ class FitResult:
                    warmup_stats=({k: np.asarray(v.values) for k, v in idata.warmup_sample_stats.data_vars.items()}
                                  if "warmup_sample_stats" in idata.groups() else None),
                    run_length=json.loads(attrs["run_length"]) if "run_length" in attrs else None,
-                   truncation=json.loads(attrs["truncation"]) if "truncation" in attrs else None)
+                   truncation=json.loads(attrs["truncation"]) if "truncation" in attrs else None,
+                   restart=json.loads(attrs["restart"]) if "restart" in attrs else None)
 
     def summary(self) -> str:
         """A short text summary: skills, segment lengths, diagnostics."""
@@ -521,6 +532,14 @@ class FitResult:
                    "time_budget": f"the time budget ({r['time_budget']:g} s) spent before every R-hat was at most "
                                   f"{r['target_rhat']}"}.get(r["stopped"], r["stopped"])
             lines.append(f"run length chosen by convergence: {r['samples']} sampling sweeps per chain ({why})")
+        if self.restart is not None and any(c != i for i, c in enumerate(self.restart["from"])):
+            r = self.restart
+            moved = [i for i, c in enumerate(r["from"]) if c != i]
+            best = r["from"][moved[0]]
+            behind = ", ".join(f"{r['scores'][best] - r['scores'][i]:.0f}" for i in moved)
+            lines.append(f"at warmup's end chain{'s' if len(moved) > 1 else ''} {', '.join(map(str, moved))} "
+                         f"continued from chain {best}'s state ({behind} nats behind it; restart_margin "
+                         f"{r['margin']:g})")
         if self.truncation is not None:
             t = self.truncation
             steps = "; ".join(f"{k} slots: {n} skills, every slot in use in {p:.0%} of the draws"

@@ -1,0 +1,107 @@
+"""At the end of warmup, a chain far behind the best (by log p(x, z, F) with everything else
+integrated out) continues from the best chain's state with its own random key
+(``SamplerConfig.restart_margin``); chains within the margin keep their own states."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from gridworld import ragged_policy_problem
+from npbrs.inference import fit, load
+from npbrs.inference.driver.config import SamplerConfig
+from npbrs.inference.driver.fit import _Chains, _Compiled, _chain_scores, _restart_lagging
+from npbrs.inference.sampler import BPHMMKernel, merge_score
+from npbrs.models.emissions import PolicyEmission
+from test_kernel import planted_policy_data
+
+
+def _chain(state, c):
+    return jax.tree.map(lambda x: np.asarray(x)[c], state)
+
+
+def _same(a, b):
+    return all(np.array_equal(np.asarray(x), np.asarray(y)) for x, y in zip(jax.tree.leaves(a), jax.tree.leaves(b)))
+
+
+def test_chains_beyond_the_margin_take_the_best_chains_state_and_keep_their_keys():
+    data, z_true = planted_policy_data(seed=1, N=6, T=40)
+    kernel = BPHMMKernel(PolicyEmission(4, 3), data, max_skills=5)
+    compiled = _Compiled(kernel, ())
+    keys = jax.random.split(jax.random.PRNGKey(2), 3)
+    # chain 0 starts at the planted segmentation, chains 1 and 2 from random windows
+    planted = compiled.init(keys, 4, jnp.asarray(np.where(np.asarray(data.mask), z_true, -1)))
+    windows = compiled.init(keys, 4)
+    state = jax.tree.map(lambda a, b: np.concatenate([a[:1], b[1:]]), planted, windows)
+    # the scores are each chain's merge_score at its own hyperparameters and from its own
+    # parameters, computed one by one
+    score = jax.jit(merge_score, static_argnums=0)
+    one_by_one = [float(score(kernel.emission, data, s.hyper, s.features, s.z, s.params)) for s in
+                  (_chain(state, c) for c in range(3))]
+    np.testing.assert_allclose(np.asarray(_chain_scores(kernel, jax.tree.map(jnp.asarray, state))), one_by_one,
+                               rtol=1e-10)
+    best = int(np.argmax(one_by_one))
+    assert best == 0, one_by_one  # the planted segmentation scores best
+    gap = {c: one_by_one[0] - one_by_one[c] for c in (1, 2)}
+    near, far = sorted(gap, key=gap.get)
+    assert gap[far] > gap[near] + 1.0, gap
+    margin = 0.5 * (gap[near] + gap[far])  # the far chain moves, the near one stays
+    for method in ("vectorized", "sequential"):
+        chains = _Chains(compiled, method, jax.tree.map(jnp.asarray, state))
+        record = _restart_lagging(chains, compiled, margin)
+        out = chains.state()
+        assert record["margin"] == margin
+        np.testing.assert_allclose(record["scores"], one_by_one, rtol=1e-10)
+        expected = [0, 1, 2]
+        expected[far] = 0
+        assert record["from"] == expected, (method, record)
+        for c in range(3):
+            source = expected[c]
+            assert _same(_chain(out, c)._replace(rng_key=0), _chain(state, source)._replace(rng_key=0)), (method, c)
+            np.testing.assert_array_equal(_chain(out, c).rng_key, _chain(state, c).rng_key)  # its own key
+    # a margin no chain exceeds moves none
+    chains = _Chains(compiled, "vectorized", jax.tree.map(jnp.asarray, state))
+    assert _restart_lagging(chains, compiled, gap[far] + 1.0)["from"] == [0, 1, 2]
+    assert _same(chains.state(), state)
+
+
+MDP, DEMOS = ragged_policy_problem(correct=0.8)
+# (the greedy moves off: their compilation is not what this tests)
+KW = dict(emission="policy", num_chains=2, num_warmup=6, num_samples=4, max_skills=3, seed=5, progress_bar=False,
+          moves={"greedy_merge": 0, "greedy_split": 0})
+
+
+def test_a_fit_restarts_a_lagging_chain_at_warmups_end_and_records_it(tmp_path):
+    for bad in (-1.0, float("nan"), "wide", True):
+        with pytest.raises(ValueError, match="restart_margin"):
+            SamplerConfig(restart_margin=bad)
+    off = fit(MDP, DEMOS, restart_margin=0, **KW)
+    assert off.restart is None
+    # every chain behind the best moves (a margin of ~0); none moves at a huge margin
+    tight = fit(MDP, DEMOS, restart_margin=1e-9, **KW)
+    loose = fit(MDP, DEMOS, restart_margin=1e9, **KW)
+    assert loose.restart["from"] == [0, 1] and loose.restart["scores"] == tight.restart["scores"]
+    for name, v in off.stats.items():  # nothing moved: the run without the check's draws
+        np.testing.assert_array_equal(loose.stats[name], v)
+    scores = tight.restart["scores"]
+    best = int(np.argmax(scores))
+    other = 1 - best
+    assert scores[other] < scores[best], scores  # (this seed's chains end warmup apart)
+    assert tight.restart["from"] == [best, best] and tight.restart["margin"] == 1e-9
+    # the best chain's draws are the run without restarts'; the other's are not, and its first
+    # draw comes from the best chain's end-of-warmup state
+    for name in ("log_joint", "num_switches"):
+        np.testing.assert_array_equal(tight.stats[name][best], off.stats[name][best])
+    assert not np.array_equal(tight.stats["log_joint"][other], off.stats["log_joint"][other])
+    # (with its own key it goes its own way from there)
+    assert not np.array_equal(tight.stats["log_joint"][other], tight.stats["log_joint"][best])
+    np.testing.assert_array_equal(tight.warmup_stats["log_joint"], off.warmup_stats["log_joint"])
+    assert "continued from chain" in tight.summary() and "continued from" not in loose.summary()
+    # kept with the saved run, and the sequential chains do the same
+    path = tmp_path / "run.nc"
+    tight.save(path)
+    again = load(path)
+    assert again.restart == tight.restart and again.equals(tight)
+    sequential = fit(MDP, DEMOS, restart_margin=1e-9, chain_method="sequential", **KW)
+    assert sequential.restart["from"] == tight.restart["from"]
+    np.testing.assert_allclose(sequential.restart["scores"], scores, rtol=1e-9)
