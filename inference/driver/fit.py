@@ -269,8 +269,10 @@ def _restart_lagging(chains: "_Chains", compiled: "_Compiled", margin: float, me
     batched = chains.method != "sequential"
     state = chains.states if batched else jax.tree.map(lambda *xs: jnp.stack(xs), *chains.states)
     scores = np.asarray(_to_host(_chain_scores(compiled.placed(mesh), state)), dtype=np.float64)
-    best = int(np.nanargmax(np.where(np.isfinite(scores), scores, -np.inf))) if np.any(np.isfinite(scores)) else 0
-    lagging = ~(scores >= scores[best] - margin)  # (a NaN score lags)
+    finite = np.isfinite(scores)
+    best = int(np.argmax(np.where(finite, scores, -np.inf)))
+    # (a chain whose score is not finite lags a finite best; with no finite score none moves)
+    lagging = ~(scores >= scores[best] - margin) & bool(np.any(finite))
     source = np.where(lagging, best, np.arange(len(scores)))
     if np.any(lagging):
         index = jnp.asarray(source)
@@ -758,8 +760,8 @@ def fit(mdp, demos: Demonstrations, config: Union[ModelConfig, dict, str, os.Pat
             :class:`~npbrs.inference.driver.config.SamplerConfig`). Off by default.
         restart_margin: at the end of warmup, a chain whose segmentation scores more than this
             many nats below the best chain's (log p(x, z, F), parameters integrated out)
-            continues from the best chain's state with its own random key; 0 turns it off
-            (default 50; see :class:`~npbrs.inference.driver.config.SamplerConfig`). The result's
+            continues from the best chain's state with its own random key; 0 (the default) is off
+            (see :class:`~npbrs.inference.driver.config.SamplerConfig`). The result's
             ``restart`` records the scores and which chains moved.
         init_segmentation: start every chain from this segmentation instead of random windows:
             per trajectory an integer label per step (any integers, e.g. a previous result's
