@@ -337,8 +337,8 @@ class SamplerConfig:
     with the parameters, transition weights and feature popularities integrated out (the greedy
     moves' score, :func:`npbrs.inference.sampler.greedy.merge_score`), and a chain more than this
     many nats below the best chain continues from the best chain's state with its own random
-    key (0, the default: off; 50 is what session 33 measured). The warmup's draws are discarded, so this changes where the sampling sweeps
-    start, not what they sample; a chain that far behind sits in a region of about exp(-margin)
+    key (0, the default: off; 50 is what session 33 measured). The warmup's draws are
+    discarded, so this changes where the sampling sweeps start, not what they sample; a chain that far behind sits in a region of about exp(-margin)
     times the best region's posterior mass, whose draws would only blur the estimates and hold
     R-hat up. Chains within the margin keep their own states, so modes of comparable mass stay
     visible to R-hat. The result's ``restart`` records the scores and which chains moved.

@@ -859,8 +859,8 @@ def saturation(result: FitResult):
 
 def _fit(mdp, demos, config, *, emission, emission_options, num_chains, num_samples, num_warmup, max_skills, seed,
          chain_method, alpha, kappa, gamma, hyperpriors, init_skills, init_window, moves, bucket, max_samples,
-         target_rhat, time_budget, restart_margin, init_segmentation, progress_bar, checkpoint_path, checkpoint_every, resume, mesh,
-         devices, switching) -> FitResult:
+         target_rhat, time_budget, restart_margin, init_segmentation, progress_bar, checkpoint_path, checkpoint_every,
+         resume, mesh, devices, switching) -> FitResult:
     use_compilation_cache()
     cfg = resolve_config(config, emission=emission, emission_options=emission_options, num_chains=num_chains,
                          num_samples=num_samples, num_warmup=num_warmup, max_skills=max_skills, seed=seed,
