@@ -1,6 +1,7 @@
-"""At the end of warmup, a chain far behind the best (by log p(x, z, F) with everything else
-integrated out) continues from the best chain's state with its own random key
-(``SamplerConfig.restart_margin``); chains within the margin keep their own states."""
+"""At the end of warmup, a chain far behind the best (by its log joint over the last tenth of
+warmup) continues from the best chain's state with its own random key
+(``SamplerConfig.restart_margin``, 50 nats by default); chains within the margin keep their own
+states."""
 
 import jax
 import jax.numpy as jnp
@@ -10,8 +11,8 @@ import pytest
 from gridworld import ragged_policy_problem
 from npbrs.inference import fit, load
 from npbrs.inference.driver.config import SamplerConfig
-from npbrs.inference.driver.fit import _Chains, _Compiled, _chain_scores, _restart_lagging
-from npbrs.inference.sampler import BPHMMKernel, merge_score
+from npbrs.inference.driver.fit import _Chains, _Compiled, _restart_lagging, _warmup_scores
+from npbrs.inference.sampler import BPHMMKernel
 from npbrs.models.emissions import PolicyEmission
 from test_kernel import planted_policy_data
 
@@ -24,6 +25,12 @@ def _same(a, b):
     return all(np.array_equal(np.asarray(x), np.asarray(y)) for x, y in zip(jax.tree.leaves(a), jax.tree.leaves(b)))
 
 
+def test_the_score_is_the_mean_log_joint_of_warmups_last_tenth():
+    log_joint = np.arange(2 * 25, dtype=float).reshape(2, 25) ** 2
+    np.testing.assert_allclose(_warmup_scores(log_joint), [(23 ** 2 + 24 ** 2) / 2, (48 ** 2 + 49 ** 2) / 2])
+    np.testing.assert_allclose(_warmup_scores(log_joint[:, :7]), log_joint[:, 6])  # at least the last sweep
+
+
 def test_chains_beyond_the_margin_take_the_best_chains_state_and_keep_their_keys():
     data, z_true = planted_policy_data(seed=1, N=6, T=40)
     kernel = BPHMMKernel(PolicyEmission(4, 3), data, max_skills=5)
@@ -33,36 +40,23 @@ def test_chains_beyond_the_margin_take_the_best_chains_state_and_keep_their_keys
     planted = compiled.init(keys, 4, jnp.asarray(np.where(np.asarray(data.mask), z_true, -1)))
     windows = compiled.init(keys, 4)
     state = jax.tree.map(lambda a, b: np.concatenate([a[:1], b[1:]]), planted, windows)
-    # the scores are each chain's merge_score at its own hyperparameters and from its own
-    # parameters, computed one by one
-    score = jax.jit(merge_score, static_argnums=0)
-    one_by_one = [float(score(kernel.emission, data, s.hyper, s.features, s.z, s.params)) for s in
-                  (_chain(state, c) for c in range(3))]
-    np.testing.assert_allclose(np.asarray(_chain_scores(kernel, jax.tree.map(jnp.asarray, state))), one_by_one,
-                               rtol=1e-10)
-    best = int(np.argmax(one_by_one))
-    assert best == 0, one_by_one  # the planted segmentation scores best
-    gap = {c: one_by_one[0] - one_by_one[c] for c in (1, 2)}
-    near, far = sorted(gap, key=gap.get)
-    assert gap[far] > gap[near] + 1.0, gap
-    margin = 0.5 * (gap[near] + gap[far])  # the far chain moves, the near one stays
+    scores = [-100.0, -130.0, -200.0]  # chain 1 within a margin of 50, chain 2 beyond it
     for method in ("vectorized", "sequential"):
         chains = _Chains(compiled, method, jax.tree.map(jnp.asarray, state))
-        record = _restart_lagging(chains, compiled, margin)
+        record = _restart_lagging(chains, scores, 50.0)
         out = chains.state()
-        assert record["margin"] == margin
-        np.testing.assert_allclose(record["scores"], one_by_one, rtol=1e-10)
-        expected = [0, 1, 2]
-        expected[far] = 0
-        assert record["from"] == expected, (method, record)
-        for c in range(3):
-            source = expected[c]
+        assert record == {"margin": 50.0, "scores": scores, "from": [0, 1, 0]}, (method, record)
+        for c, source in enumerate(record["from"]):
             assert _same(_chain(out, c)._replace(rng_key=0), _chain(state, source)._replace(rng_key=0)), (method, c)
             np.testing.assert_array_equal(_chain(out, c).rng_key, _chain(state, c).rng_key)  # its own key
-    # a margin no chain exceeds moves none
-    chains = _Chains(compiled, "vectorized", jax.tree.map(jnp.asarray, state))
-    assert _restart_lagging(chains, compiled, gap[far] + 1.0)["from"] == [0, 1, 2]
-    assert _same(chains.state(), state)
+    # a margin no chain exceeds moves none; nor do scores none of which is finite; a chain whose
+    # score is not finite lags a finite best
+    for margin, values, expected in ((101.0, scores, [0, 1, 2]), (50.0, [np.nan] * 3, [0, 1, 2]),
+                                     (50.0, [np.nan, -5.0, -10.0], [1, 1, 2])):
+        chains = _Chains(compiled, "vectorized", jax.tree.map(jnp.asarray, state))
+        assert _restart_lagging(chains, values, margin)["from"] == expected
+        if expected == [0, 1, 2]:
+            assert _same(chains.state(), state)
 
 
 MDP, DEMOS = ragged_policy_problem(correct=0.8)
@@ -77,6 +71,8 @@ def test_a_fit_restarts_a_lagging_chain_at_warmups_end_and_records_it(tmp_path):
             SamplerConfig(restart_margin=bad)
     off = fit(MDP, DEMOS, restart_margin=0, **KW)
     assert off.restart is None
+    assert fit(MDP, DEMOS, num_chains=1, **{k: v for k, v in KW.items() if k != "num_chains"}).restart is None
+    assert SamplerConfig().restart_margin == 50.0  # on by default
     # every chain behind the best moves (a margin of ~0); none moves at a huge margin
     tight = fit(MDP, DEMOS, restart_margin=1e-9, **KW)
     loose = fit(MDP, DEMOS, restart_margin=1e9, **KW)
@@ -84,6 +80,8 @@ def test_a_fit_restarts_a_lagging_chain_at_warmups_end_and_records_it(tmp_path):
     for name, v in off.stats.items():  # nothing moved: the run without the check's draws
         np.testing.assert_array_equal(loose.stats[name], v)
     scores = tight.restart["scores"]
+    # the scores are the last warmup sweep's log joints (6 sweeps: their last tenth is one)
+    np.testing.assert_array_equal(scores, tight.warmup_stats["log_joint"][:, -1])
     best = int(np.argmax(scores))
     other = 1 - best
     assert scores[other] < scores[best], scores  # (this seed's chains end warmup apart)

@@ -73,8 +73,8 @@ def _add_fit(sub):
     p.add_argument("--time-budget", type=float, metavar="SECONDS",
                    help="stop extending a --max-samples run after this many seconds (default: no budget)")
     p.add_argument("--restart-margin", type=float, metavar="NATS",
-                   help="at warmup's end, chains whose segmentation scores more than NATS below the best chain's "
-                        "continue from its state (default 0: off; see SamplerConfig.restart_margin)")
+                   help="at warmup's end, chains whose log joint is more than NATS below the best chain's "
+                        "continue from its state (default 50; 0: off; see SamplerConfig.restart_margin)")
     p.add_argument("--grow", action="store_true",
                    help="while every skill slot is in use in most draws, refit with twice the slots from the "
                         "run's segmentation (up to 64; fit's grow=True; no checkpoints then)")

@@ -299,10 +299,8 @@ class PriorConfig:
         return out
 
 
-#: ``SamplerConfig.restart_margin``'s default, in nats: off (0). 50 helps the behaviour worlds'
-#: R-hat, but its compiled scoring program costs every multi-chain fit's first run of a shape
-#: (``benchmarks/NOTES.md``, session 33)
-RESTART_MARGIN = 0.0
+#: ``SamplerConfig.restart_margin``'s default, in nats (``benchmarks/NOTES.md``, sessions 33-34)
+RESTART_MARGIN = 50.0
 
 
 @dataclass
@@ -333,16 +331,16 @@ class SamplerConfig:
     only, so the same seed gives the same run; the time budget depends on the machine. The
     result's ``run_length`` says which rule stopped the run and the R-hat reached. Needs at
     least 2 chains.
-    restart_margin: at the end of warmup, every chain's segmentation is scored by log p(x, z, F)
-    with the parameters, transition weights and feature popularities integrated out (the greedy
-    moves' score, :func:`npbrs.inference.sampler.greedy.merge_score`), and a chain more than this
-    many nats below the best chain continues from the best chain's state with its own random
-    key (0, the default: off; 50 is what session 33 measured). The warmup's draws are
-    discarded, so this changes where the sampling sweeps start, not what they sample; a chain that far behind sits in a region of about exp(-margin)
-    times the best region's posterior mass, whose draws would only blur the estimates and hold
-    R-hat up. Chains within the margin keep their own states, so modes of comparable mass stay
+    restart_margin: at the end of warmup, every chain is scored by its log joint (log p(x, z,
+    F, parameters, eta, omega, hyperparameters), the draws' ``log_joint``) averaged over the last
+    tenth of the warmup sweeps (at least the last one), and a chain more than this many nats
+    below the best chain continues from the best chain's state with its own random key (50 by
+    default; 0 is off). The warmup's draws are discarded, so this changes where the sampling
+    sweeps start, not what they sample: a chain that far behind has stalled in a region the
+    best chain has left behind, and its draws would only blur the estimates and hold R-hat up.
+    Chains within the margin keep their own states, so modes of comparable probability stay
     visible to R-hat. The result's ``restart`` records the scores and which chains moved.
-    Needs an emission with ``fit_evidence`` (others: nothing happens) and at least 2 chains.
+    Needs at least 2 chains and a warmup.
     """
 
     chains: int = 4

@@ -39,7 +39,6 @@ from npbrs.models.emissions import Emission, HMMData, get_emission_class
 from npbrs.domains.compiling import jit
 from npbrs.domains.precision import float64_all
 
-from ..sampler.greedy import merge_score
 from ..sampler.kernel import BPHMMKernel, initial_window
 from ..sampler.options import MOVE_DEFAULTS
 from .config import EmissionConfig, ModelConfig, PriorConfig
@@ -249,38 +248,38 @@ def _sweep_batched(kernel, hyper_names, state, mesh=None):
     return new, jax.vmap(partial(_record, kernel, hyper_names))(new)
 
 
-@jit
-def _chain_scores(kernel, state):
-    """(C,) each chain's log p(x, z, F) with the parameters, eta and omega integrated out
-    (:func:`~npbrs.inference.sampler.greedy.merge_score`, the greedy moves' score; each skill's
-    fit started at the chain's current parameters, as the greedy moves' fits are), of a state
-    batched over chains, each at its own hyperparameters."""
-    def one(s):
-        return merge_score(kernel.emission, kernel.data, s.hyper, s.features, s.z, s.params, kernel.gate(s))
-
-    return jax.vmap(one)(state)
+def _warmup_scores(log_joint) -> np.ndarray:
+    """(C,) each chain's score at the end of warmup: the mean of its log joint over the last
+    tenth of the warmup sweeps (at least the last one), ``log_joint`` (C, W). One draw's log
+    joint spreads by up to a few hundred nats within one region on 10^5 steps; the mean over
+    the last tenth keeps that noise from deciding a restart."""
+    log_joint = np.asarray(log_joint, dtype=np.float64)
+    last = max(1, log_joint.shape[1] // 10)
+    return log_joint[:, -last:].mean(axis=1)
 
 
-def _restart_lagging(chains: "_Chains", compiled: "_Compiled", margin: float, mesh=None) -> dict:
-    """At the end of warmup: the chains whose score (:func:`_chain_scores`) is more than
-    ``margin`` nats below the best chain's continue from the best chain's state, with their own
-    random keys (``SamplerConfig.restart_margin``). Returns the record kept as the result's
-    ``restart``: the margin, each chain's score and the chain whose state it continues from."""
+def _restart_lagging(chains: "_Chains", scores, margin: float, mesh=None) -> dict:
+    """At the end of warmup: the chains whose score (``scores``, (C,), :func:`_warmup_scores`)
+    is more than ``margin`` nats below the best chain's continue from the best chain's state,
+    with their own random keys (``SamplerConfig.restart_margin``). Returns the record kept as
+    the result's ``restart``: the margin, each chain's score and the chain whose state it
+    continues from."""
     batched = chains.method != "sequential"
-    state = chains.states if batched else jax.tree.map(lambda *xs: jnp.stack(xs), *chains.states)
-    scores = np.asarray(_to_host(_chain_scores(compiled.placed(mesh), state)), dtype=np.float64)
+    scores = np.asarray(scores, dtype=np.float64)
     finite = np.isfinite(scores)
     best = int(np.argmax(np.where(finite, scores, -np.inf)))
     # (a chain whose score is not finite lags a finite best; with no finite score none moves)
     lagging = ~(scores >= scores[best] - margin) & bool(np.any(finite))
     source = np.where(lagging, best, np.arange(len(scores)))
     if np.any(lagging):
-        index = jnp.asarray(source)
-        moved = jax.tree.map(lambda x: jnp.take(x, index, axis=0), state)._replace(rng_key=state.rng_key)
         if batched:
+            index = jnp.asarray(source)
+            state = chains.states
+            moved = jax.tree.map(lambda x: jnp.take(x, index, axis=0), state)._replace(rng_key=state.rng_key)
             chains.states = moved if mesh is None else _place_state(moved, mesh, batched=True)
         else:
-            chains.states = [jax.tree.map(lambda x, c=c: x[c], moved) for c in range(len(scores))]
+            chains.states = [chains.states[int(s)]._replace(rng_key=chains.states[c].rng_key)
+                             for c, s in enumerate(source)]
     return {"margin": float(margin), "scores": [float(v) for v in scores], "from": [int(c) for c in source]}
 
 
@@ -758,11 +757,11 @@ def fit(mdp, demos: Demonstrations, config: Union[ModelConfig, dict, str, os.Pat
             ``max_samples`` sweeps are drawn or ``time_budget`` seconds (0: none) have passed;
             the result's ``run_length`` says which (see
             :class:`~npbrs.inference.driver.config.SamplerConfig`). Off by default.
-        restart_margin: at the end of warmup, a chain whose segmentation scores more than this
-            many nats below the best chain's (log p(x, z, F), parameters integrated out)
-            continues from the best chain's state with its own random key; 0 (the default) is off
-            (see :class:`~npbrs.inference.driver.config.SamplerConfig`). The result's
-            ``restart`` records the scores and which chains moved.
+        restart_margin: at the end of warmup, a chain whose log joint (averaged over the last
+            tenth of warmup) is more than this many nats below the best chain's continues from
+            the best chain's state with its own random key; 50 by default, 0 is off (see
+            :class:`~npbrs.inference.driver.config.SamplerConfig`). The result's ``restart``
+            records the scores and which chains moved.
         init_segmentation: start every chain from this segmentation instead of random windows:
             per trajectory an integer label per step (any integers, e.g. a previous result's
             ``segmentation`` or hand labels), or a FitResult. The skills' initial parameters are
@@ -926,7 +925,7 @@ def _fit(mdp, demos, config, *, emission, emission_options, num_chains, num_samp
 
     state, draws, done, wall, restart = None, {}, 0, 0.0, None
     # warmup's end: chains far behind the best continue from its state (SamplerConfig.restart_margin)
-    restarting = C > 1 and W > 0 and sampler.restart_margin > 0 and em.supports_greedy_merge()
+    restarting = C > 1 and W > 0 and sampler.restart_margin > 0
     num_real = demos.num_trajectories
     if resume and os.path.exists(checkpoint_path):
         leaves, draws, saved = _read_checkpoint(checkpoint_path, meta)
@@ -997,7 +996,9 @@ def _fit(mdp, demos, config, *, emission, emission_options, num_chains, num_samp
                     (pending if done >= W else warm).append(records)
                     done += 1
                     if done == W and restarting:
-                        restart = _restart_lagging(chains, compiled, sampler.restart_margin, mesh)
+                        flush()  # (the warmup's log joints, into draws)
+                        restart = _restart_lagging(chains, _warmup_scores(draws["warmup_log_joint"]),
+                                                   sampler.restart_margin, mesh)
                     bar.update(C if method == "sequential" else 1)
                     if checkpoint_path is not None and (done % every == 0 or done == total):
                         checkpoint(done)

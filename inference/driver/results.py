@@ -177,8 +177,8 @@ class FitResult:
             the share of its sampling draws that used every slot ("saturated"); None otherwise.
         restart: for a run of several chains with ``restart_margin`` on (see
             :class:`~npbrs.inference.driver.config.SamplerConfig`): the margin ("margin"), each
-            chain's score at the end of warmup ("scores", log p(x, z, F) with the parameters
-            integrated out) and the chain whose state each continued from ("from"; its own
+            chain's score at the end of warmup ("scores", its log joint averaged over the last
+            tenth of the warmup sweeps) and the chain whose state each continued from ("from"; its own
             number where it kept its own); None otherwise.
 
     The methods :meth:`policies`, :meth:`options`, :meth:`segment`, :meth:`log_predictive` and
