@@ -272,11 +272,10 @@ def _restart_lagging(chains: "_Chains", scores, margin: float, mesh=None) -> dic
     lagging = ~(scores >= scores[best] - margin) & bool(np.any(finite))
     source = np.where(lagging, best, np.arange(len(scores)))
     if np.any(lagging):
-        if batched:
-            index = jnp.asarray(source)
-            state = chains.states
-            moved = jax.tree.map(lambda x: jnp.take(x, index, axis=0), state)._replace(rng_key=state.rng_key)
-            chains.states = moved if mesh is None else _place_state(moved, mesh, batched=True)
+        if batched:  # (on the host: a gather per leaf on the device would compile a program per shape)
+            state = _to_host(chains.states)
+            moved = jax.tree.map(lambda x: np.take(x, source, axis=0), state)._replace(rng_key=state.rng_key)
+            chains.states = jax.device_put(moved) if mesh is None else _place_state(moved, mesh, batched=True)
         else:
             chains.states = [chains.states[int(s)]._replace(rng_key=chains.states[c].rng_key)
                              for c, s in enumerate(source)]
