@@ -15,6 +15,7 @@ from npbrs.inference.driver.fit import _Chains, _Compiled, _restart_lagging, _wa
 from npbrs.inference.sampler import BPHMMKernel
 from npbrs.models.emissions import PolicyEmission
 from test_kernel import planted_policy_data
+from test_reward_fit import _compiling
 
 
 def _chain(state, c):
@@ -74,7 +75,10 @@ def test_a_fit_restarts_a_lagging_chain_at_warmups_end_and_records_it(tmp_path):
     assert fit(MDP, DEMOS, num_chains=1, **{k: v for k, v in KW.items() if k != "num_chains"}).restart is None
     assert SamplerConfig().restart_margin == 50.0  # on by default
     # every chain behind the best moves (a margin of ~0); none moves at a huge margin
-    tight = fit(MDP, DEMOS, restart_margin=1e-9, **KW)
+    # the restart reads the scores the sweeps record and moves states on the host: a run that
+    # restarts compiles nothing that the run without restarts has not compiled
+    tight, compiles = _compiling(fit, MDP, DEMOS, restart_margin=1e-9, **KW)
+    assert compiles == [], f"the restart compiled {len(compiles)} programs ({sum(compiles):.2f} s)"
     loose = fit(MDP, DEMOS, restart_margin=1e9, **KW)
     assert loose.restart["from"] == [0, 1] and loose.restart["scores"] == tight.restart["scores"]
     for name, v in off.stats.items():  # nothing moved: the run without the check's draws
