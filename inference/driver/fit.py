@@ -42,7 +42,7 @@ from npbrs.domains.precision import float64_all
 from ..sampler.kernel import BPHMMKernel, initial_window
 from ..sampler.options import MOVE_DEFAULTS
 from .config import EmissionConfig, ModelConfig, PriorConfig
-from .results import LABEL_INVARIANT, FitResult, label_invariant_diagnostic
+from .results import LABEL_INVARIANT, STEP_COUNTS, FitResult, label_invariant_diagnostic
 
 __all__ = ["fit", "make_emission", "resolve_config", "default_moves", "compilation_cache_dir", "use_compilation_cache",
            "device_mesh", "CHAINS", "TRAJECTORIES", "DEFAULT_GREEDY_TRIALS"]
@@ -577,6 +577,15 @@ class _Chains:
             per_sweep = [_to_host(r) for r in records]
         return {k: np.stack([r[k] for r in per_sweep], axis=1) for k in per_sweep[0]}
 
+    def skills(self, num_trajectories: int, num_steps: int) -> np.ndarray:
+        """Every chain's current skill sequences on the host, (C, num_trajectories, num_steps)
+        (the demonstrations' rows and steps, without a shape bucket's padding)."""
+        if self.method == "sequential":
+            z = np.stack([_to_host(s.z) for s in self.states])
+        else:
+            z = _to_host(self.states.z)
+        return z[:, :num_trajectories, :num_steps]
+
     def state(self):
         """Every chain's state on the host, chains stacked on axis 0."""
         if self.method == "sequential":
@@ -923,11 +932,16 @@ def _fit(mdp, demos, config, *, emission, emission_options, num_chains, num_samp
     keys = jax.random.split(jax.random.PRNGKey(sampler.seed), C)
 
     state, draws, done, wall, restart = None, {}, 0, 0.0, None
+    # how often each step was in each skill slot over the sampling sweeps (C, N, T, K), on the
+    # host; kept with the draws (so checkpoints hold it); the result's ``skill_probabilities``
+    num_steps = int(np.max(demos.lengths))
+    draws[STEP_COUNTS] = np.zeros((C, demos.num_trajectories, num_steps, cfg.max_skills), np.int32)
     # warmup's end: chains far behind the best continue from its state (SamplerConfig.restart_margin)
     restarting = C > 1 and W > 0 and sampler.restart_margin > 0
     num_real = demos.num_trajectories
     if resume and os.path.exists(checkpoint_path):
         leaves, draws, saved = _read_checkpoint(checkpoint_path, meta)
+        # (a checkpoint written before the per-step counts were kept resumes without them)
         if "features" in draws:
             draws["features"] = draws["features"][:, :, :num_real]
         from .runs import restore_state
@@ -993,6 +1007,8 @@ def _fit(mdp, demos, config, *, emission, emission_options, num_chains, num_samp
                         if latest is not None:
                             bar.set_postfix("; ".join([f"log joint {latest:.1f}"] + ([rhat_text] if rhat_text else [])))
                     (pending if done >= W else warm).append(records)
+                    if done >= W and STEP_COUNTS in draws:  # a sampling sweep: into the per-step counts
+                        _count_skills(draws[STEP_COUNTS], chains.skills(num_real, num_steps))
                     done += 1
                     if done == W and restarting:
                         flush()  # (the warmup's log joints, into draws)
@@ -1029,6 +1045,12 @@ def _fit(mdp, demos, config, *, emission, emission_options, num_chains, num_samp
                                  sample_names=compiled.hyper_names, init_segmentation=z0,
                                  mdp_fingerprint=mdp.fingerprint() if hasattr(mdp, "fingerprint") else "",
                                  warmup_stats=warmup or None, run_length=run_length, restart=restart)
+
+
+def _count_skills(counts: np.ndarray, z: np.ndarray) -> None:
+    """Add one sweep's skill sequences z (C, N, T) (-1 on padding) to ``counts`` (C, N, T, K), in place."""
+    for k in range(counts.shape[-1]):
+        counts[..., k] += z == k
 
 
 def _run_length(draws: dict, sampler, drawn: int, most: int, elapsed: float) -> dict:

@@ -13,7 +13,9 @@ the h5netcdf engine, ``npbrs.inference.load`` reads it back): an ``InferenceData
 - ``constant_data``: the best segmentation ``segmentation`` (trajectory, step; -1 on padding)
   with ``lengths`` (trajectory), its skills' parameters ``best_<site>`` (skill, ...), their
   sampler slots ``skill_slots`` (skill), and each chain's best segmentation in slot labels
-  ``chain_best_z`` (chain, trajectory, step); its attributes hold the run's description:
+  ``chain_best_z`` (chain, trajectory, step), and ``step_skill_counts`` (chain, trajectory, step,
+  slot: in how many of the chain's sampling sweeps each step was in each skill slot, what
+  ``FitResult.skill_probabilities`` reads); its attributes hold the run's description:
   ``npbrs_format`` ("npbrs-run"), ``npbrs_version`` (1), ``config`` (the
   :class:`~npbrs.inference.driver.config.ModelConfig` as JSON), ``emission`` (the emission's
   ``describe()`` as JSON), ``fingerprint`` (of the demonstrations), ``feature_names`` (JSON),
@@ -43,6 +45,9 @@ from npbrs.domains.files import atomic_write
 from npbrs.domains.precision import float64_all
 
 from .config import ModelConfig
+
+#: ``fit``'s draws entry counting each step's skill slots over the sampling sweeps (C, N, T, K)
+STEP_COUNTS = "step_skill_counts"
 
 __all__ = ["FitResult", "LABEL_INVARIANT", "label_invariant_diagnostic", "RUN_FORMAT", "RUN_VERSION", "NETCDF_ENGINE",
            "trajectory_rows"]
@@ -180,6 +185,10 @@ class FitResult:
             chain's score at the end of warmup ("scores", its log joint averaged over the last
             tenth of the warmup sweeps) and the chain whose state each continued from ("from"; its own
             number where it kept its own); None otherwise.
+        step_skill_counts: (C, N, T, K) in how many of a chain's sampling sweeps each step of
+            the demonstrations was in each skill slot (0 on padding); what
+            :meth:`skill_probabilities` reads. None for a run that did not keep them (a run saved,
+            or a checkpoint written, before they were kept).
 
     The methods :meth:`policies`, :meth:`options`, :meth:`segment`, :meth:`log_predictive` and
     :meth:`add_log_likelihood` are shortcuts to the functions of :mod:`npbrs.inference.analysis`
@@ -208,6 +217,7 @@ class FitResult:
     run_length: Optional[dict] = None
     truncation: Optional[dict] = None
     restart: Optional[dict] = None
+    step_skill_counts: Optional[np.ndarray] = None
 
     @classmethod
     def from_states(cls, last_state, draws: Dict[str, np.ndarray], demos, *, config: Optional[dict] = None,
@@ -233,6 +243,7 @@ class FitResult:
         segmentation, slots = _compact(rows)
         best_params = {k: np.asarray(v)[chain][slots] for k, v in last_state.best_params.items()}
         draws = {k: np.asarray(v) for k, v in draws.items()}
+        counts = draws.pop(STEP_COUNTS, None)
         if "features" in draws:
             draws["features"] = draws["features"][:, :, :N]
         stats = {k: v for k, v in draws.items() if v.ndim == 2 and k not in sample_names}
@@ -246,7 +257,8 @@ class FitResult:
                    mdp_fingerprint=str(mdp_fingerprint or ""),
                    warmup_stats=None if not warmup_stats else {k: np.asarray(v) for k, v in warmup_stats.items()},
                    run_length=None if run_length is None else dict(run_length),
-                   restart=None if restart is None else dict(restart))
+                   restart=None if restart is None else dict(restart),
+                   step_skill_counts=None if counts is None else counts[:, :N, :T])
 
     @property
     def model_config(self) -> ModelConfig:
@@ -301,6 +313,8 @@ class FitResult:
                          and all(same(a, b) for a, b in zip(self.init_segmentation, other.init_segmentation))))
                 and ((self.log_likelihood is None) == (other.log_likelihood is None))
                 and (self.log_likelihood is None or same(self.log_likelihood, other.log_likelihood))
+                and ((self.step_skill_counts is None) == (other.step_skill_counts is None))
+                and (self.step_skill_counts is None or same(self.step_skill_counts, other.step_skill_counts))
                 and json.dumps(self.run_length, sort_keys=True) == json.dumps(other.run_length, sort_keys=True)
                 and json.dumps(self.truncation, sort_keys=True) == json.dumps(other.truncation, sort_keys=True)
                 and json.dumps(self.restart, sort_keys=True) == json.dumps(other.restart, sort_keys=True)
@@ -384,6 +398,36 @@ class FitResult:
 
         return log_predictive(self, mdp, demos, **options)
 
+    def skill_probabilities(self):
+        """Each fitted step's posterior skill probabilities from the sampler's own draws: the
+        share of the sampling sweeps, over every chain, in which the step was in each of the run's
+        skills (every chain's slots mapped to them by
+        :func:`npbrs.inference.analysis.diagnostics.relabel`); no MDP and no computation beyond
+        that count. A :class:`~npbrs.inference.analysis.predictive.SkillProbabilities`: ``probs``
+        per trajectory (T, L) (a row sums to below 1 where some draws put the step in a slot
+        matched to none of the run's skills) and ``labels``, each step's most probable skill,
+        the segmentation that labels the most steps right in expectation (a single draw's,
+        ``segmentation``, keeps the jitter of its boundaries and short excursions). The same
+        quantity as ``segment(mdp)`` (which recomputes it from a subset of the draws, with the
+        transition weights integrated out), up to Monte Carlo error."""
+        from ..analysis.diagnostics import relabel
+        from ..analysis.predictive import SkillProbabilities
+
+        if self.step_skill_counts is None:
+            raise ValueError("this run kept no per-step skill counts (saved before they were kept); use "
+                             "segment(mdp) instead")
+        counts = np.asarray(self.step_skill_counts)
+        C, N, T, K = counts.shape
+        mapping = relabel(self)
+        probs = np.zeros((N, T, self.num_skills))
+        for c in range(C):
+            for k in range(K):
+                if mapping[c, k] >= 0:
+                    probs[..., mapping[c, k]] += counts[c, ..., k]
+        probs /= C * self.num_draws
+        rows = [probs[i, :m] for i, m in enumerate(len(s) for s in self.segmentation)]
+        return SkillProbabilities(probs=rows, labels=[np.argmax(r, axis=-1) for r in rows])
+
     def segment(self, mdp, demos=None, **options):
         """Posterior probabilities of this run's skills at every step of new demonstrations (or,
         with ``demos=None``, of the fitted ones), averaged over the draws: a
@@ -430,6 +474,8 @@ class FitResult:
             constant["init_segmentation"] = (["trajectory", "step"], _padded(self.init_segmentation))
         if self.chain_best_z is not None:
             constant["chain_best_z"] = (["chain", "trajectory", "step"], np.asarray(self.chain_best_z, np.int64))
+        if self.step_skill_counts is not None:
+            constant[STEP_COUNTS] = (["chain", "trajectory", "step", "slot"], np.asarray(self.step_skill_counts, np.int32))
         attrs = {"npbrs_format": RUN_FORMAT, "npbrs_version": RUN_VERSION,
                  "config": json.dumps(self.config, sort_keys=True),
                  "emission": json.dumps(self.emission, sort_keys=True),
@@ -508,7 +554,8 @@ class FitResult:
                                  if "warmup_sample_stats" in idata.groups() else None),
                    run_length=json.loads(attrs["run_length"]) if "run_length" in attrs else None,
                    truncation=json.loads(attrs["truncation"]) if "truncation" in attrs else None,
-                   restart=json.loads(attrs["restart"]) if "restart" in attrs else None)
+                   restart=json.loads(attrs["restart"]) if "restart" in attrs else None,
+                   step_skill_counts=np.asarray(const[STEP_COUNTS].values) if STEP_COUNTS in const else None)
 
     def summary(self) -> str:
         """A short text summary: skills, segment lengths, diagnostics."""
