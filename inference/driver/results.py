@@ -141,7 +141,9 @@ class FitResult:
 
     Attributes:
         segmentation: per trajectory, the skill (0..num_skills-1) of every step, from the
-            highest-log-joint draw across chains (after warmup).
+            highest-log-joint draw across chains (after warmup): one posterior sample, whose
+            boundaries jitter; each step's most probable skill over all the draws is
+            :meth:`skill_probabilities`' ``labels``.
         num_skills: number of skills in that segmentation.
         skill_params: the emission parameters of those skills, {site: (num_skills, ...)},
             e.g. ``skill_params["theta"]`` the reward weights.
