@@ -155,17 +155,14 @@ def _skill_rewards(method: str, domain, result, emission) -> Optional[np.ndarray
 
 def run_segmentation(result, mdp, segmentation: str = "marginal", emission=None):
     """The run's segmentation by ``segmentation``: "marginal", each step's most probable skill
-    under the run's posterior (the estimate that maximises the expected number of correctly
-    labelled steps: ``FitResult.skill_probabilities``, counted over every sampling draw, or for
-    a run that did not count them ``FitResult.segment``, recomputed from a subset of the draws),
-    or "best", the best draw's (``FitResult.segmentation``). The tables, ``npbrs demo`` and
+    under the run's posterior (``FitResult.segment``: the skill probabilities averaged over the
+    draws, the estimate that maximises the expected number of correctly labelled steps), or
+    "best", the best draw's (``FitResult.segmentation``). The tables and
     ``benchmarks/transfer.py`` score by it."""
     if segmentation not in ("marginal", "best"):
         raise ValueError(f"segmentation must be 'marginal' or 'best', got {segmentation!r}")
     if segmentation == "best" or result.num_skills < 2:
         return result.segmentation
-    if getattr(result, "step_skill_counts", None) is not None:
-        return result.skill_probabilities().labels
     return result.segment(mdp, emission=emission).labels
 
 

@@ -410,8 +410,11 @@ class FitResult:
         matched to none of the run's skills) and ``labels``, each step's most probable skill,
         the segmentation that labels the most steps right in expectation (a single draw's,
         ``segmentation``, keeps the jitter of its boundaries and short excursions). The same
-        quantity as ``segment(mdp)`` (which recomputes it from a subset of the draws, with the
-        transition weights integrated out), up to Monte Carlo error."""
+        quantity as ``segment(mdp)`` up to Monte Carlo error; ``segment`` recomputes it from a
+        subset of the draws, averaging each draw's smoothed probabilities (the transition
+        weights integrated out), which is the less noisy of the two when a run has few draws
+        (``benchmarks/NOTES.md``, session 35), and costs a forward-backward pass per draw and
+        importance sample."""
         from ..analysis.diagnostics import relabel
         from ..analysis.predictive import SkillProbabilities
 
