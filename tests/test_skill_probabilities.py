@@ -39,7 +39,7 @@ def test_one_sampling_sweep_counts_exactly_its_skill_sequences(method):
         np.testing.assert_array_equal(probs.labels[i], np.argmax(expected, -1))
 
 
-def test_the_counts_agree_with_segment_and_label_the_planted_skills(tmp_path):
+def test_the_counts_agree_with_segment_and_label_the_planted_skills(tmp_path, monkeypatch):
     # (the draws are autocorrelated and both estimates are Monte Carlo ones: their mean gap fell
     # from 0.08 to 0.034 to 0.026 with 60, 600 and 2,000 sampling sweeps)
     result = fit(MDP, DEMOS, num_samples=600, **KW)
@@ -57,14 +57,29 @@ def test_the_counts_agree_with_segment_and_label_the_planted_skills(tmp_path):
     from npbrs.inference.analysis.metrics import hungarian_accuracy
 
     assert hungarian_accuracy(DEMOS.skills, ours.labels) > 0.9
+    # the report's segmentation plot (npbrs report --plots; no MDP there) draws these labels,
+    # or the best draw's for a run without the counts
+    from npbrs.inference.analysis import plots
+    from npbrs.inference.cli.main import save_plots
+
+    drawn = []
+    monkeypatch.setattr(plots, "plot_trace", lambda *a, **k: None)
+    monkeypatch.setattr(plots, "plot_segmentation", lambda true, inferred, *a, **k: drawn.append(inferred["npbrs"]) or {
+        "npbrs": {}})
+    save_plots(result, tmp_path)
+    assert all(np.array_equal(a, b) for a, b in zip(drawn[-1], ours.labels))
+    assert not all(np.array_equal(a, b) for a, b in zip(ours.labels, result.segmentation))  # (they differ here)
     # kept with the saved run; a run without them (saved before they were kept) says what to use
     result.save(tmp_path / "run.nc")
     again = load(tmp_path / "run.nc")
     np.testing.assert_array_equal(again.step_skill_counts, counts)
     result.step_skill_counts = None
     result.save(tmp_path / "old.nc")
+    old = load(tmp_path / "old.nc")
     with pytest.raises(ValueError, match="segment"):
-        load(tmp_path / "old.nc").skill_probabilities()
+        old.skill_probabilities()
+    save_plots(old, tmp_path)
+    assert all(np.array_equal(a, b) for a, b in zip(drawn[-1], result.segmentation))
 
 
 def test_a_bucketed_run_counts_only_the_demonstrations_steps():

@@ -196,7 +196,9 @@ def report_command(args) -> int:
 
 
 def save_plots(result, directory, skill_names=None) -> dict:
-    """A run's trace, segmentation (against the true skills when known) and, for rewards,
+    """A run's trace, segmentation (each step's most probable skill counted over the draws,
+    :meth:`FitResult.skill_probabilities`, or the best draw's for a run without the counts;
+    against the true skills when known) and, for rewards,
     skill reward plots, and for a run with state-dependent ends its skills' end probabilities,
     as PNG files in ``directory``; returns {plot: path}."""
     from ..analysis import plots
@@ -205,8 +207,12 @@ def save_plots(result, directory, skill_names=None) -> dict:
              for name in ("trace", "segmentation", "skill rewards", "skill ends")}
     plots.plot_trace(result, paths["trace"])
     true = result.demos.skills if result.demos is not None else None
-    styles = plots.plot_segmentation(true, {"npbrs": result.segmentation}, paths["segmentation"],
-                                     labels=skill_names)["npbrs"]
+    if getattr(result, "step_skill_counts", None) is not None:  # (no MDP needed: counted over the draws)
+        shown, title = result.skill_probabilities().labels, "npbrs: each step's most probable skill over the draws"
+    else:  # a run saved before the counts were kept
+        shown, title = result.segmentation, "npbrs: the best draw's segmentation"
+    styles = plots.plot_segmentation(true, {"npbrs": shown}, paths["segmentation"], labels=skill_names,
+                                     title=title)["npbrs"]
     if "theta" in result.skill_params:
         names, mean, interval, colours, labels = reward_plot_inputs(result, styles, with_true=true is not None)
         drawn = "posterior mean and 90% interval" if len(names) <= plots.BARS else "posterior mean"  # (a heat map)
