@@ -45,18 +45,23 @@ class _Jit:
     """``jax.jit(fn, **options)`` with :func:`compiler_options` where it is compiled as a program
     of its own; called inside another trace (a tracer among its arguments, or JAX's refusal of
     the options when all of them are constants) it is a plain nested jit, whose code joins the
-    enclosing program (JAX takes compile options at the top level only). Made on the first call
-    (the backend is not chosen at import); other attributes (``lower``, ``trace``, ...) are the
-    top-level jitted function's."""
+    enclosing program (JAX takes compile options at the top level only). The top-level function
+    is made at the first call with each set of options (the backend is not chosen at import, and
+    the options follow ``XLA_FLAGS`` as it is at the call); other attributes (``lower``,
+    ``trace``, ...) are the top-level jitted function's."""
 
     def __init__(self, fn, options):
         functools.update_wrapper(self, fn)
-        self._fn, self._options, self._top, self._nested = fn, options, None, None
+        self._fn, self._options, self._tops, self._nested = fn, options, {}, None
 
     def _get(self):
-        if self._top is None:
-            self._top = jax.jit(self._fn, compiler_options=compiler_options() or None, **self._options)
-        return self._top
+        # one top-level jit per set of options, read at each call (``XLA_FLAGS`` may change)
+        options = compiler_options()
+        key = tuple(sorted(options.items()))
+        top = self._tops.get(key)
+        if top is None:
+            top = self._tops[key] = jax.jit(self._fn, compiler_options=options or None, **self._options)
+        return top
 
     def __call__(self, *args, **kwargs):
         if not any(isinstance(x, jax.core.Tracer) for x in jax.tree.leaves((args, kwargs))):

@@ -13,6 +13,9 @@ kernels they start) ask LLVM for its cheapest optimisation level (20% less wall 
 cores, the same results; XLA's own graph optimisations still run) and XLA for its older CPU
 fusion emitters where the installed jaxlib has that switch (a third less compile time; results
 differ from the default emitters' in rounding only), unless ``XLA_FLAGS`` already sets them.
+A test marked ``library_level`` compiles npbrs's programs at the library's own level instead
+(LLVM level 1, ``npbrs.domains.compiling``): for tests whose small programs run long (solves
+repeated to convergence, many sweeps), which LLVM's level 0 runs several times slower.
 
 The suite runs in two pytest-xdist worker processes (``addopts`` in pyproject.toml), each
 test file in one of them: on two cores that is about a sixth faster than one process.
@@ -68,6 +71,7 @@ def _fast_compile_flags(flags: str) -> str:
 
 
 # (before JAX starts its backend, which reads XLA_FLAGS once)
+_LEVEL_SET_HERE = "xla_backend_optimization_level" not in os.environ.get("XLA_FLAGS", "")
 os.environ["XLA_FLAGS"] = _fast_compile_flags(os.environ.get("XLA_FLAGS", ""))
 
 import jax  # noqa: E402
@@ -224,9 +228,24 @@ class _Usage:
 
 
 @pytest.fixture(autouse=True)
+def _library_level(request, monkeypatch):
+    """``@pytest.mark.library_level``: npbrs's programs compile at the library's LLVM level (1)
+    rather than the suite's 0, which ``npbrs.domains.compiling`` reads from ``XLA_FLAGS`` at each
+    call. (The level set in ``XLA_FLAGS`` by whoever runs the suite is left alone.) Measured on
+    two cores, cold, one process: the four files with marked tests (reproduction, control, IRL,
+    greedy) took 86.5 CPU-seconds instead of 103.5. Every program at level 1 is no choice: the
+    whole suite took 504 s instead of 352 s so (session 36)."""
+    if _LEVEL_SET_HERE and request.node.get_closest_marker("library_level"):
+        flags = " ".join(f for f in os.environ["XLA_FLAGS"].split() if "xla_backend_optimization_level" not in f)
+        monkeypatch.setenv("XLA_FLAGS", flags)
+    yield
+
+
+@pytest.fixture(autouse=True)
 def _compile_log(request):
     """With ``NPBRS_TEST_COMPILE_LOG=FILE``: append, per test, the seconds JAX spent tracing and
-    compiling, the number of programs compiled (cache hits are not compiles) and the CPU-seconds
+    compiling, the number of programs compiled (cache hits are not compiles), the name and
+    seconds of each program that took at least half a second to compile, and the CPU-seconds
     of the process (all its threads) and of the subprocesses it waited for, as a JSON line, to
     find what makes the suite slow (its two workers share two cores, so CPU-seconds, not wall
     time, say what a test costs the suite)."""
@@ -237,11 +256,14 @@ def _compile_log(request):
     from jax._src.dispatch import BACKEND_COMPILE_EVENT, JAXPR_TRACE_EVENT
 
     seen = {"compile": 0.0, "trace": 0.0, "programs": 0}
+    slow = []  # (name, seconds) of the programs that took at least half a second to compile
 
-    def listen(event, duration, **_):
+    def listen(event, duration, fun_name="", **_):
         if event == BACKEND_COMPILE_EVENT:
             seen["compile"] += duration
             seen["programs"] += 1
+            if duration >= 0.5:
+                slow.append((fun_name, round(duration, 2)))
         elif event == JAXPR_TRACE_EVENT:
             seen["trace"] += duration
 
@@ -252,7 +274,7 @@ def _compile_log(request):
     finally:
         jax.monitoring.unregister_event_duration_listener(listen)
         with open(path, "a") as f:
-            f.write(usage.record(test=request.node.nodeid, **{k: round(v, 2) for k, v in seen.items()}))
+            f.write(usage.record(test=request.node.nodeid, **{k: round(v, 2) for k, v in seen.items()}, slow=slow))
 
 
 @pytest.fixture(autouse=True, scope="module")

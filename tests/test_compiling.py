@@ -3,9 +3,12 @@
 win, other backends are left alone, and the wrapped functions work where ``jax.jit`` does,
 inside other traces too (JAX refuses compile options on a nested jit)."""
 
+import os
+
 import jax
 import jax.numpy as jnp
 import numpy as np
+import pytest
 
 from npbrs.domains import compiling
 from npbrs.domains.compiling import compiler_options, jit
@@ -58,3 +61,43 @@ def test_fit_and_the_solvers_compile_through_it():
     for fn in (fit._sweep_batched, fit._sweep_one, fit._init_chains, kernel._init_state, solvers._solve_batch,
                predictive._one_draw, predictive._one_draw_marginals, reward._FIT_JIT, reward._LL_AND_GRAD):
         assert isinstance(fn, compiling._Jit), fn
+
+
+def test_the_options_follow_xla_flags_at_each_call_and_each_set_compiles_once(monkeypatch):
+    """A test marked ``library_level`` (tests/conftest.py) drops the suite's level from
+    ``XLA_FLAGS`` for its duration: the wrapper then compiles with the library's level, and
+    after the test with none again, reusing each set's jitted function."""
+    made = []
+    real = jax.jit
+
+    def recording_jit(fn, **kwargs):
+        made.append(kwargs.get("compiler_options"))
+        return real(fn, **kwargs)
+
+    monkeypatch.setattr(compiling.jax, "jit", recording_jit)
+    monkeypatch.setattr(compiling.jax, "default_backend", lambda: "cpu")
+    g = jit(lambda x: x + 1.0)
+    x = jnp.zeros(3)
+    monkeypatch.setenv("XLA_FLAGS", "--xla_backend_optimization_level=0")
+    g(x), g(x)
+    monkeypatch.setenv("XLA_FLAGS", "")
+    g(x), g(x)
+    monkeypatch.setenv("XLA_FLAGS", "--xla_backend_optimization_level=0")
+    np.testing.assert_allclose(g(x), 1.0)
+    assert made == [None, {"xla_backend_optimization_level": 1}]
+
+
+@pytest.mark.library_level
+def test_a_test_marked_library_level_compiles_at_the_librarys_level():
+    from conftest import _LEVEL_SET_HERE
+
+    if not _LEVEL_SET_HERE:
+        pytest.skip("the level was set in XLA_FLAGS by whoever runs the suite")
+    assert compiler_options("cpu") == {"xla_backend_optimization_level": 1}
+
+
+def test_an_unmarked_test_compiles_at_the_suites_level():
+    from conftest import _LEVEL_SET_HERE
+
+    assert "xla_backend_optimization_level=0" in os.environ["XLA_FLAGS"] or not _LEVEL_SET_HERE
+    assert compiler_options("cpu") == {}  # the level in XLA_FLAGS (the suite's, or whoever runs it) is left to XLA

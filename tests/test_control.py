@@ -8,6 +8,10 @@ from npbrs.domains.control import evaluate_control, expert_control, replay, skil
 from npbrs.domains.domain import Domain
 
 
+# (greedy policies solved to convergence many times: level 0 runs them slowly)
+pytestmark = pytest.mark.library_level
+
+
 @pytest.fixture(scope="module")
 def highway_case():
     from npbrs.domains.highway import highway

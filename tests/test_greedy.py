@@ -147,6 +147,7 @@ def test_greedy_merges_run_only_in_warmup_and_remove_a_copy_gibbs_keeps():
         assert _tree_close(run_greedy(late), run_gibbs(late)), seed
 
 
+@pytest.mark.library_level
 def test_policy_evidence_is_the_prior_expectation_of_the_likelihood():
     """Exact Dirichlet-multinomial evidence against a Monte Carlo average over the prior."""
     data, _ = planted_policy_data(seed=3, N=2, T=6, S=2, A=3)

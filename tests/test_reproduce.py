@@ -21,6 +21,9 @@ from npbrs.inference.cli import reproduce as rep
 from npbrs.inference.cli.reproduce import (COLUMNS, METHODS, ROWS, format_markdown, load_json, reproduce,
                                        save_json)
 
+# (the expert's and the methods' solves on the highway run many times: level 0 runs them slowly)
+pytestmark = pytest.mark.library_level
+
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
 

@@ -157,6 +157,7 @@ def _rollout(mdp, policy, rng, N=16, T=200):
     return states, actions
 
 
+@pytest.mark.library_level
 @pytest.mark.parametrize("name", ["highway", "quadcopter"])
 def test_irl_recovers_each_skill_from_its_demonstrations(name):
     """16 x 200 steps of one expert: the fitted reward's optimal policy takes an optimal action of
