@@ -71,7 +71,12 @@ def _fast_compile_flags(flags: str) -> str:
 
 
 # (before JAX starts its backend, which reads XLA_FLAGS once)
-_LEVEL_SET_HERE = "xla_backend_optimization_level" not in os.environ.get("XLA_FLAGS", "")
+# whether the level in XLA_FLAGS is the suite's (not its runner's): said in the environment, for
+# the pytest-xdist workers inherit XLA_FLAGS with the level in it
+_LEVEL_ENV = "NPBRS_TEST_SUITE_SETS_LEVEL"
+if "xla_backend_optimization_level" not in os.environ.get("XLA_FLAGS", ""):
+    os.environ[_LEVEL_ENV] = "1"
+_LEVEL_SET_HERE = os.environ.get(_LEVEL_ENV) == "1"
 os.environ["XLA_FLAGS"] = _fast_compile_flags(os.environ.get("XLA_FLAGS", ""))
 
 import jax  # noqa: E402
