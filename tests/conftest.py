@@ -12,8 +12,8 @@ Compiling is most of the suite's time, so its processes (and the command-line ru
 kernels they start) ask LLVM for its cheapest optimisation level (20% less wall time on two
 cores, the same results; XLA's own graph optimisations still run) and XLA for its older CPU
 fusion emitters where the installed jaxlib has that switch (a third less compile time; results
-differ from the default emitters' in rounding only), unless ``XLA_FLAGS`` already sets them.
-A test marked ``library_level`` compiles npbrs's programs at the library's own level instead
+differ from the default emitters' in rounding only) and each program's machine code in one piece
+(``OPTIONAL_FLAGS``), unless ``XLA_FLAGS`` already sets them. A test marked ``library_level`` compiles npbrs's programs at the library's own level instead
 (LLVM level 1, ``npbrs.domains.compiling``): for tests whose small programs run long (solves
 repeated to convergence, many sweeps), which LLVM's level 0 runs several times slower.
 
@@ -33,41 +33,53 @@ import tempfile
 import time
 
 
-def _xla_accepts(flag: str) -> bool:
-    """Whether the installed jaxlib's XLA accepts this flag: an unknown flag in XLA_FLAGS aborts
+def _xla_accepts(*flags: str) -> bool:
+    """Whether the installed jaxlib's XLA accepts these flags: an unknown flag in XLA_FLAGS aborts
     the process, and a flag's name can outlive the flag in jaxlib's binaries (jaxlib 0.12, on
     Python 3.12, still holds the string ``xla_cpu_use_fusion_emitters`` but aborts on it), so a
-    short subprocess starts JAX's CPU backend with it. The answer is passed on to the test
-    workers and the processes they start (``_ACCEPTS_ENV``), so only the first process asks."""
-    known = os.environ.get(_ACCEPTS_ENV, "")
-    if f"+{flag}" in known.split():
-        return True
-    if f"-{flag}" in known.split():
+    short subprocess starts JAX's CPU backend with those not yet asked about. The answers are
+    passed on to the test workers and the processes they start (``_ACCEPTS_ENV``), so only the
+    first process asks. Several flags refused together are not recorded (ask one at a time)."""
+    known = os.environ.get(_ACCEPTS_ENV, "").split()
+    if any(f"-{flag}" in known for flag in flags):
         return False
+    unknown = [flag for flag in flags if f"+{flag}" not in known]
+    if not unknown:
+        return True
     import subprocess
 
     try:
         probe = subprocess.run([sys.executable, "-c", "import jax; jax.devices('cpu')"], capture_output=True,
-                               env={**os.environ, "XLA_FLAGS": f"--{flag}", "JAX_PLATFORMS": "cpu"}, timeout=120)
+                               env={**os.environ, "XLA_FLAGS": " ".join(f"--{flag}" for flag in unknown),
+                                    "JAX_PLATFORMS": "cpu"}, timeout=120)
         accepted = probe.returncode == 0
     except subprocess.TimeoutExpired:  # (not worth a test run that does not start)
         accepted = False
-    os.environ[_ACCEPTS_ENV] = f"{known} {'+' if accepted else '-'}{flag}".strip()
+    if accepted or len(unknown) == 1:
+        os.environ[_ACCEPTS_ENV] = " ".join(known + [f"{'+' if accepted else '-'}{flag}" for flag in unknown])
     return accepted
 
 
 _ACCEPTS_ENV = "NPBRS_TEST_XLA_FLAGS_CHECKED"
 
 
+#: optional flags, where the installed jaxlib has them: XLA's older CPU fusion emitters (a third
+#: less compile time in the suite's programs; results differ from the default emitters' only in
+#: rounding), and each program's machine code generated in one piece rather than split for
+#: parallel compilation (both cores are busy with the two test workers: 4% less compile time in
+#: a small fit, the same results)
+OPTIONAL_FLAGS = ("xla_cpu_use_fusion_emitters=false", "xla_cpu_parallel_codegen_split_count=1")
+
+
 def _fast_compile_flags(flags: str) -> str:
     """XLA_FLAGS with the test processes' cheaper compilation, unless the user set those flags:
-    LLVM's lowest optimisation level, and XLA's older CPU fusion emitters (a third less compile
-    time in the suite's programs; results differ from the default emitters' only in rounding)."""
+    LLVM's lowest optimisation level, and ``OPTIONAL_FLAGS`` where XLA accepts them."""
     if "xla_backend_optimization_level" not in flags:
         flags += " --xla_backend_optimization_level=0"
-    if "xla_cpu_use_fusion_emitters" not in flags and _xla_accepts("xla_cpu_use_fusion_emitters=false"):
-        flags += " --xla_cpu_use_fusion_emitters=false"
-    return flags.strip()
+    optional = [f for f in OPTIONAL_FLAGS if f.split("=")[0] not in flags]
+    if optional and not _xla_accepts(*optional):  # (one at a time, then)
+        optional = [f for f in optional if _xla_accepts(f)]
+    return " ".join([flags.strip()] + [f"--{f}" for f in optional]).strip()
 
 
 # (before JAX starts its backend, which reads XLA_FLAGS once)

@@ -32,8 +32,12 @@ def test_the_suites_xla_flags_are_asked_of_xla_itself(monkeypatch):
     monkeypatch.setenv(_ACCEPTS_ENV, "+xla_backend_optimization_level=0")
     assert not _xla_accepts("xla_npbrs_no_such_flag=1")  # (the accepted case: every run of this suite)
     assert os.environ[_ACCEPTS_ENV] == "+xla_backend_optimization_level=0 -xla_npbrs_no_such_flag=1"
+    # several at once: one subprocess; refused together, nothing is recorded (each is asked alone)
+    assert not _xla_accepts("xla_backend_optimization_level=1", "xla_npbrs_other_flag=1")
+    assert os.environ[_ACCEPTS_ENV] == "+xla_backend_optimization_level=0 -xla_npbrs_no_such_flag=1"
     monkeypatch.setattr("subprocess.run", None)  # from the record now, no subprocess
     assert not _xla_accepts("xla_npbrs_no_such_flag=1") and _xla_accepts("xla_backend_optimization_level=0")
+    assert not _xla_accepts("xla_backend_optimization_level=0", "xla_npbrs_no_such_flag=1")
 
 
 def test_a_ci_run_with_a_used_cache_stops_before_any_test(tmp_path):
