@@ -5,12 +5,18 @@ a temporary file of a fixed name: two processes that import it at the same momen
 first import (parallel test workers, several ``npbrs`` runs finishing together, a fresh machine)
 race, and the loser's import fails with ``FileNotFoundError`` from the rename. The winner has then
 written the stamp, so importing again succeeds: :func:`arviz` does that.
+
+The same import warns, once a day, that ArviZ 1 will change its interface (a ``FutureWarning``
+printed in the middle of ``npbrs demo``'s report). npbrs keeps ArviZ below 1, so that warning
+is not its user's concern: it is silenced for npbrs's import only (``warnings.catch_warnings``
+restores the filters); a user who imports ArviZ first still sees it.
 """
 
 from __future__ import annotations
 
 import sys
 import time
+import warnings
 
 __all__ = ["arviz"]
 
@@ -20,7 +26,10 @@ def arviz(attempts: int = 5):
     concurrent import of the same day made it fail on the stamp file."""
     for attempt in range(attempts):
         try:
-            import arviz as az
+            with warnings.catch_warnings():
+                warnings.filterwarnings("ignore", message=r"\s*ArviZ is undergoing a major refactor",
+                                        category=FutureWarning)
+                import arviz as az
 
             return az
         except FileNotFoundError:
