@@ -28,6 +28,7 @@ sys.path.insert(0, os.path.join(os.path.dirname(__file__), "..", "tests"))
 from gridworld import gridworld  # noqa: E402
 
 from npbrs.domains.demos import generate_demonstrations  # noqa: E402
+from npbrs.domains.precision import float64  # noqa: E402
 from npbrs.inference.driver.fit import make_emission  # noqa: E402
 from npbrs.inference.sampler.kernel import BPHMMKernel  # noqa: E402
 from npbrs.inference.analysis.metrics import hungarian_accuracy  # noqa: E402
@@ -48,7 +49,9 @@ def sweeps_to_recover(data, true, emission, moves, chains, sweeps, seed, init_sk
         return jax.lax.scan(body, kernel.initial_state(key), None, length=sweeps)[1]
 
     start = time.perf_counter()
-    zs, ks = jax.jit(jax.vmap(run))(jax.random.split(jax.random.PRNGKey(seed), chains))
+    # (npbrs computes in float64 in its own calls only; this script composes the kernel's methods
+    # in a program of its own, so it runs that program in npbrs's float64 scope)
+    zs, ks = float64(lambda: jax.jit(jax.vmap(run))(jax.random.split(jax.random.PRNGKey(seed), chains)))()
     zs, ks = np.asarray(zs), np.asarray(ks)
     wall = time.perf_counter() - start
     mask = np.asarray(data.mask)

@@ -1,5 +1,11 @@
 """Split-merge moves: the collapsed densities they use, and a split followed by the matching
-merge returns the state with reciprocal acceptance ratios."""
+merge returns the state with reciprocal acceptance ratios.
+
+(A slow test that one chain recovered planted reward skills in fewer sweeps with a split-merge
+trial per sweep was removed in session 36: with the sampler's draws of today it no longer does,
+and over ``benchmarks/bench_moves.py``'s 8 chains the trials do not speed recovery either
+(median 28 sweeps against Gibbs' 20; ``results/bench_moves-session36.json``). The move is off
+by default; its exactness is tested here and in test_posterior.py.)"""
 
 import itertools
 
@@ -11,7 +17,7 @@ import pytest
 from npbrs.inference.sampler import BPHMMKernel, MoveState, propose_split_merge, split_merge_log_ratio
 from npbrs.inference.sampler.split_merge import split_merge
 from npbrs.models.bphmm import collapsed_sequence_log_prob
-from npbrs.models.emissions import HMMData, PolicyEmission
+from npbrs.models.emissions import PolicyEmission
 from npbrs.models.hmm import backward_sample, forward_filter, path_log_prob
 from test_kernel import planted_policy_data
 
@@ -171,58 +177,21 @@ def test_moves_start_runs_gibbs_before_the_start_sweep_and_the_moves_from_it():
     em = PolicyEmission(4, 3)
     make = lambda moves: BPHMMKernel(em, data, max_skills=5, init_skills=3, moves=moves)  # noqa: E731
     gibbs, always = make(None), make({"split_merge": 2})
-    early, late = make({"split_merge": 2, "start": 2}), make({"split_merge": 2, "start": 9})
+    early, late = make({"split_merge": 2, "start": 2}), make({"split_merge": 2, "start": 40})
     # two chains, vectorised as numpyro runs them (one flag shared by the chains)
     state = jax.jit(jax.vmap(gibbs.initial_state))(jax.random.split(jax.random.PRNGKey(3), 2))
     sweep = {k: jax.jit(lambda s, k=k: k.sample(s, (), {})) for k in (gibbs, always, early, late)}
-    for step in range(8):  # no move is accepted in these sweeps: all four kernels agree
-        new = sweep[gibbs](state)
+    # until a split-merge trial is accepted, the four kernels agree (the moves' keys are drawn
+    # either way); the sweep where one is (the first, found here: it was sweep 8 until the
+    # sampler's draws changed in later sessions) tells the moves' start apart
+    for step in range(30):
+        new, with_moves = sweep[gibbs](state), sweep[always](state)
+        if not _tree_equal(with_moves, new):
+            break
         assert _tree_equal(sweep[early](state), new) and _tree_equal(sweep[late](state), new), step
         state = new
-    # sweep 8: a split-merge trial is accepted, so the moves make a difference
-    with_moves, without = sweep[always](state), sweep[gibbs](state)
-    assert not _tree_equal(with_moves, without)
+    else:
+        pytest.fail("no split-merge trial was accepted in 30 sweeps")
+    assert step >= 2, step  # (so that the early start is before it)
     assert _tree_equal(sweep[early](state), with_moves)  # started at sweep 2
-    assert _tree_equal(sweep[late](state), without)  # starts at sweep 9
-
-
-@pytest.mark.slow
-def test_split_merge_recovers_planted_reward_skills_in_fewer_sweeps():
-    """(Slow: 80 s, nearly all compiling. That split-merge trials keep the posterior is tested
-    exactly in test_posterior.py and test_split_then_merge_returns_the_state_with_reciprocal_ratios;
-    that they speed recovery is measured over 8 chains by benchmarks/bench_moves.py.) One chain of benchmarks/bench_moves.py (3 corner-seeking reward skills in a gridworld,
-    started with 5 skills): a chain has recovered the skills at the first sweep where it uses
-    at most 3 and labels 90% of the steps right (Hungarian). This chain needs 21 sweeps with
-    Gibbs alone and 10 with one split-merge trial per sweep. (Over the benchmark's 8 chains:
-    20, 38, >40, >40, >40, 21, 16, 19 sweeps without, 17, >40, 38, >40, 32, 10, 16, 19 with:
-    fewer in all, but not on every chain.)"""
-    from gridworld import gridworld
-
-    from npbrs.domains.demos import generate_demonstrations
-    from npbrs.inference import make_emission
-    from npbrs.inference import hungarian_accuracy
-
-    dom = gridworld()
-    demos = generate_demonstrations(dom, num_trajectories=6, length=60, switch_prob=0.05, seed=0)
-    data = HMMData.from_demonstrations(demos)
-    true = [np.asarray(t) for t in demos.skills]
-    emission = make_emission("reward", dom.mdp)
-    key = jax.random.split(jax.random.PRNGKey(0), 8)[5]
-    sweeps = 15
-    mask = np.asarray(data.mask)
-
-    def sweeps_to_recover(moves):
-        kernel = BPHMMKernel(emission, data, max_skills=5, init_skills=5, moves=moves)
-
-        def body(s, _):
-            s = kernel.sweep(s)
-            return s, (s.z, s.num_skills)
-
-        zs, ks = (np.asarray(x) for x in jax.jit(
-            lambda k: jax.lax.scan(body, kernel.initial_state(k), None, length=sweeps)[1])(key))
-        ok = [t + 1 for t in range(sweeps)
-              if ks[t] <= 3 and hungarian_accuracy(true, [zs[t, i][mask[i]] for i in range(mask.shape[0])]) >= 0.9]
-        return (ok[0] if ok else sweeps + 1), int(ks[-1])
-
-    gibbs, moves = sweeps_to_recover({})[0], sweeps_to_recover({"split_merge": 1})[0]
-    assert moves <= sweeps < gibbs, (gibbs, moves)
+    assert _tree_equal(sweep[late](state), new)  # starts at sweep 40
