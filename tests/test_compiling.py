@@ -14,6 +14,19 @@ from npbrs.domains import compiling
 from npbrs.domains.compiling import compiler_options, jit
 
 
+def _record_jits(monkeypatch):
+    """``jax.jit`` as npbrs's wrapper calls it, recording each call's ``compiler_options``:
+    (the list of them, the real ``jax.jit``)."""
+    made, real = [], jax.jit
+
+    def recording_jit(fn, **kwargs):
+        made.append(kwargs.get("compiler_options"))
+        return real(fn, **kwargs)
+
+    monkeypatch.setattr(compiling.jax, "jit", recording_jit)
+    return made, real
+
+
 def test_the_level_is_set_on_the_cpu_unless_xla_flags_choose_one():
     assert compiler_options("cpu", {}) == {"xla_backend_optimization_level": 1}
     assert compiler_options("cpu", {"XLA_FLAGS": "--xla_force_host_platform_device_count=4"}) == \
@@ -23,14 +36,7 @@ def test_the_level_is_set_on_the_cpu_unless_xla_flags_choose_one():
 
 
 def test_a_wrapped_function_gets_the_options_at_the_top_and_none_when_nested(monkeypatch):
-    made = []
-    real = jax.jit
-
-    def recording_jit(fn, **kwargs):
-        made.append(kwargs.get("compiler_options"))
-        return real(fn, **kwargs)
-
-    monkeypatch.setattr(compiling.jax, "jit", recording_jit)
+    made, real = _record_jits(monkeypatch)
     monkeypatch.setattr(compiling, "compiler_options", lambda: {"xla_backend_optimization_level": 1})
 
     def f(x, n):
@@ -67,14 +73,7 @@ def test_the_options_follow_xla_flags_at_each_call_and_each_set_compiles_once(mo
     """A test marked ``library_level`` (tests/conftest.py) drops the suite's level from
     ``XLA_FLAGS`` for its duration: the wrapper then compiles with the library's level, and
     after the test with none again, reusing each set's jitted function."""
-    made = []
-    real = jax.jit
-
-    def recording_jit(fn, **kwargs):
-        made.append(kwargs.get("compiler_options"))
-        return real(fn, **kwargs)
-
-    monkeypatch.setattr(compiling.jax, "jit", recording_jit)
+    made, real = _record_jits(monkeypatch)
     monkeypatch.setattr(compiling.jax, "default_backend", lambda: "cpu")
     g = jit(lambda x: x + 1.0)
     x = jnp.zeros(3)
