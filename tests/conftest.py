@@ -12,10 +12,11 @@ Compiling is most of the suite's time, so its processes (and the command-line ru
 kernels they start) ask LLVM for its cheapest optimisation level (20% less wall time on two
 cores, the same results; XLA's own graph optimisations still run) and XLA for its older CPU
 fusion emitters where the installed jaxlib has that switch (a third less compile time; results
-differ from the default emitters' in rounding only) and each program's machine code in one piece
-(``OPTIONAL_FLAGS``), unless ``XLA_FLAGS`` already sets them. A test marked ``library_level`` compiles npbrs's programs at the library's own level instead
-(LLVM level 1, ``npbrs.domains.compiling``): for tests whose small programs run long (solves
-repeated to convergence, many sweeps), which LLVM's level 0 runs several times slower.
+differ from the default emitters' in rounding only) and each program's machine code in one
+piece (``OPTIONAL_FLAGS``), unless ``XLA_FLAGS`` already sets them. A test marked
+``library_level`` compiles npbrs's programs at the library's own level instead (LLVM level 1,
+``npbrs.domains.compiling``): for tests whose small programs run long (solves repeated to
+convergence), which LLVM's level 0 runs several times slower.
 
 The suite runs in two pytest-xdist worker processes (``addopts`` in pyproject.toml), each
 test file in one of them: on two cores that is about a sixth faster than one process.
@@ -66,8 +67,8 @@ _ACCEPTS_ENV = "NPBRS_TEST_XLA_FLAGS_CHECKED"
 #: optional flags, where the installed jaxlib has them: XLA's older CPU fusion emitters (a third
 #: less compile time in the suite's programs; results differ from the default emitters' only in
 #: rounding), and each program's machine code generated in one piece rather than split for
-#: parallel compilation (both cores are busy with the two test workers: 4% less compile time in
-#: a small fit, the same results)
+#: parallel compilation (both cores are busy with the two test workers: 11% less compiling in the
+#: cold suite, 4% in one process's small fit; the same results)
 OPTIONAL_FLAGS = ("xla_cpu_use_fusion_emitters=false", "xla_cpu_parallel_codegen_split_count=1")
 
 
@@ -82,13 +83,13 @@ def _fast_compile_flags(flags: str) -> str:
     return " ".join([flags.strip()] + [f"--{f}" for f in optional]).strip()
 
 
-# (before JAX starts its backend, which reads XLA_FLAGS once)
 # whether the level in XLA_FLAGS is the suite's (not its runner's): said in the environment, for
 # the pytest-xdist workers inherit XLA_FLAGS with the level in it
 _LEVEL_ENV = "NPBRS_TEST_SUITE_SETS_LEVEL"
 if "xla_backend_optimization_level" not in os.environ.get("XLA_FLAGS", ""):
     os.environ[_LEVEL_ENV] = "1"
 _LEVEL_SET_HERE = os.environ.get(_LEVEL_ENV) == "1"
+# (before JAX starts its backend, which reads XLA_FLAGS once)
 os.environ["XLA_FLAGS"] = _fast_compile_flags(os.environ.get("XLA_FLAGS", ""))
 
 import jax  # noqa: E402
