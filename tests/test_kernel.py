@@ -89,7 +89,7 @@ def test_transition_weights_follow_the_gamma_dirichlet_conditional(kernel_and_st
     kernel, state = kernel_and_state
     K = kernel.max_skills
     features = state.features.at[0].set(jnp.array([1.0, 1.0, 0.0, 1.0]))
-    z = state.z.at[0].set(jnp.where(kernel.data.mask[0], jnp.arange(state.z.shape[1]) // 10 % 2, -1))
+    z = state.z.at[0].set(jnp.where(kernel.data.mask[0], jnp.arange(state.z.shape[1]) // 10 % 2, -1).astype(state.z.dtype))
     hyper = state.hyper
     draws = jax.jit(jax.vmap(lambda k: kernel.sample_eta(k, z, features, hyper)))(
         jax.random.split(jax.random.PRNGKey(1), 4000))
