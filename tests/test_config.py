@@ -105,7 +105,7 @@ def test_the_initial_windows_are_the_emissions_unless_the_configuration_sets_the
     ("[sampler]\nchainz = 3", "sampler.chainz: unknown key"),
     ("[sampler]\nsamples = 2.5", "sampler.samples: expected an integer"),
     ("[sampler]\nwarmup = -1", "sampler.warmup: expected an integer >= 0"),
-    ('[sampler]\nchain_method = "threads"', "sampler.chain_method"),
+    ('[sampler]\nchain_method = "threaded"', "sampler.chain_method"),
     ("max_skills = 0", "max_skills: expected an integer >= 1"),
     ("[prior]\nalpha = 0.0", "prior.alpha: expected a positive number"),
     ("[prior.gamma]\nshape = 2.0", "prior.gamma: a hyperprior needs both shape and rate"),

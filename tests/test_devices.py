@@ -58,8 +58,10 @@ CHILD = textwrap.dedent('''
     mdp, demos = ragged_policy_problem()
     # a greedy merge in every warmup sweep (it gathers one skill's steps over all trajectories);
     # greedy splits, birth/death and split-merge moves are left out to save their compilation
+    # (the one-device run batches its chains, as the runs on devices do: "auto" would pick threads)
     kw = dict(emission="policy", num_chains=4, num_warmup=3, num_samples=3, max_skills=4, kappa=5.0, seed=1,
-              progress_bar=False, moves={"greedy_merge": 1, "greedy_split": 0, "greedy_from": 0.0})
+              progress_bar=False, moves={"greedy_merge": 1, "greedy_split": 0, "greedy_from": 0.0},
+              chain_method="vectorized")
     seen = {}
     sweep = F._sweep_batched
 

@@ -31,7 +31,8 @@ A TOML variant (every key optional; these are the defaults)::
     samples = 200
     warmup = 200
     seed = 0
-    chain_method = "vectorized"   # or "sequential", "parallel" (chains over the local devices)
+    chain_method = "auto"         # threads on a CPU with cores to spare, else vectorized; or "vectorized",
+                                  # "sequential", "threads", "parallel" (chains over the local devices)
     # init_window = 25           # default: the emission's (rewards of one weight per state: 5), else 25
     # init_skills = 4             # default: (max_skills + 1) // 2
 
@@ -67,7 +68,7 @@ from ..sampler.options import check_moves
 
 __all__ = ["ModelConfig", "EmissionConfig", "PriorConfig", "SamplerConfig", "Hyperparameter", "CHAIN_METHODS"]
 
-CHAIN_METHODS = ("vectorized", "sequential", "parallel")
+CHAIN_METHODS = ("auto", "vectorized", "sequential", "threads", "parallel")
 
 
 # ------------------------------------------------------------------------------------ checks
@@ -308,8 +309,13 @@ class SamplerConfig:
     """MCMC settings.
 
     chains, samples, warmup: number of chains and of sweeps per chain kept / discarded;
-    seed: the random seed; chain_method: "vectorized", "sequential" or "parallel" (the vectorized
-    sweep with the chains spread over the local devices, ``jax.sharding``; see ``fit``'s ``mesh``);
+    seed: the random seed; chain_method: "auto" (the default: "threads" when JAX computes on
+    the CPU, the run has several chains and the process may use several cores, else
+    "vectorized"), "vectorized" (the chains batched in one program), "sequential" (one chain
+    after another), "threads" (each chain's sweep its own program call, the chains' calls on
+    as many threads as there are cores for them: the same draws as "sequential") or "parallel"
+    (the vectorized sweep with the chains spread over the local devices, ``jax.sharding``; see
+    ``fit``'s ``mesh``);
     init_skills, init_window: the initial segmentation (skills used, default (max_skills + 1)
     // 2; window length, default the emission's ``init_window`` where it has one, else 25: ``fit``
     records the value it used);
@@ -347,7 +353,7 @@ class SamplerConfig:
     samples: int = 200
     warmup: int = 200
     seed: int = 0
-    chain_method: str = "vectorized"
+    chain_method: str = "auto"
     init_skills: Optional[int] = None
     init_window: Optional[int] = None
     moves: Dict[str, Any] = field(default_factory=dict)

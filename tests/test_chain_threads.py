@@ -1,0 +1,86 @@
+"""``chain_method="threads"`` (and "auto", the default, which picks it on a multi-core CPU):
+the sequential sweep with each chain's call on its own thread, so the chains run side by side.
+The draws are the sequential method's, bit for bit; the calls really overlap; each thread
+computes in npbrs's float64 scope (threads start without the caller's JAX context)."""
+
+import dataclasses
+import threading
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from gridworld import ragged_policy_problem
+from npbrs.inference import fit
+from npbrs.inference.driver import fit as fit_module
+from npbrs.inference.driver.fit import _chain_method, _on_threads
+
+MDP, DEMOS = ragged_policy_problem(correct=0.8)
+# test_skill_probabilities.py's settings (the greedy moves off: their compilation is not what this tests)
+KW = dict(emission="policy", num_chains=2, num_warmup=6, max_skills=3, seed=5, progress_bar=False,
+          moves={"greedy_merge": 0, "greedy_split": 0})
+
+
+def test_threads_give_the_sequential_draws_bit_for_bit(monkeypatch):
+    monkeypatch.setattr(fit_module, "_cores", lambda: 2)  # (two threads even on a one-core machine)
+    calls = []
+    real = fit_module._on_threads
+    monkeypatch.setattr(fit_module, "_on_threads", lambda *a: calls.append(a[2]) or real(*a))
+    threads = fit(MDP, DEMOS, num_samples=4, chain_method="threads", **KW)
+    assert calls and set(calls) == {2}  # every sweep on two threads
+    sequential = fit(MDP, DEMOS, num_samples=4, chain_method="sequential", **KW)
+    assert threads.config["sampler"]["chain_method"] == "threads"
+    assert threads.equals(dataclasses.replace(sequential, config=threads.config))
+    np.testing.assert_array_equal(threads.step_skill_counts, sequential.step_skill_counts)
+    assert not np.array_equal(threads.stats["log_joint"][0], threads.stats["log_joint"][1])  # two chains
+    # the default ("auto") is the threads on this CPU
+    default = fit(MDP, DEMOS, num_samples=4, **KW)
+    assert default.config["sampler"]["chain_method"] == "auto"
+    assert default.equals(dataclasses.replace(threads, config=default.config))
+
+
+def test_the_calls_run_at_the_same_time_in_float64_and_raise_their_errors():
+    """Two calls that each wait for the other (a barrier of two) finish only if they are in
+    flight together; each sees 64-bit types."""
+    barrier = threading.Barrier(2, timeout=30)
+
+    def call(x):
+        barrier.wait()  # (a BrokenBarrierError after 30 s if the calls ran one after another)
+        return jnp.asarray(x) * 2, jnp.ones(1).dtype, threading.get_ident()
+
+    x64 = jax.config.jax_enable_x64
+    jax.config.update("jax_enable_x64", False)  # a user's process (the suite's is float64)
+    try:
+        out = _on_threads(call, [(1.5,), (2.5,)], 2)
+        assert jnp.ones(1).dtype == jnp.float32  # the caller's own setting is left alone
+    finally:
+        jax.config.update("jax_enable_x64", x64)
+    assert [float(o[0]) for o in out] == [3.0, 5.0]  # in the calls' order
+    assert all(o[1] == jnp.float64 for o in out)
+    assert out[0][2] != out[1][2]
+
+    def fails(x):
+        raise ValueError(f"bad {x}")
+
+    with pytest.raises(ValueError, match="bad 1"):
+        _on_threads(fails, [(1,), (2,)], 2)
+
+
+def test_auto_picks_threads_on_a_multicore_cpu_else_vectorized(monkeypatch):
+    monkeypatch.setattr(fit_module, "_cores", lambda: 2)
+    assert _chain_method("auto", 2, None, None) == ("sequential", None, 2)
+    assert _chain_method("auto", 4, None, None) == ("sequential", None, 2)  # as many threads as cores
+    assert _chain_method("threads", 4, None, None) == ("sequential", None, 2)
+    assert _chain_method("auto", 1, None, None) == ("sequential", None, 1)
+    assert _chain_method("vectorized", 4, None, None) == ("vectorized", None, 1)
+    monkeypatch.setattr(fit_module, "_cores", lambda: 8)
+    assert _chain_method("auto", 4, None, None) == ("sequential", None, 4)
+    monkeypatch.setattr(fit_module, "_cores", lambda: 1)
+    assert _chain_method("auto", 4, None, None) == ("vectorized", None, 1)
+    assert _chain_method("threads", 4, None, None) == ("sequential", None, 1)
+    monkeypatch.setattr(fit_module, "_cores", lambda: 2)
+    monkeypatch.setattr(fit_module.jax, "default_backend", lambda: "gpu")  # an accelerator: one batched program
+    assert _chain_method("auto", 4, None, None) == ("vectorized", None, 1)
+    with pytest.raises(ValueError, match="chain_method='threads'.*mesh or devices"):
+        _chain_method("threads", 4, None, 1)
