@@ -84,3 +84,25 @@ def test_auto_picks_threads_on_a_multicore_cpu_else_vectorized(monkeypatch):
     assert _chain_method("auto", 4, None, None) == ("vectorized", None, 1)
     with pytest.raises(ValueError, match="chain_method='threads'.*mesh or devices"):
         _chain_method("threads", 4, None, 1)
+
+
+def test_the_sweep_compiles_once_beside_the_initial_state(monkeypatch):
+    """The first fit of a new shape compiles the sweep on a thread of its own while the initial
+    state compiles and runs, for exactly the state the init returns: the sweep's first call
+    then waits for that program instead of compiling another (one compile of it in all)."""
+    from jax._src.dispatch import BACKEND_COMPILE_EVENT
+
+    monkeypatch.setattr(fit_module, "_cores", lambda: 2)
+    where = []
+
+    def listen(event, duration, fun_name="", **_):
+        if event == BACKEND_COMPILE_EVENT and "_sweep_one" in fun_name:
+            where.append(threading.current_thread().name)
+
+    jax.monitoring.register_event_duration_secs_listener(listen)
+    try:
+        # (max_skills 2: shapes no other test's fit has, so this process has not compiled them)
+        fit(MDP, DEMOS, num_samples=2, **{**KW, "max_skills": 2})
+    finally:
+        jax.monitoring.unregister_event_duration_listener(listen)
+    assert where == ["npbrs-compile-sweep"]

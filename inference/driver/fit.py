@@ -193,12 +193,44 @@ class _Compiled:
             self._placed = {mesh: _place_kernel(self.kernel, mesh)}  # one mesh kept
         return self._placed[mesh]
 
-    def init(self, keys, num_warmup: int, z0=None, mesh: Optional[Mesh] = None):
-        """Every chain's initial state (keys (C, 2)), on the host; z0: an initial segmentation
-        (N, T) shared by the chains, or None (random windows)."""
+    def init(self, keys, num_warmup: int, z0=None, mesh: Optional[Mesh] = None, per_chain: int = 0):
+        """Every chain's initial state (keys (C, 2)), on the host, the chains stacked on axis 0;
+        z0: an initial segmentation (N, T) shared by the chains, or None (random windows).
+        ``per_chain`` > 0 (sequential chains, no mesh): each chain's state by the unbatched init
+        (the program a sequential sweep's state comes from; the batched one's draws up to
+        rounding), on up to ``per_chain`` threads at once."""
+        nw = jnp.int32(num_warmup)
+        if mesh is None and per_chain:
+            calls = [(self.kernel, key, z0, nw) for key in keys]
+            states = _on_threads(_init_chains, calls, per_chain) if per_chain > 1 else [_init_chains(*c) for c in calls]
+            return jax.tree.map(lambda *xs: np.stack(xs), *[_to_host(s) for s in states])
         if mesh is None:
-            return _to_host(_init_chains(self.kernel, keys, z0, jnp.int32(num_warmup)))
-        return _to_host(_init_chains(self.placed(mesh), keys, z0, jnp.int32(num_warmup), mesh))
+            return _to_host(_init_chains(self.kernel, keys, z0, nw))
+        return _to_host(_init_chains(self.placed(mesh), keys, z0, nw, mesh))
+
+    def compile_sweep_beside_init(self, method: str, keys, num_warmup: int, z0=None):
+        """Start compiling ``method``'s sweep on a thread of its own, for the state that
+        :meth:`init` (without a mesh; per chain for sequential chains) will return, so that a
+        fit's two largest programs compile side by side (XLA's compile of one program keeps
+        about 1.6 cores busy). The initial state's shapes come from tracing the init, which its
+        call then reuses. Returns the thread. A failure there is left to the sweep's first call,
+        which compiles the sweep itself then; a call made while the thread compiles waits for
+        its program."""
+        sequential = method == "sequential"  # (a sequential sweep takes one chain's state)
+        like = _init_chains.trace(self.kernel, keys[0] if sequential else keys, z0, jnp.int32(num_warmup)).out_info
+        state = jax.tree.map(lambda a: jax.ShapeDtypeStruct(a.shape, a.dtype), like)
+        fn, extra = (_sweep_one, (jax.ShapeDtypeStruct((), jnp.bool_),)) if sequential else (_sweep_batched, ())
+
+        def compile_sweep():
+            try:
+                with jax.enable_x64(True):
+                    fn.lower(self.kernel, self.hyper_names, state, *extra).compile()
+            except Exception:  # (the first sweep's call compiles it, and raises what it raises)
+                pass
+
+        thread = threading.Thread(target=compile_sweep, name="npbrs-compile-sweep", daemon=True)
+        thread.start()
+        return thread
 
     def step(self, method: str, mesh: Optional[Mesh] = None):
         """state -> (next state, record): batched over chains ("vectorized"), or (state,
@@ -231,8 +263,9 @@ def _record(kernel: BPHMMKernel, hyper_names, state) -> dict:
 
 @partial(jit, static_argnums=4)
 def _init_chains(kernel, keys, z0, num_warmup, mesh=None):
+    # keys (C, 2): the chains' states, batched; one key (2,): one chain's (the kernel's init tells)
     state = _strong(kernel.init(keys, num_warmup, None if z0 is None else {"z": z0}, (), {}))
-    return _constrain(state, mesh, batched=True)
+    return _constrain(state, mesh, batched=jnp.ndim(keys) > 1)
 
 
 @partial(jit, static_argnums=(1, 4))
@@ -1006,7 +1039,9 @@ def _fit(mdp, demos, config, *, emission, emission_options, num_chains, num_samp
                     progress_bar)
     try:
         if state is None:
-            state = compiled.init(keys, W, z0, mesh)
+            if mesh is None:
+                compiled.compile_sweep_beside_init(method, keys, W, z0)
+            state = compiled.init(keys, W, z0, mesh, threads if method == "sequential" else 0)
         chains = _Chains(compiled, method, state, mesh, threads)
     except BaseException:
         bar.close()
