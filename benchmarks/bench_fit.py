@@ -14,9 +14,11 @@ machine, unless ``--cache``):
   NPBRS (20 + 20 highway, 15 + 15 quadcopter), ``fit``'s other defaults: ``total_s``,
   ``compile_s``, ``sweep_ms``, with the skills found and the accuracy.
 
-``compile_s`` is the time JAX reports spending on tracing, lowering and compiling (its
-monitoring events) during the fit; ``sweep_ms`` = (total - compile) / sweeps (all chains of a
-vectorised fit sweep together).
+``compile_s`` is the wall time during which JAX reports tracing, lowering or compiling (its
+monitoring events) during the fit: the union of those events' intervals, since the sweep
+compiles on a thread of its own beside the initial state (``compile_sum_s`` is their sum,
+larger when they overlap); ``sweep_ms`` = (total - compile) / sweeps (all chains sweep
+together, on the chains' threads by ``fit``'s default ``chain_method="auto"`` on a CPU).
 
     python benchmarks/bench_fit.py --json benchmarks/results/bench_fit.json [--only tiny] [--cache]
         [--note "what else was running"]
@@ -43,6 +45,9 @@ def main(argv=None):
                    help="comma-separated parts: tiny, highway500, quadcopter500")
     p.add_argument("--cache", action="store_true", help="keep JAX's persistent cache on (npbrs's folder)")
     p.add_argument("--note", default="", help="what else was running on the machine")
+    p.add_argument("--reference", default="", metavar="METHOD",
+                   help="also fit highway500 and quadcopter500 with this chain_method (e.g. vectorized, the "
+                        "default before session 37) after the default's fit, and print the ratio")
     args = p.parse_args(argv)
     if not args.cache:
         os.environ["NPBRS_CACHE_DIR"] = "off"
@@ -61,24 +66,35 @@ def main(argv=None):
            "import_s": round(time.perf_counter() - start, 2)}
     print(f"import: {out['import_s']:.1f} s", flush=True)
 
-    compiling = [0.0]
+    intervals = []  # (start, end) of every tracing, lowering and compiling event
 
     def listen(event, duration, **_):
         if event in (BACKEND_COMPILE_EVENT, JAXPR_TRACE_EVENT, JAXPR_TO_MLIR_MODULE_EVENT):
-            compiling[0] += duration
+            end = time.perf_counter()
+            intervals.append((end - duration, end))
+
+    def union(spans) -> float:
+        total, reach = 0.0, float("-inf")
+        for a, b in sorted(spans):
+            if b > reach:
+                total += b - max(a, reach)
+                reach = b
+        return total
 
     jax.monitoring.register_event_duration_secs_listener(listen)
 
     def timed(domain, demos, chains, warmup, samples, **options):
-        compiling[0] = 0.0
+        intervals.clear()
         load = os.getloadavg()[0]
         t = time.perf_counter()
         result = fit(domain.mdp, demos, num_chains=chains, num_warmup=warmup, num_samples=samples, seed=0,
                      progress_bar=False, **options)
         total = time.perf_counter() - t
         sweeps = warmup + samples
-        row = {"total_s": round(total, 2), "compile_s": round(compiling[0], 2),
-               "sweep_ms": round(1000 * max(total - compiling[0], 0.0) / sweeps, 1), "skills": result.num_skills,
+        compiling = union(intervals)
+        row = {"total_s": round(total, 2), "compile_s": round(compiling, 2),
+               "compile_sum_s": round(sum(b - a for a, b in intervals), 2),
+               "sweep_ms": round(1000 * max(total - compiling, 0.0) / sweeps, 1), "skills": result.num_skills,
                "hungarian": round(float(hungarian_accuracy(demos.skills, result.segmentation)), 4),
                "load_before": round(load, 2), "load_after": round(os.getloadavg()[0], 2)}
         return row
@@ -105,6 +121,12 @@ def main(argv=None):
         demos = generate_demonstrations(dom, num_trajectories=16, length=500, seed=0)
         out[name] = timed(dom, demos, 4, sweeps, sweeps)
         print(f"{name}: {out[name]}", flush=True)
+        if args.reference:  # (its programs are other programs: it compiles as the default's fit did)
+            ref = out[name]["reference"] = dict(timed(dom, demos, 4, sweeps, sweeps, chain_method=args.reference),
+                                                chain_method=args.reference)
+            out[name]["ratio_to_reference"] = round(out[name]["total_s"] / ref["total_s"], 3)
+            print(f"{name} with chain_method={args.reference!r}: {ref}; the default's time / its: "
+                  f"{out[name]['ratio_to_reference']:.3f}", flush=True)
 
     os.makedirs(os.path.dirname(os.path.abspath(args.json)), exist_ok=True)
     with open(args.json, "w") as f:
