@@ -14,7 +14,8 @@ import pytest
 from gridworld import ragged_policy_problem
 from npbrs.inference import fit
 from npbrs.inference.driver import fit as fit_module
-from npbrs.inference.driver.fit import _chain_method, _on_threads
+from npbrs.inference.driver.fit import _chain_method
+from npbrs.inference.driver.threads import on_threads
 
 MDP, DEMOS = ragged_policy_problem(correct=0.8)
 # test_skill_probabilities.py's settings (the greedy moves off: their compilation is not what this tests)
@@ -23,10 +24,9 @@ KW = dict(emission="policy", num_chains=2, num_warmup=6, max_skills=3, seed=5, p
 
 
 def test_threads_give_the_sequential_draws_bit_for_bit(monkeypatch):
-    monkeypatch.setattr(fit_module, "_cores", lambda: 2)  # (two threads even on a one-core machine)
+    monkeypatch.setattr(fit_module, "cores", lambda: 2)  # (two threads even on a one-core machine)
     calls = []
-    real = fit_module._on_threads
-    monkeypatch.setattr(fit_module, "_on_threads", lambda *a: calls.append(a[2]) or real(*a))
+    monkeypatch.setattr(fit_module, "on_threads", lambda *a: calls.append(a[2]) or on_threads(*a))
     threads = fit(MDP, DEMOS, num_samples=4, chain_method="threads", **KW)
     assert calls and set(calls) == {2}  # every sweep on two threads
     sequential = fit(MDP, DEMOS, num_samples=4, chain_method="sequential", **KW)
@@ -52,7 +52,7 @@ def test_the_calls_run_at_the_same_time_in_float64_and_raise_their_errors():
     x64 = jax.config.jax_enable_x64
     jax.config.update("jax_enable_x64", False)  # a user's process (the suite's is float64)
     try:
-        out = _on_threads(call, [(1.5,), (2.5,)], 2)
+        out = on_threads(call, [(1.5,), (2.5,)], 2)
         assert jnp.ones(1).dtype == jnp.float32  # the caller's own setting is left alone
     finally:
         jax.config.update("jax_enable_x64", x64)
@@ -64,22 +64,22 @@ def test_the_calls_run_at_the_same_time_in_float64_and_raise_their_errors():
         raise ValueError(f"bad {x}")
 
     with pytest.raises(ValueError, match="bad 1"):
-        _on_threads(fails, [(1,), (2,)], 2)
+        on_threads(fails, [(1,), (2,)], 2)
 
 
 def test_auto_picks_threads_on_a_multicore_cpu_else_vectorized(monkeypatch):
-    monkeypatch.setattr(fit_module, "_cores", lambda: 2)
+    monkeypatch.setattr(fit_module, "cores", lambda: 2)
     assert _chain_method("auto", 2, None, None) == ("sequential", None, 2)
     assert _chain_method("auto", 4, None, None) == ("sequential", None, 2)  # as many threads as cores
     assert _chain_method("threads", 4, None, None) == ("sequential", None, 2)
     assert _chain_method("auto", 1, None, None) == ("sequential", None, 1)
     assert _chain_method("vectorized", 4, None, None) == ("vectorized", None, 1)
-    monkeypatch.setattr(fit_module, "_cores", lambda: 8)
+    monkeypatch.setattr(fit_module, "cores", lambda: 8)
     assert _chain_method("auto", 4, None, None) == ("sequential", None, 4)
-    monkeypatch.setattr(fit_module, "_cores", lambda: 1)
+    monkeypatch.setattr(fit_module, "cores", lambda: 1)
     assert _chain_method("auto", 4, None, None) == ("vectorized", None, 1)
     assert _chain_method("threads", 4, None, None) == ("sequential", None, 1)
-    monkeypatch.setattr(fit_module, "_cores", lambda: 2)
+    monkeypatch.setattr(fit_module, "cores", lambda: 2)
     monkeypatch.setattr(fit_module.jax, "default_backend", lambda: "gpu")  # an accelerator: one batched program
     assert _chain_method("auto", 4, None, None) == ("vectorized", None, 1)
     with pytest.raises(ValueError, match="chain_method='threads'.*mesh or devices"):
@@ -92,7 +92,7 @@ def test_the_sweep_compiles_once_beside_the_initial_state(monkeypatch):
     then waits for that program instead of compiling another (one compile of it in all)."""
     from jax._src.dispatch import BACKEND_COMPILE_EVENT
 
-    monkeypatch.setattr(fit_module, "_cores", lambda: 2)
+    monkeypatch.setattr(fit_module, "cores", lambda: 2)
     where = []
 
     def listen(event, duration, fun_name="", **_):
@@ -106,3 +106,34 @@ def test_the_sweep_compiles_once_beside_the_initial_state(monkeypatch):
     finally:
         jax.monitoring.unregister_event_duration_listener(listen)
     assert where == ["npbrs-compile-sweep"]
+
+
+@pytest.fixture(scope="module")
+def run():
+    return fit(MDP, DEMOS, num_samples=4, **KW)
+
+
+def test_the_predictive_runs_the_chains_draws_side_by_side_with_the_same_results(run, monkeypatch):
+    """``log_predictive``, ``segment`` and ``pointwise_log_likelihood`` give the chains' j-th
+    draws to threads at once (each chain's solves warm-started from its own previous draw, as
+    on one thread): the same numbers, bit for bit, on one thread or two."""
+    from npbrs.inference.analysis import predictive
+
+    from npbrs.inference.driver import threads as threads_module
+
+    used = []
+    real = threads_module.on_threads
+    monkeypatch.setattr(threads_module, "on_threads", lambda *a: used.append(a[2]) or real(*a))
+    results = {}
+    for n in (1, 2):
+        monkeypatch.setattr(threads_module, "threads_for", lambda tasks, n=n: n)
+        used.clear()
+        results[n] = (predictive.log_predictive(run, MDP, DEMOS, num_samples=4, num_draws=3),
+                      predictive.segment(run, MDP, num_samples=4, num_draws=3),
+                      predictive.pointwise_log_likelihood(run, MDP, num_samples=4))
+        assert used and set(used) == {n}
+    one, two = results[1], results[2]
+    assert one[0].per_step == two[0].per_step and np.array_equal(one[0].per_trajectory, two[0].per_trajectory)
+    for a, b in zip(one[1].probs, two[1].probs):
+        np.testing.assert_array_equal(a, b)
+    np.testing.assert_array_equal(one[2], two[2])

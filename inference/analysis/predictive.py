@@ -182,6 +182,7 @@ def _draw_moments(result, mdp, demos, idx, num_samples, seed, emission, leave_on
     trajectory's likelihood under sample m; ``own_features``: the draw's own skill sets (fitted
     trajectories) instead of the predictive."""
     from ..driver.fit import make_emission
+    from ..driver.threads import on_threads, threads_for
 
     result.check_mdp(mdp)
     demos.validate(mdp)
@@ -207,25 +208,35 @@ def _draw_moments(result, mdp, demos, idx, num_samples, seed, emission, leave_on
     one_draw = partial(_one_draw, emission, num_samples=num_samples, others=others)
     one_draw_marginals = partial(_one_draw_marginals, emission, num_samples=num_samples)
 
-    draws = _each_draw(samples, params_all, hyper_fixed, idx, seed, C)
-    # each draw's likelihood solves start from the previous draw's values (the emission's cache;
-    # a chain's consecutive draws are close): the same likelihoods to the solver's tolerance
-    cache = emission.init_cache(K)
-    if marginals:
-        def marginal_draws():
-            nonlocal cache
-            for c, j, key, params, f, hyper, ends in draws:
-                p_on = f if own_features else feature_predictive(f.sum(0), others, float(hyper.alpha))
-                lm, post, cache = one_draw_marginals(key, params, jnp.asarray(p_on, jnp.float64), hyper, data, ends,
-                                                     cache)
-                yield c, j, np.asarray(lm), np.asarray(post)
-        return marginal_draws()
-    out = np.empty((C, len(idx), 2, len(demos.lengths)))
-    for c, j, key, params, f, hyper, ends in draws:
+    draw = _draw_at(samples, params_all, hyper_fixed, idx, seed, C)
+    # each draw's likelihood solves start from the values of the chain's previous draw (the
+    # emission's cache; a chain's consecutive draws are close): the same likelihoods to the
+    # solver's tolerance. So the chains are independent: their j-th draws run side by side, on
+    # the CPU's cores (npbrs.inference.driver.threads)
+    caches = [emission.init_cache(K)] * C
+    threads = threads_for(C)
+
+    def one(c, j):
+        key, params, f, hyper, ends = draw(c, j)
+        if marginals:
+            p_on = f if own_features else feature_predictive(f.sum(0), others, float(hyper.alpha))
+            lm, post, caches[c] = one_draw_marginals(key, params, jnp.asarray(p_on, jnp.float64), hyper, data, ends,
+                                                     caches[c])
+            return c, j, np.asarray(lm), np.asarray(post)
         # a fitted trajectory's own row is left out of the popularity counts
         counts = jnp.asarray(f.sum(0) - f if leave_one_out else f.sum(0), jnp.float64)
-        moments, cache = one_draw(key, params, counts, hyper, data, ends, cache)
-        out[c, j] = np.asarray(moments)
+        moments, caches[c] = one_draw(key, params, counts, hyper, data, ends, caches[c])
+        return c, j, np.asarray(moments)
+
+    def by_draw():  # (every chain's first draw, then every chain's second, ...)
+        for j in range(len(idx)):
+            yield from on_threads(one, [(c, j) for c in range(C)], threads)
+
+    if marginals:
+        return by_draw()
+    out = np.empty((C, len(idx), 2, len(demos.lengths)))
+    for c, j, moments in by_draw():
+        out[c, j] = moments
     return out
 
 
@@ -253,17 +264,19 @@ def _one_draw_marginals(emission, key, params, p_on, hyper, data, ends, cache, *
     return _lse(lm, axis=0), _lse(lm[..., None, None] + post, axis=0), cache
 
 
-def _each_draw(samples, params_all, hyper_fixed, idx, seed, C):
-    """(chain, index in idx, key, emission parameters, features (N, K), Hyper, ends (K, S) or None)
-    of every chosen draw."""
+def _draw_at(samples, params_all, hyper_fixed, idx, seed, C):
+    """(chain c, index j in idx) -> (key, emission parameters, features (N, K), Hyper, ends (K, S)
+    or None) of that chosen draw."""
     keys = jax.random.split(jax.random.PRNGKey(seed), C * len(idx)).reshape(C, len(idx), -1)
-    for c in range(C):
-        for j, d in enumerate(idx):
-            params = {k: jnp.asarray(v[c, d]) for k, v in params_all.items()}
-            hyper = Hyper(*(jnp.float64(samples[n][c, d] if n in samples else hyper_fixed[n])
-                            for n in ("alpha", "kappa", "gamma")))
-            ends = jnp.asarray(samples["ends"][c, d]) if "ends" in samples else None
-            yield c, j, keys[c, j], params, samples["features"][c, d], hyper, ends
+
+    def at(c, j):
+        d = idx[j]
+        params = {k: jnp.asarray(v[c, d]) for k, v in params_all.items()}
+        hyper = Hyper(*(jnp.float64(samples[n][c, d] if n in samples else hyper_fixed[n])
+                        for n in ("alpha", "kappa", "gamma")))
+        ends = jnp.asarray(samples["ends"][c, d]) if "ends" in samples else None
+        return keys[c, j], params, samples["features"][c, d], hyper, ends
+    return at
 
 
 def _summarise(moments: np.ndarray, num_samples: int, demos) -> HeldOut:

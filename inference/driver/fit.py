@@ -42,6 +42,7 @@ from npbrs.domains.precision import float64_all
 from ..sampler.kernel import BPHMMKernel, initial_window
 from ..sampler.options import MOVE_DEFAULTS
 from .config import EmissionConfig, ModelConfig, PriorConfig
+from .threads import cores, on_threads
 from .results import LABEL_INVARIANT, STEP_COUNTS, FitResult, label_invariant_diagnostic
 
 __all__ = ["fit", "make_emission", "resolve_config", "default_moves", "compilation_cache_dir", "use_compilation_cache",
@@ -202,7 +203,7 @@ class _Compiled:
         nw = jnp.int32(num_warmup)
         if mesh is None and per_chain:
             calls = [(self.kernel, key, z0, nw) for key in keys]
-            states = _on_threads(_init_chains, calls, per_chain) if per_chain > 1 else [_init_chains(*c) for c in calls]
+            states = on_threads(_init_chains, calls, per_chain)
             return jax.tree.map(lambda *xs: np.stack(xs), *[_to_host(s) for s in states])
         if mesh is None:
             return _to_host(_init_chains(self.kernel, keys, z0, nw))
@@ -594,10 +595,7 @@ class _Chains:
         if self.method == "sequential":
             # the chains' greedy moves stop together, as vectorised chains' do (the same draws)
             greedy = jnp.any(jnp.stack([self.kernel.greedy_open(s) for s in self.states]))
-            if self.threads > 1:
-                outs = _on_threads(self.fn, [(s, greedy) for s in self.states], self.threads)
-            else:
-                outs = [self.fn(s, greedy) for s in self.states]
+            outs = on_threads(self.fn, [(s, greedy) for s in self.states], self.threads)
             self.states = [state for state, _ in outs]
             return [rec for _, rec in outs]
         self.states, rec = self.fn(self.states)
@@ -628,32 +626,6 @@ class _Chains:
         return _to_host(self.states)
 
 
-def _on_threads(fn, calls, threads: int) -> list:
-    """[fn(*args) for args in calls], the calls on up to ``threads`` threads at once, each
-    waiting for its results: JAX runs one device's programs one after another when they are
-    dispatched from one thread, and side by side when several threads wait on them. A thread
-    starts without the caller's JAX context, so each enters npbrs's float64 scope (fit's) and
-    the caller's default device."""
-    from concurrent.futures import ThreadPoolExecutor
-
-    device = jax.config.jax_default_device
-
-    def call(args):
-        with jax.enable_x64(True), jax.default_device(device):
-            return jax.block_until_ready(fn(*args))
-
-    with ThreadPoolExecutor(max_workers=min(threads, len(calls))) as pool:
-        return list(pool.map(call, calls))
-
-
-def _cores() -> int:
-    """The cores this process may run on."""
-    try:
-        return len(os.sched_getaffinity(0))
-    except (AttributeError, OSError):  # (not on every platform)
-        return os.cpu_count() or 1
-
-
 def _chain_method(method: str, num_chains: int, mesh, devices):
     """(chain method, mesh or None, threads) of a run: "parallel" is the vectorized sweep with
     the chains over the local devices (``jax.sharding``; it was ``jax.pmap`` before), the
@@ -664,13 +636,13 @@ def _chain_method(method: str, num_chains: int, mesh, devices):
         raise ValueError("give mesh or devices, not both (devices=... builds a mesh: see device_mesh)")
     if method == "auto":
         on_cpu = mesh is None and devices is None and jax.default_backend() == "cpu"
-        method = "threads" if on_cpu and num_chains > 1 and _cores() > 1 else "vectorized"
+        method = "threads" if on_cpu and num_chains > 1 and cores() > 1 else "vectorized"
     threads = 1
     if method == "threads":
         if mesh is not None or devices is not None:
             raise ValueError("chain_method='threads' runs every chain on one device, on threads of the host; "
                              "with mesh or devices use chain_method='vectorized' (or 'parallel')")
-        method, threads = "sequential", max(1, min(num_chains, _cores()))
+        method, threads = "sequential", max(1, min(num_chains, cores()))
     if devices is not None:
         mesh = device_mesh(devices, num_chains)
         if method == "sequential":  # one chain at a time: every device shards its trajectories
