@@ -24,7 +24,9 @@ KW = dict(emission="policy", num_chains=2, num_warmup=6, max_skills=3, seed=5, p
 
 
 def test_threads_give_the_sequential_draws_bit_for_bit(monkeypatch):
-    monkeypatch.setattr(fit_module, "cores", lambda: 2)  # (two threads even on a one-core machine)
+    # two threads even on one core, or with a jaxlib whose LAPACK kernels block XLA's pool
+    # (``lapack_blocks_pool``): this model's programs call no LAPACK kernel (checked below)
+    monkeypatch.setattr(fit_module, "max_threads", lambda: 2)
     calls = []
     monkeypatch.setattr(fit_module, "on_threads", lambda *a: calls.append(a[2]) or on_threads(*a))
     threads = fit(MDP, DEMOS, num_samples=4, chain_method="threads", **KW)
@@ -68,18 +70,18 @@ def test_the_calls_run_at_the_same_time_in_float64_and_raise_their_errors():
 
 
 def test_auto_picks_threads_on_a_multicore_cpu_else_vectorized(monkeypatch):
-    monkeypatch.setattr(fit_module, "cores", lambda: 2)
+    monkeypatch.setattr(fit_module, "max_threads", lambda: 2)
     assert _chain_method("auto", 2, None, None) == ("sequential", None, 2)
     assert _chain_method("auto", 4, None, None) == ("sequential", None, 2)  # as many threads as cores
     assert _chain_method("threads", 4, None, None) == ("sequential", None, 2)
     assert _chain_method("auto", 1, None, None) == ("sequential", None, 1)
     assert _chain_method("vectorized", 4, None, None) == ("vectorized", None, 1)
-    monkeypatch.setattr(fit_module, "cores", lambda: 8)
+    monkeypatch.setattr(fit_module, "max_threads", lambda: 8)
     assert _chain_method("auto", 4, None, None) == ("sequential", None, 4)
-    monkeypatch.setattr(fit_module, "cores", lambda: 1)
+    monkeypatch.setattr(fit_module, "max_threads", lambda: 1)
     assert _chain_method("auto", 4, None, None) == ("vectorized", None, 1)
     assert _chain_method("threads", 4, None, None) == ("sequential", None, 1)
-    monkeypatch.setattr(fit_module, "cores", lambda: 2)
+    monkeypatch.setattr(fit_module, "max_threads", lambda: 2)
     monkeypatch.setattr(fit_module.jax, "default_backend", lambda: "gpu")  # an accelerator: one batched program
     assert _chain_method("auto", 4, None, None) == ("vectorized", None, 1)
     with pytest.raises(ValueError, match="chain_method='threads'.*mesh or devices"):
@@ -92,7 +94,7 @@ def test_the_sweep_compiles_once_beside_the_initial_state(monkeypatch):
     then waits for that program instead of compiling another (one compile of it in all)."""
     from jax._src.dispatch import BACKEND_COMPILE_EVENT
 
-    monkeypatch.setattr(fit_module, "cores", lambda: 2)
+    monkeypatch.setattr(fit_module, "max_threads", lambda: 2)
     where = []
 
     def listen(event, duration, fun_name="", **_):
@@ -106,6 +108,39 @@ def test_the_sweep_compiles_once_beside_the_initial_state(monkeypatch):
     finally:
         jax.monitoring.unregister_event_duration_listener(listen)
     assert where == ["npbrs-compile-sweep"]
+
+
+def test_these_programs_call_no_lapack_kernel_and_the_version_rule(monkeypatch):
+    """The tests above run two of this model's programs at once even where jaxlib's LAPACK
+    kernels can hang XLA's pool; that is safe because the policy emission's init and sweep
+    call no library kernel at all. And which jaxlibs have the hazard (before 0.11.2)."""
+    import re
+
+    import jax.numpy as jnp
+
+    from npbrs.inference.driver.fit import _init_chains, _sweep_one
+    from npbrs.inference.driver.threads import lapack_blocks_pool, max_threads
+
+    texts = []
+    real = fit_module._Compiled.compile_sweep_beside_init
+
+    def lowered(self, method, keys, num_warmup, z0=None):
+        with jax.enable_x64(True):
+            traced = _init_chains.trace(self.kernel, keys[0], z0, jnp.int32(num_warmup))
+            state = jax.tree.map(lambda a: jax.ShapeDtypeStruct(a.shape, a.dtype), traced.out_info)
+            texts.append(traced.lower().as_text())
+            texts.append(_sweep_one.lower(self.kernel, self.hyper_names, state,
+                                          jax.ShapeDtypeStruct((), jnp.bool_)).as_text())
+        return real(self, method, keys, num_warmup, z0)
+
+    monkeypatch.setattr(fit_module._Compiled, "compile_sweep_beside_init", lowered)
+    fit(MDP, DEMOS, num_samples=1, chain_method="sequential", **KW)
+    assert len(texts) == 2 and all("func.func public @main" in t for t in texts)
+    assert [re.findall(r"custom_call @(\w+)", t) for t in texts] == [[], []]
+    for version, hazard in (("0.10.2", True), ("0.11.1", True), ("0.11.2", False), ("0.12.0.1", False),
+                            ("0.10.2.dev20260101", True)):
+        assert lapack_blocks_pool(version) is hazard, version
+    assert max_threads() >= 1
 
 
 @pytest.fixture(scope="module")

@@ -42,7 +42,7 @@ from npbrs.domains.precision import float64_all
 from ..sampler.kernel import BPHMMKernel, initial_window
 from ..sampler.options import MOVE_DEFAULTS
 from .config import EmissionConfig, ModelConfig, PriorConfig
-from .threads import cores, on_threads
+from .threads import max_threads, on_threads
 from .results import LABEL_INVARIANT, STEP_COUNTS, FitResult, label_invariant_diagnostic
 
 __all__ = ["fit", "make_emission", "resolve_config", "default_moves", "compilation_cache_dir", "use_compilation_cache",
@@ -630,19 +630,20 @@ def _chain_method(method: str, num_chains: int, mesh, devices):
     """(chain method, mesh or None, threads) of a run: "parallel" is the vectorized sweep with
     the chains over the local devices (``jax.sharding``; it was ``jax.pmap`` before), the
     largest number of them that divides the chains; "threads" is "sequential" with the chains'
-    sweeps on up to as many threads as the process has cores; "auto" is "threads" when JAX
-    computes on the CPU, there are several chains and cores and no mesh, else "vectorized"."""
+    sweeps on up to :func:`~npbrs.inference.driver.threads.max_threads` threads; "auto" is
+    "threads" when JAX computes on the CPU, there are several chains, more than one thread may
+    run and there is no mesh, else "vectorized"."""
     if mesh is not None and devices is not None:
         raise ValueError("give mesh or devices, not both (devices=... builds a mesh: see device_mesh)")
     if method == "auto":
         on_cpu = mesh is None and devices is None and jax.default_backend() == "cpu"
-        method = "threads" if on_cpu and num_chains > 1 and cores() > 1 else "vectorized"
+        method = "threads" if on_cpu and num_chains > 1 and max_threads() > 1 else "vectorized"
     threads = 1
     if method == "threads":
         if mesh is not None or devices is not None:
             raise ValueError("chain_method='threads' runs every chain on one device, on threads of the host; "
                              "with mesh or devices use chain_method='vectorized' (or 'parallel')")
-        method, threads = "sequential", max(1, min(num_chains, cores()))
+        method, threads = "sequential", max(1, min(num_chains, max_threads()))
     if devices is not None:
         mesh = device_mesh(devices, num_chains)
         if method == "sequential":  # one chain at a time: every device shards its trajectories
