@@ -310,10 +310,11 @@ class SamplerConfig:
 
     chains, samples, warmup: number of chains and of sweeps per chain kept / discarded;
     seed: the random seed; chain_method: "auto" (the default: "threads" when JAX computes on
-    the CPU, the run has several chains and the process may use several cores, else
-    "vectorized"), "vectorized" (the chains batched in one program), "sequential" (one chain
-    after another), "threads" (each chain's sweep its own program call, the chains' calls on
-    as many threads as there are cores for them: the same draws as "sequential") or "parallel"
+    the CPU, the run has several chains and more than one thread may run,
+    ``npbrs.inference.driver.threads.max_threads``; else "vectorized"), "vectorized" (the
+    chains batched in one program), "sequential" (one chain after another), "threads" (each
+    chain's sweep its own program call, on up to ``max_threads`` threads at once: the same
+    draws as "sequential") or "parallel"
     (the vectorized sweep with the chains spread over the local devices, ``jax.sharding``; see
     ``fit``'s ``mesh``);
     init_skills, init_window: the initial segmentation (skills used, default (max_skills + 1)

@@ -786,12 +786,14 @@ def fit(mdp, demos: Demonstrations, config: Union[ModelConfig, dict, str, os.Pat
         max_skills: truncation K of the beta process (skill slots).
         seed: the random seed; the same seed gives the same draws, bit for bit.
         chain_method: "auto" (the default): "threads" when JAX computes on the CPU, with
-            several chains, several cores for this process and no ``mesh`` or ``devices``; else
-            "vectorized". "vectorized": the chains vmapped in one program (the choice for an
-            accelerator). "sequential": one chain after another. "threads": the sequential
-            sweep, each chain's on its own thread (as many at once as the process has cores):
-            the same draws as "sequential", bit for bit, in about 1/cores of its time on a
-            multi-core CPU. "parallel": the vectorized sweep with the chains spread over the local devices
+            several chains, more than one thread allowed
+            (:func:`~npbrs.inference.driver.threads.max_threads`: the process's cores, one fewer
+            with a jaxlib before 0.11.2, whose LAPACK kernels can hang programs that run at
+            once) and no ``mesh`` or ``devices``; else "vectorized". "vectorized": the chains
+            vmapped in one program (the choice for an accelerator). "sequential": one chain
+            after another. "threads": the sequential sweep, each chain's on its own thread (up
+            to ``max_threads`` at once): the same draws as "sequential", bit for bit, in about
+            1/threads of its time. "parallel": the vectorized sweep with the chains spread over the local devices
             (the largest number of them that divides num_chains; a mesh with a "chains" axis,
             see ``mesh``; the same draws as "vectorized"). The sequential and vectorized sweeps
             give the same draws up to rounding (about 1e-10 in the weights). A single chain
