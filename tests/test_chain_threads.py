@@ -1,5 +1,6 @@
-"""``chain_method="threads"`` (and "auto", the default, which picks it on a multi-core CPU):
-the sequential sweep with each chain's call on its own thread, so the chains run side by side.
+"""``chain_method="threads"`` (and "auto", the default, which picks it on the CPU; with one
+thread allowed it is the sequential chains): the sequential sweep with each chain's call on its
+own thread, so the chains run side by side.
 The draws are the sequential method's, bit for bit; the calls really overlap; each thread
 computes in npbrs's float64 scope (threads start without the caller's JAX context)."""
 
@@ -69,7 +70,7 @@ def test_the_calls_run_at_the_same_time_in_float64_and_raise_their_errors():
         on_threads(fails, [(1,), (2,)], 2)
 
 
-def test_auto_picks_threads_on_a_multicore_cpu_else_vectorized(monkeypatch):
+def test_auto_picks_threads_on_the_cpu_else_vectorized(monkeypatch):
     monkeypatch.setattr(fit_module, "max_threads", lambda: 2)
     assert _chain_method("auto", 2, None, None) == ("sequential", None, 2)
     assert _chain_method("auto", 4, None, None) == ("sequential", None, 2)  # as many threads as cores
@@ -78,8 +79,8 @@ def test_auto_picks_threads_on_a_multicore_cpu_else_vectorized(monkeypatch):
     assert _chain_method("vectorized", 4, None, None) == ("vectorized", None, 1)
     monkeypatch.setattr(fit_module, "max_threads", lambda: 8)
     assert _chain_method("auto", 4, None, None) == ("sequential", None, 4)
-    monkeypatch.setattr(fit_module, "max_threads", lambda: 1)
-    assert _chain_method("auto", 4, None, None) == ("vectorized", None, 1)
+    monkeypatch.setattr(fit_module, "max_threads", lambda: 1)  # (one thread: the sequential chains)
+    assert _chain_method("auto", 4, None, None) == ("sequential", None, 1)
     assert _chain_method("threads", 4, None, None) == ("sequential", None, 1)
     monkeypatch.setattr(fit_module, "max_threads", lambda: 2)
     monkeypatch.setattr(fit_module.jax, "default_backend", lambda: "gpu")  # an accelerator: one batched program

@@ -31,7 +31,7 @@ A TOML variant (every key optional; these are the defaults)::
     samples = 200
     warmup = 200
     seed = 0
-    chain_method = "auto"         # threads on a CPU with cores to spare, else vectorized; or "vectorized",
+    chain_method = "auto"         # threads on a CPU (as many as safe), else vectorized; or "vectorized",
                                   # "sequential", "threads", "parallel" (chains over the local devices)
     # init_window = 25           # default: the emission's (rewards of one weight per state: 5), else 25
     # init_skills = 4             # default: (max_skills + 1) // 2
@@ -310,8 +310,9 @@ class SamplerConfig:
 
     chains, samples, warmup: number of chains and of sweeps per chain kept / discarded;
     seed: the random seed; chain_method: "auto" (the default: "threads" when JAX computes on
-    the CPU, the run has several chains and more than one thread may run,
-    ``npbrs.inference.driver.threads.max_threads``; else "vectorized"), "vectorized" (the
+    the CPU and the run has several chains, on up to
+    ``npbrs.inference.driver.threads.max_threads`` threads, one of them the sequential chains;
+    else "vectorized"), "vectorized" (the
     chains batched in one program), "sequential" (one chain after another), "threads" (each
     chain's sweep its own program call, on up to ``max_threads`` threads at once: the same
     draws as "sequential") or "parallel"

@@ -630,14 +630,14 @@ def _chain_method(method: str, num_chains: int, mesh, devices):
     """(chain method, mesh or None, threads) of a run: "parallel" is the vectorized sweep with
     the chains over the local devices (``jax.sharding``; it was ``jax.pmap`` before), the
     largest number of them that divides the chains; "threads" is "sequential" with the chains'
-    sweeps on up to :func:`~npbrs.inference.driver.threads.max_threads` threads; "auto" is
-    "threads" when JAX computes on the CPU, there are several chains, more than one thread may
-    run and there is no mesh, else "vectorized"."""
+    sweeps on up to :func:`~npbrs.inference.driver.threads.max_threads` threads (one: the
+    sequential chains); "auto" is "threads" when JAX computes on the CPU, there are several
+    chains and there is no mesh, else "vectorized"."""
     if mesh is not None and devices is not None:
         raise ValueError("give mesh or devices, not both (devices=... builds a mesh: see device_mesh)")
     if method == "auto":
         on_cpu = mesh is None and devices is None and jax.default_backend() == "cpu"
-        method = "threads" if on_cpu and num_chains > 1 and max_threads() > 1 else "vectorized"
+        method = "threads" if on_cpu and num_chains > 1 else "vectorized"
     threads = 1
     if method == "threads":
         if mesh is not None or devices is not None:
@@ -786,10 +786,11 @@ def fit(mdp, demos: Demonstrations, config: Union[ModelConfig, dict, str, os.Pat
         max_skills: truncation K of the beta process (skill slots).
         seed: the random seed; the same seed gives the same draws, bit for bit.
         chain_method: "auto" (the default): "threads" when JAX computes on the CPU, with
-            several chains, more than one thread allowed
-            (:func:`~npbrs.inference.driver.threads.max_threads`: the process's cores, one fewer
-            with a jaxlib before 0.11.2, whose LAPACK kernels can hang programs that run at
-            once) and no ``mesh`` or ``devices``; else "vectorized". "vectorized": the chains
+            several chains and no ``mesh`` or ``devices`` (on up to
+            :func:`~npbrs.inference.driver.threads.max_threads` threads: the process's cores,
+            one fewer with a jaxlib before 0.11.2, whose LAPACK kernels can hang programs that
+            run at once; with one thread, the sequential chains, whose unbatched programs ran
+            faster than the batch on 2 cores); else "vectorized". "vectorized": the chains
             vmapped in one program (the choice for an accelerator). "sequential": one chain
             after another. "threads": the sequential sweep, each chain's on its own thread (up
             to ``max_threads`` at once): the same draws as "sequential", bit for bit, in about
