@@ -14,8 +14,10 @@ of matrices) fan the batch out over that same pool and block until it is done: w
 pool thread holds such a kernel, nothing runs their parts, and the process hangs (seen here:
 two chains' sweeps on 2 cores, each in a batched LU of 127 x 127 matrices, waiting forever).
 So with those jaxlibs at most cores - 1 programs run at once, which leaves a pool thread free;
-on 2 cores that is one, and ``fit``'s "auto" then batches the chains (``vectorized``). jaxlib
-0.11.2 and later run a LAPACK batch on the calling thread.
+on 2 cores that is one, and ``fit``'s "auto" then runs the chains one after another. jaxlib
+0.11.2 and later run a LAPACK batch on the calling thread. The rule counts npbrs's own
+threads: with such a jaxlib, programs that your other threads run at the same time count
+against the same pool.
 """
 
 from __future__ import annotations
