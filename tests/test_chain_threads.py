@@ -5,6 +5,7 @@ The draws are the sequential method's, bit for bit; the calls really overlap; ea
 computes in npbrs's float64 scope (threads start without the caller's JAX context)."""
 
 import dataclasses
+import re
 import threading
 
 import jax
@@ -115,8 +116,6 @@ def test_these_programs_call_no_lapack_kernel_and_the_version_rule(monkeypatch):
     """The tests above run two of this model's programs at once even where jaxlib's LAPACK
     kernels can hang XLA's pool; that is safe because the policy emission's init and sweep
     call no library kernel at all. And which jaxlibs have the hazard (before 0.11.2)."""
-    import re
-
     import jax.numpy as jnp
 
     from npbrs.inference.driver.fit import _init_chains, _sweep_one
@@ -160,6 +159,18 @@ def test_the_predictive_runs_the_chains_draws_side_by_side_with_the_same_results
     used = []
     real = threads_module.on_threads
     monkeypatch.setattr(threads_module, "on_threads", lambda *a: used.append(a[2]) or real(*a))
+    # (two at once is safe with any jaxlib: these programs call no library kernel, checked here)
+    calls, seen = set(), set()
+    for name in ("_one_draw", "_one_draw_marginals"):
+        program = getattr(predictive, name)
+
+        def lowered(*a, _program=program, _name=name, **k):
+            seen.add(_name)
+            with jax.enable_x64(True):
+                calls.update(re.findall(r"custom_call @(\w+)", _program.lower(*a, **k).as_text()))
+            return _program(*a, **k)
+
+        monkeypatch.setattr(predictive, name, lowered)
     results = {}
     for n in (1, 2):
         monkeypatch.setattr(threads_module, "threads_for", lambda tasks, n=n: n)
@@ -173,3 +184,4 @@ def test_the_predictive_runs_the_chains_draws_side_by_side_with_the_same_results
     for a, b in zip(one[1].probs, two[1].probs):
         np.testing.assert_array_equal(a, b)
     np.testing.assert_array_equal(one[2], two[2])
+    assert seen == {"_one_draw", "_one_draw_marginals"} and calls == set()
