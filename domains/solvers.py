@@ -60,6 +60,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .linalg import solve_upper
 from .pytree import Pytree
 from .compiling import jit
 from .precision import float64_all
@@ -372,7 +373,7 @@ def _gmres(matvec, b, rtol, dim: int, max_cycles: int, basis=None):
         used = jnp.arange(m)[None, :] < steps[:, None]  # (K, m)
         Rm = jnp.where(used[:, :, None] & used[:, None, :], R[:, :m], jnp.eye(m, dtype=small))
         g = jnp.where(used, beta[:, None] * Om[:, :m, 0], 0.0)
-        y = jax.scipy.linalg.solve_triangular(Rm, g[..., None], lower=False)[..., 0]
+        y = solve_upper(Rm, g)
         dx = jnp.einsum("kj,kjs->ks", jnp.pad(y, ((0, 0), (0, 1))).astype(dtype), Vb)
         # the residual without another matvec: b - A x = V (beta e1 - H y)
         # = g_j * sum_i Omega[j, i] v_i over the first j + 1 basis vectors, j = steps

@@ -48,6 +48,7 @@ import numpy as np
 import numpyro
 import numpyro.distributions as dist
 
+from ..domains import linalg
 from ..domains.solvers import make_soft_solver
 from .emissions import Emission, EmissionInfo, register_emission
 from . import reward_mala
@@ -425,7 +426,7 @@ class RewardEmission(Emission):
         counts = self.counts(data, weights)
         if not self.scale_prior:
             theta, log_lik, precision, _ = self.laplace(counts, init)
-            _, logdet = jnp.linalg.slogdet(precision)
+            logdet = linalg.spd_logdet(precision)
             log_ev = (log_lik + self.log_prior({"theta": theta}) + 0.5 * self.num_features * jnp.log(2 * jnp.pi)
                       - 0.5 * logdet)
             return self._point(theta), log_ev
@@ -488,8 +489,8 @@ class RewardEmission(Emission):
         D = self.num_features
         one = None if init is None else {"theta": init["theta"][None]}
         mean, _, precision, _ = self.laplace(self.counts(data, weights)[None], one)
-        cov = jnp.linalg.inv(precision[0]) * self.proposal_inflation ** 2
-        chol = jnp.linalg.cholesky(0.5 * (cov + cov.T) + 1e-12 * jnp.eye(D))
+        cov = linalg.spd_inverse(precision[0]) * self.proposal_inflation ** 2
+        chol = linalg.cholesky(0.5 * (cov + cov.T) + 1e-12 * jnp.eye(D))
         return mean[0], chol
 
     def _draw(self, key, mean, chol, broad_weight):
@@ -505,9 +506,9 @@ class RewardEmission(Emission):
         conditional density of its sigma^2 given theta, when sampled)."""
         theta = one["theta"]
         w = self.proposal_broad_weight
-        lq = dist.MultivariateNormal(mean, scale_tril=chol).log_prob(theta)
+        lq = linalg.mvn_log_prob(theta, mean, chol)
         if w > 0:
-            broad = dist.MultivariateNormal(mean, scale_tril=self.proposal_broad_scale * chol).log_prob(theta)
+            broad = linalg.mvn_log_prob(theta, mean, self.proposal_broad_scale * chol)
             lq = jnp.logaddexp(jnp.log1p(-w) + lq, jnp.log(w) + broad)
         if self.scale_prior:
             lq = lq + self._variance_conditional(theta).log_prob(one["sigma2"])

@@ -17,6 +17,7 @@ from gridworld import ragged_policy_problem
 from npbrs.inference import fit
 from npbrs.inference.driver import fit as fit_module
 from npbrs.inference.driver.fit import _chain_method
+from npbrs.inference.driver import threads as threads_module
 from npbrs.inference.driver.threads import on_threads
 
 MDP, DEMOS = ragged_policy_problem(correct=0.8)
@@ -25,10 +26,15 @@ KW = dict(emission="policy", num_chains=2, num_warmup=6, max_skills=3, seed=5, p
           moves={"greedy_merge": 0, "greedy_split": 0})
 
 
+def two_cores(monkeypatch):
+    # two threads even on one core (with a jaxlib whose LAPACK kernels block XLA's pool, too:
+    # this model's programs call no library kernel, checked below)
+    monkeypatch.setattr(fit_module, "cores", lambda: 2)
+    monkeypatch.setattr(threads_module, "cores", lambda: 2)
+
+
 def test_threads_give_the_sequential_draws_bit_for_bit(monkeypatch):
-    # two threads even on one core, or with a jaxlib whose LAPACK kernels block XLA's pool
-    # (``lapack_blocks_pool``): this model's programs call no LAPACK kernel (checked below)
-    monkeypatch.setattr(fit_module, "max_threads", lambda: 2)
+    two_cores(monkeypatch)
     calls = []
     monkeypatch.setattr(fit_module, "on_threads", lambda *a: calls.append(a[2]) or on_threads(*a))
     threads = fit(MDP, DEMOS, num_samples=4, chain_method="threads", **KW)
@@ -72,18 +78,18 @@ def test_the_calls_run_at_the_same_time_in_float64_and_raise_their_errors():
 
 
 def test_auto_picks_threads_on_the_cpu_else_vectorized(monkeypatch):
-    monkeypatch.setattr(fit_module, "max_threads", lambda: 2)
+    monkeypatch.setattr(fit_module, "cores", lambda: 2)
     assert _chain_method("auto", 2, None, None) == ("sequential", None, 2)
     assert _chain_method("auto", 4, None, None) == ("sequential", None, 2)  # as many threads as cores
     assert _chain_method("threads", 4, None, None) == ("sequential", None, 2)
     assert _chain_method("auto", 1, None, None) == ("sequential", None, 1)
     assert _chain_method("vectorized", 4, None, None) == ("vectorized", None, 1)
-    monkeypatch.setattr(fit_module, "max_threads", lambda: 8)
+    monkeypatch.setattr(fit_module, "cores", lambda: 8)
     assert _chain_method("auto", 4, None, None) == ("sequential", None, 4)
-    monkeypatch.setattr(fit_module, "max_threads", lambda: 1)  # (one thread: the sequential chains)
+    monkeypatch.setattr(fit_module, "cores", lambda: 1)  # (one thread: the sequential chains)
     assert _chain_method("auto", 4, None, None) == ("sequential", None, 1)
     assert _chain_method("threads", 4, None, None) == ("sequential", None, 1)
-    monkeypatch.setattr(fit_module, "max_threads", lambda: 2)
+    monkeypatch.setattr(fit_module, "cores", lambda: 2)
     monkeypatch.setattr(fit_module.jax, "default_backend", lambda: "gpu")  # an accelerator: one batched program
     assert _chain_method("auto", 4, None, None) == ("vectorized", None, 1)
     with pytest.raises(ValueError, match="chain_method='threads'.*mesh or devices"):
@@ -96,7 +102,7 @@ def test_the_sweep_compiles_once_beside_the_initial_state(monkeypatch):
     then waits for that program instead of compiling another (one compile of it in all)."""
     from jax._src.dispatch import BACKEND_COMPILE_EVENT
 
-    monkeypatch.setattr(fit_module, "max_threads", lambda: 2)
+    two_cores(monkeypatch)
     where = []
 
     def listen(event, duration, fun_name="", **_):
@@ -143,6 +149,82 @@ def test_these_programs_call_no_lapack_kernel_and_the_version_rule(monkeypatch):
     assert max_threads() >= 1
 
 
+class _Lowered(Exception):
+    """Raised where a fit would start compiling: its init's and sweep's lowered text."""
+
+
+def _program_texts(monkeypatch, *args, **kwargs) -> list:
+    """The lowered text of a sequential fit's init and sweep (fit(*args, **kwargs)), without
+    compiling either."""
+    from npbrs.inference.driver.fit import _init_chains, _sweep_one
+
+    def lowered(self, method, keys, num_warmup, z0=None):
+        with jax.enable_x64(True):
+            traced = _init_chains.trace(self.kernel, keys[0], z0, jnp.int32(num_warmup))
+            state = jax.tree.map(lambda a: jax.ShapeDtypeStruct(a.shape, a.dtype), traced.out_info)
+            raise _Lowered([traced.lower().as_text(), _sweep_one.lower(
+                self.kernel, self.hyper_names, state, jax.ShapeDtypeStruct((), jnp.bool_)).as_text()])
+
+    monkeypatch.setattr(fit_module._Compiled, "compile_sweep_beside_init", lowered)
+    with pytest.raises(_Lowered) as got:
+        fit(*args, chain_method="sequential", progress_bar=False, **kwargs)
+    texts = got.value.args[0]
+    assert len(texts) == 2 and all("func.func public @main" in t for t in texts)
+    return texts
+
+
+def test_the_reward_emissions_programs_call_no_library_kernel(monkeypatch):
+    """fit's defaults with the reward emission (its greedy moves included), on a few reward
+    features and on one per state: the init's and the sweep's programs call no library kernel
+    (npbrs.domains.linalg's plain-XLA Cholesky and solves instead of LAPACK's), so with any
+    jaxlib their chains run on every core. It failed with jnp.linalg.slogdet / cholesky / inv,
+    numpyro's MultivariateNormal and jax.scipy's solve_triangular (GMRES) in them."""
+    from gridworld import gridworld
+    from npbrs.domains import Demonstrations, generate_demonstrations
+    from npbrs.domains.worlds import labyrinth_mdp
+
+    dom = gridworld()
+    few = generate_demonstrations(dom, num_trajectories=4, length=20, switch_prob=0.05, seed=0)
+    one_hot = labyrinth_mdp(depth=3)  # 15 states, a reward weight each
+    rng = np.random.default_rng(0)
+    per_state = Demonstrations(rng.integers(0, 15, (3, 10)), rng.integers(0, 4, (3, 10)))
+    for mdp, demos in ((dom.mdp, few), (one_hot, per_state)):
+        texts = _program_texts(monkeypatch, mdp, demos, emission="reward", num_chains=2, num_warmup=4,
+                               num_samples=2, max_skills=3)
+        assert [re.findall(r"custom_call @(\w+)", t) for t in texts] == [[], []], mdp.name
+
+
+def test_a_program_that_calls_a_library_kernel_runs_one_at_a_time_on_two_cores(monkeypatch):
+    """The rule that keeps jaxlib < 0.11.2 from hanging (npbrs.inference.driver.threads): on two
+    cores, programs whose text calls a library kernel run one at a time, the others two at once;
+    a fit asks about its init's and its sweep's programs. It failed with the threads taken
+    from the core count alone."""
+    from npbrs.inference.driver.threads import calls_library_kernel, max_threads, threads_for
+
+    two_cores(monkeypatch)
+    monkeypatch.setattr(threads_module, "lapack_blocks_pool", lambda: True)
+    kernel_text = 'stablehlo.custom_call @lapack_dgetrf_ffi(%0)'
+    assert calls_library_kernel(kernel_text) and not calls_library_kernel("stablehlo.add %0, %1")
+    assert max_threads(kernel_text) == 1 and max_threads("stablehlo.add") == 2 and max_threads() == 1
+    assert threads_for(4, lambda: "stablehlo.add") == 2 and threads_for(4, lambda: kernel_text) == 1
+    monkeypatch.setattr(threads_module, "lapack_blocks_pool", lambda: False)  # (a newer jaxlib)
+    assert threads_for(4, lambda: pytest.fail("not needed")) == 2 and max_threads(kernel_text) == 2
+
+    monkeypatch.setattr(threads_module, "lapack_blocks_pool", lambda: True)
+    asked, used = [], []
+    monkeypatch.setattr(fit_module, "on_threads", lambda *a: used.append(a[2]) or on_threads(*a))
+    for calls in (False, True):
+        def check(program, calls=calls):
+            asked.append(re.search(r"module @jit_(\w+)", program.as_text()).group(1))
+            return calls
+
+        monkeypatch.setattr(threads_module, "calls_library_kernel", check)
+        asked.clear(), used.clear()
+        fit(MDP, DEMOS, num_samples=2, chain_method="threads", **KW)
+        assert asked == ["_init_chains", "_sweep_one"]  # each program asked about once
+        assert used and set(used) == {1 if calls else 2}
+
+
 @pytest.fixture(scope="module")
 def run():
     return fit(MDP, DEMOS, num_samples=4, **KW)
@@ -153,8 +235,6 @@ def test_the_predictive_runs_the_chains_draws_side_by_side_with_the_same_results
     draws to threads at once (each chain's solves warm-started from its own previous draw, as
     on one thread): the same numbers, bit for bit, on one thread or two."""
     from npbrs.inference.analysis import predictive
-
-    from npbrs.inference.driver import threads as threads_module
 
     used = []
     real = threads_module.on_threads
@@ -173,7 +253,7 @@ def test_the_predictive_runs_the_chains_draws_side_by_side_with_the_same_results
         monkeypatch.setattr(predictive, name, lowered)
     results = {}
     for n in (1, 2):
-        monkeypatch.setattr(threads_module, "threads_for", lambda tasks, n=n: n)
+        monkeypatch.setattr(threads_module, "threads_for", lambda tasks, program=None, n=n: n)
         used.clear()
         results[n] = (predictive.log_predictive(run, MDP, DEMOS, num_samples=4, num_draws=3),
                       predictive.segment(run, MDP, num_samples=4, num_draws=3),

@@ -205,28 +205,34 @@ def _draw_moments(result, mdp, demos, idx, num_samples, seed, emission, leave_on
     hyper_fixed = {n: float(getattr(cfg.prior, n).value) for n in ("alpha", "kappa", "gamma")}
     others = N - 1 if leave_one_out else N
 
-    one_draw = partial(_one_draw, emission, num_samples=num_samples, others=others)
-    one_draw_marginals = partial(_one_draw_marginals, emission, num_samples=num_samples)
-
     draw = _draw_at(samples, params_all, hyper_fixed, idx, seed, C)
     # each draw's likelihood solves start from the values of the chain's previous draw (the
     # emission's cache; a chain's consecutive draws are close): the same likelihoods to the
     # solver's tolerance. So the chains are independent: their j-th draws run side by side, on
     # the CPU's cores (npbrs.inference.driver.threads)
     caches = [emission.init_cache(K)] * C
-    threads = threads_for(C)
 
-    def one(c, j):
+    def call(c, j):  # (program, its arguments, its options) of chain c's j-th draw
         key, params, f, hyper, ends = draw(c, j)
         if marginals:
             p_on = f if own_features else feature_predictive(f.sum(0), others, float(hyper.alpha))
-            lm, post, caches[c] = one_draw_marginals(key, params, jnp.asarray(p_on, jnp.float64), hyper, data, ends,
-                                                     caches[c])
-            return c, j, np.asarray(lm), np.asarray(post)
+            return (_one_draw_marginals, (emission, key, params, jnp.asarray(p_on, jnp.float64), hyper, data, ends,
+                                          caches[c]), {"num_samples": num_samples})
         # a fitted trajectory's own row is left out of the popularity counts
         counts = jnp.asarray(f.sum(0) - f if leave_one_out else f.sum(0), jnp.float64)
-        moments, caches[c] = one_draw(key, params, counts, hyper, data, ends, caches[c])
-        return c, j, np.asarray(moments)
+        return _one_draw, (emission, key, params, counts, hyper, data, ends, caches[c]), \
+            {"num_samples": num_samples, "others": others}
+
+    def one(c, j):
+        program, args, options = call(c, j)
+        *out, caches[c] = program(*args, **options)
+        return (c, j, *(np.asarray(o) for o in out))
+
+    def lowered():  # (the program every draw runs; the calls reuse this lowering)
+        program, args, options = call(0, 0)
+        return program.lower(*args, **options)
+
+    threads = threads_for(C, lowered)
 
     def by_draw():  # (every chain's first draw, then every chain's second, ...)
         for j in range(len(idx)):

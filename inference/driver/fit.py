@@ -21,6 +21,7 @@ import signal
 import sys
 import threading
 import time
+from concurrent.futures import Future
 import warnings
 from collections import OrderedDict
 from functools import partial
@@ -42,7 +43,7 @@ from npbrs.domains.precision import float64_all
 from ..sampler.kernel import BPHMMKernel, initial_window
 from ..sampler.options import MOVE_DEFAULTS
 from .config import EmissionConfig, ModelConfig, PriorConfig
-from .threads import max_threads, on_threads
+from .threads import cores, on_threads, threads_for
 from .results import LABEL_INVARIANT, STEP_COUNTS, FitResult, label_invariant_diagnostic
 
 __all__ = ["fit", "make_emission", "resolve_config", "default_moves", "compilation_cache_dir", "use_compilation_cache",
@@ -184,6 +185,7 @@ class _Compiled:
         self.kernel = kernel
         self.hyper_names = tuple(hyper_names)
         self._placed = {}
+        self._sweep_lowered = None  # (state's shapes, a Future of the sequential sweep's lowered program)
 
     def placed(self, mesh: Optional[Mesh]) -> BPHMMKernel:
         """The kernel with its arrays on ``mesh``'s devices (the data sharded over its
@@ -199,11 +201,14 @@ class _Compiled:
         z0: an initial segmentation (N, T) shared by the chains, or None (random windows).
         ``per_chain`` > 0 (sequential chains, no mesh): each chain's state by the unbatched init
         (the program a sequential sweep's state comes from; the batched one's draws up to
-        rounding), on up to ``per_chain`` threads at once."""
+        rounding), on up to ``per_chain`` threads at once (fewer where the program calls a library
+        kernel that can block XLA's pool: :func:`~npbrs.inference.driver.threads.max_threads`)."""
         nw = jnp.int32(num_warmup)
         if mesh is None and per_chain:
             calls = [(self.kernel, key, z0, nw) for key in keys]
-            states = on_threads(_init_chains, calls, per_chain)
+            # (the trace is the one compile_sweep_beside_init made, and the call reuses the lowering)
+            threads = threads_for(per_chain, lambda: _init_chains.trace(self.kernel, keys[0], z0, nw).lower())
+            states = on_threads(_init_chains, calls, threads)
             return jax.tree.map(lambda *xs: np.stack(xs), *[_to_host(s) for s in states])
         if mesh is None:
             return _to_host(_init_chains(self.kernel, keys, z0, nw))
@@ -222,16 +227,33 @@ class _Compiled:
         state = jax.tree.map(lambda a: jax.ShapeDtypeStruct(a.shape, a.dtype), like)
         fn, extra = (_sweep_one, (jax.ShapeDtypeStruct((), jnp.bool_),)) if sequential else (_sweep_batched, ())
 
+        lowered = Future()
+        self._sweep_lowered = (_shapes(state), lowered) if sequential else None
+
         def compile_sweep():
             try:
                 with jax.enable_x64(True):
-                    fn.lower(self.kernel, self.hyper_names, state, *extra).compile()
-            except Exception:  # (the first sweep's call compiles it, and raises what it raises)
-                pass
+                    program = fn.lower(self.kernel, self.hyper_names, state, *extra)
+                    lowered.set_result(program)
+                    program.compile()
+            except Exception as error:  # (the first sweep's call compiles it, and raises what it raises)
+                if not lowered.done():
+                    lowered.set_exception(error)
 
         thread = threading.Thread(target=compile_sweep, name="npbrs-compile-sweep", daemon=True)
         thread.start()
         return thread
+
+    def sweep_program(self, state):
+        """The sequential sweep's lowered program for one chain's ``state`` (the one
+        :meth:`compile_sweep_beside_init` lowered when it was for these shapes, else lowered
+        here; the sweep's call reuses the lowering)."""
+        if self._sweep_lowered is not None and self._sweep_lowered[0] == _shapes(state):
+            try:
+                return self._sweep_lowered[1].result()
+            except Exception:  # (lowered again below, which raises what it raises)
+                pass
+        return _sweep_one.lower(self.kernel, self.hyper_names, state, jax.ShapeDtypeStruct((), jnp.bool_))
 
     def step(self, method: str, mesh: Optional[Mesh] = None):
         """state -> (next state, record): batched over chains ("vectorized"), or (state,
@@ -241,6 +263,11 @@ class _Compiled:
         if mesh is None:
             return partial(fn, self.kernel, self.hyper_names)
         return partial(fn, self.placed(mesh), self.hyper_names, mesh=mesh)
+
+
+def _shapes(tree):
+    """A pytree's leaves' shapes and dtypes (comparable)."""
+    return tuple((tuple(np.shape(x)), str(x.dtype)) for x in jax.tree.leaves(tree))
 
 
 def _record(kernel: BPHMMKernel, hyper_names, state) -> dict:
@@ -575,11 +602,15 @@ def _to_host(tree):
 
 class _Chains:
     """The chains' states under one chain method, advanced one sweep at a time (on ``mesh``'s
-    devices when given); sequential chains on ``threads`` threads at once ("threads")."""
+    devices when given); sequential chains on up to ``threads`` threads at once ("threads"; fewer
+    where the sweep's program calls a library kernel that can block XLA's pool:
+    :func:`~npbrs.inference.driver.threads.max_threads`, decided at the first sweep)."""
 
     def __init__(self, compiled: _Compiled, method: str, state, mesh: Optional[Mesh] = None, threads: int = 1):
         self.method = method
         self.threads = threads
+        self.compiled = compiled
+        self.checked = threads <= 1
         self.kernel = compiled.kernel
         self.fn = compiled.step(method, mesh)
         self.num_chains = int(np.shape(jax.tree_util.tree_leaves(state)[0])[0])
@@ -595,6 +626,9 @@ class _Chains:
         if self.method == "sequential":
             # the chains' greedy moves stop together, as vectorised chains' do (the same draws)
             greedy = jnp.any(jnp.stack([self.kernel.greedy_open(s) for s in self.states]))
+            if not self.checked:
+                self.threads = threads_for(self.threads, lambda: self.compiled.sweep_program(self.states[0]))
+                self.checked = True
             outs = on_threads(self.fn, [(s, greedy) for s in self.states], self.threads)
             self.states = [state for state, _ in outs]
             return [rec for _, rec in outs]
@@ -630,9 +664,10 @@ def _chain_method(method: str, num_chains: int, mesh, devices):
     """(chain method, mesh or None, threads) of a run: "parallel" is the vectorized sweep with
     the chains over the local devices (``jax.sharding``; it was ``jax.pmap`` before), the
     largest number of them that divides the chains; "threads" is "sequential" with the chains'
-    sweeps on up to :func:`~npbrs.inference.driver.threads.max_threads` threads (one: the
-    sequential chains); "auto" is "threads" when JAX computes on the CPU, there are several
-    chains and there is no mesh, else "vectorized"."""
+    sweeps on up to as many threads as the process has cores (:class:`_Chains` and
+    :meth:`_Compiled.init` take fewer for a program that calls a library kernel where that can
+    hang: :func:`~npbrs.inference.driver.threads.max_threads`); "auto" is "threads" when JAX
+    computes on the CPU, there are several chains and there is no mesh, else "vectorized"."""
     if mesh is not None and devices is not None:
         raise ValueError("give mesh or devices, not both (devices=... builds a mesh: see device_mesh)")
     if method == "auto":
@@ -643,7 +678,7 @@ def _chain_method(method: str, num_chains: int, mesh, devices):
         if mesh is not None or devices is not None:
             raise ValueError("chain_method='threads' runs every chain on one device, on threads of the host; "
                              "with mesh or devices use chain_method='vectorized' (or 'parallel')")
-        method, threads = "sequential", max(1, min(num_chains, max_threads()))
+        method, threads = "sequential", max(1, min(num_chains, cores()))
     if devices is not None:
         mesh = device_mesh(devices, num_chains)
         if method == "sequential":  # one chain at a time: every device shards its trajectories
@@ -787,10 +822,11 @@ def fit(mdp, demos: Demonstrations, config: Union[ModelConfig, dict, str, os.Pat
         seed: the random seed; the same seed gives the same draws, bit for bit.
         chain_method: "auto" (the default): "threads" when JAX computes on the CPU, with
             several chains and no ``mesh`` or ``devices`` (on up to
-            :func:`~npbrs.inference.driver.threads.max_threads` threads: the process's cores,
-            one fewer with a jaxlib before 0.11.2, whose LAPACK kernels can hang programs that
-            run at once; with one thread, the sequential chains, whose unbatched programs ran
-            faster than the batch on 2 cores); else "vectorized". "vectorized": the chains
+            :func:`~npbrs.inference.driver.threads.max_threads` threads: the process's cores;
+            one fewer with a jaxlib before 0.11.2 when the sweep calls a LAPACK kernel (they
+            can hang programs that run at once; fit's reward and policy emissions call none);
+            with one thread, the sequential chains, whose unbatched programs ran faster than
+            the batch on 2 cores); else "vectorized". "vectorized": the chains
             vmapped in one program (the choice for an accelerator). "sequential": one chain
             after another. "threads": the sequential sweep, each chain's on its own thread (up
             to ``max_threads`` at once): the same draws as "sequential", bit for bit, in about

@@ -13,11 +13,13 @@ per core. In jaxlib before 0.11.2 the CPU LAPACK kernels (LU, Cholesky, eigh, ..
 of matrices) fan the batch out over that same pool and block until it is done: when every
 pool thread holds such a kernel, nothing runs their parts, and the process hangs (seen here:
 two chains' sweeps on 2 cores, each in a batched LU of 127 x 127 matrices, waiting forever).
-So with those jaxlibs at most cores - 1 programs run at once, which leaves a pool thread free;
-on 2 cores that is one, and ``fit``'s "auto" then runs the chains one after another. jaxlib
-0.11.2 and later run a LAPACK batch on the calling thread. The rule counts npbrs's own
-threads: with such a jaxlib, programs that your other threads run at the same time count
-against the same pool.
+So with those jaxlibs, programs that call a library kernel (a ``custom_call`` in their lowered
+text) run at most cores - 1 at once, which leaves a pool thread free; on 2 cores that is one at
+a time. Programs without one run on every core: npbrs's own linear algebra is plain XLA code
+for that reason (:mod:`npbrs.domains.linalg`), so a fit with the reward or policy emission and
+fit's defaults runs its chains side by side with any jaxlib. jaxlib 0.11.2 and later run a
+LAPACK batch on the calling thread. The rule counts npbrs's own threads: with an older jaxlib,
+programs that your other threads run at the same time count against the same pool.
 """
 
 from __future__ import annotations
@@ -29,7 +31,7 @@ from concurrent.futures import ThreadPoolExecutor
 import jax
 import jaxlib
 
-__all__ = ["cores", "max_threads", "lapack_blocks_pool", "threads_for", "on_threads"]
+__all__ = ["cores", "max_threads", "lapack_blocks_pool", "calls_library_kernel", "threads_for", "on_threads"]
 
 
 def cores() -> int:
@@ -48,18 +50,35 @@ def lapack_blocks_pool(version: str | None = None) -> bool:
     return parts < (0, 11, 2)
 
 
-def max_threads() -> int:
-    """How many programs npbrs runs side by side at most: the process's cores, one fewer where
-    the LAPACK kernels block XLA's pool (:func:`lapack_blocks_pool`), at least 1."""
-    return max(1, cores() - (1 if lapack_blocks_pool() else 0))
+def calls_library_kernel(program) -> bool:
+    """Whether a lowered program (a ``jax.stages.Lowered`` or its text) calls a kernel outside
+    XLA's own code generation (a ``custom_call``: LAPACK's, on the CPU)."""
+    text = program if isinstance(program, str) else program.as_text()
+    return "custom_call" in text
 
 
-def threads_for(tasks: int) -> int:
-    """How many threads to run ``tasks`` independent programs on: up to :func:`max_threads`
-    when JAX computes on the CPU, else 1 (an accelerator runs a batch in one program)."""
-    if jax.default_backend() != "cpu":
+def max_threads(program=None) -> int:
+    """How many copies of ``program`` npbrs runs side by side at most: the process's cores, one
+    fewer where the LAPACK kernels block XLA's pool (:func:`lapack_blocks_pool`) and the program
+    calls a library kernel (:func:`calls_library_kernel`); at least 1. ``program``: a lowered
+    program, its text, or a function returning either (called only when the jaxlib has the
+    hazard); None (not known) counts as one that calls a kernel."""
+    n = cores()
+    if n > 1 and lapack_blocks_pool():
+        if program is not None and not isinstance(program, str) and not hasattr(program, "as_text"):
+            program = program()
+        if program is None or calls_library_kernel(program):
+            n -= 1
+    return max(1, n)
+
+
+def threads_for(tasks: int, program=None) -> int:
+    """How many threads to run ``tasks`` independent calls of ``program`` on (see
+    :func:`max_threads`): up to :func:`max_threads` when JAX computes on the CPU, else 1 (an
+    accelerator runs a batch in one program)."""
+    if jax.default_backend() != "cpu" or int(tasks) <= 1:
         return 1
-    return max(1, min(int(tasks), max_threads()))
+    return max(1, min(int(tasks), max_threads(program)))
 
 
 def on_threads(fn, calls, threads: int) -> list:
