@@ -185,7 +185,7 @@ class _Compiled:
         self.kernel = kernel
         self.hyper_names = tuple(hyper_names)
         self._placed = {}
-        self._sweep_lowered = None  # (state's shapes, a Future of the sequential sweep's lowered program)
+        self._sweep_lowered = None  # a Future of the sequential sweep's lowered program
 
     def placed(self, mesh: Optional[Mesh]) -> BPHMMKernel:
         """The kernel with its arrays on ``mesh``'s devices (the data sharded over its
@@ -228,7 +228,7 @@ class _Compiled:
         fn, extra = (_sweep_one, (jax.ShapeDtypeStruct((), jnp.bool_),)) if sequential else (_sweep_batched, ())
 
         lowered = Future()
-        self._sweep_lowered = (_shapes(state), lowered) if sequential else None
+        self._sweep_lowered = lowered if sequential else None
 
         def compile_sweep():
             try:
@@ -246,11 +246,11 @@ class _Compiled:
 
     def sweep_program(self, state):
         """The sequential sweep's lowered program for one chain's ``state`` (the one
-        :meth:`compile_sweep_beside_init` lowered when it was for these shapes, else lowered
-        here; the sweep's call reuses the lowering)."""
-        if self._sweep_lowered is not None and self._sweep_lowered[0] == _shapes(state):
+        :meth:`compile_sweep_beside_init` lowered, else lowered here: one kernel's states all
+        have the same shapes; the sweep's call reuses the lowering)."""
+        if self._sweep_lowered is not None:
             try:
-                return self._sweep_lowered[1].result()
+                return self._sweep_lowered.result()
             except Exception:  # (lowered again below, which raises what it raises)
                 pass
         return _sweep_one.lower(self.kernel, self.hyper_names, state, jax.ShapeDtypeStruct((), jnp.bool_))
@@ -263,11 +263,6 @@ class _Compiled:
         if mesh is None:
             return partial(fn, self.kernel, self.hyper_names)
         return partial(fn, self.placed(mesh), self.hyper_names, mesh=mesh)
-
-
-def _shapes(tree):
-    """A pytree's leaves' shapes and dtypes (comparable)."""
-    return tuple((tuple(np.shape(x)), str(x.dtype)) for x in jax.tree.leaves(tree))
 
 
 def _record(kernel: BPHMMKernel, hyper_names, state) -> dict:
@@ -602,15 +597,11 @@ def _to_host(tree):
 
 class _Chains:
     """The chains' states under one chain method, advanced one sweep at a time (on ``mesh``'s
-    devices when given); sequential chains on up to ``threads`` threads at once ("threads"; fewer
-    where the sweep's program calls a library kernel that can block XLA's pool:
-    :func:`~npbrs.inference.driver.threads.max_threads`, decided at the first sweep)."""
+    devices when given); sequential chains on ``threads`` threads at once ("threads")."""
 
     def __init__(self, compiled: _Compiled, method: str, state, mesh: Optional[Mesh] = None, threads: int = 1):
         self.method = method
         self.threads = threads
-        self.compiled = compiled
-        self.checked = threads <= 1
         self.kernel = compiled.kernel
         self.fn = compiled.step(method, mesh)
         self.num_chains = int(np.shape(jax.tree_util.tree_leaves(state)[0])[0])
@@ -626,9 +617,6 @@ class _Chains:
         if self.method == "sequential":
             # the chains' greedy moves stop together, as vectorised chains' do (the same draws)
             greedy = jnp.any(jnp.stack([self.kernel.greedy_open(s) for s in self.states]))
-            if not self.checked:
-                self.threads = threads_for(self.threads, lambda: self.compiled.sweep_program(self.states[0]))
-                self.checked = True
             outs = on_threads(self.fn, [(s, greedy) for s in self.states], self.threads)
             self.states = [state for state, _ in outs]
             return [rec for _, rec in outs]
@@ -664,7 +652,7 @@ def _chain_method(method: str, num_chains: int, mesh, devices):
     """(chain method, mesh or None, threads) of a run: "parallel" is the vectorized sweep with
     the chains over the local devices (``jax.sharding``; it was ``jax.pmap`` before), the
     largest number of them that divides the chains; "threads" is "sequential" with the chains'
-    sweeps on up to as many threads as the process has cores (:class:`_Chains` and
+    sweeps on up to as many threads as the process has cores (``fit``'s sweeps and
     :meth:`_Compiled.init` take fewer for a program that calls a library kernel where that can
     hang: :func:`~npbrs.inference.driver.threads.max_threads`); "auto" is "threads" when JAX
     computes on the CPU, there are several chains and there is no mesh, else "vectorized"."""
@@ -1054,6 +1042,8 @@ def _fit(mdp, demos, config, *, emission, emission_options, num_chains, num_samp
             if mesh is None:
                 compiled.compile_sweep_beside_init(method, keys, W, z0)
             state = compiled.init(keys, W, z0, mesh, threads if method == "sequential" else 0)
+        if threads > 1:  # (fewer where the sweep calls a library kernel that can block XLA's pool)
+            threads = threads_for(threads, lambda: compiled.sweep_program(jax.tree.map(lambda x: x[0], state)))
         chains = _Chains(compiled, method, state, mesh, threads)
     except BaseException:
         bar.close()
