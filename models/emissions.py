@@ -170,6 +170,13 @@ class Emission(Pytree):
             params = self.sample_params(1)
         return jax.tree.map(lambda x: x[0], params)
 
+    def for_search(self) -> "Emission":
+        """This emission as the fits that steer the sampler's search but enter no acceptance
+        ratio use it: a chain's starting parameters (:meth:`init_params`) and the warmup's
+        greedy merges and splits (their fits and evidences). An emission may trade accuracy for
+        time there (the reward emission solves them to ``search_tol``); the default is itself."""
+        return self
+
     def init_params(self, key, data: HMMData, weights):
         """A starting point: the proposal applied to each skill's weighted steps. (K, ...)."""
         K = weights.shape[-1]

@@ -39,6 +39,7 @@ differently) is about log w - D log s - d^2 / (2 s^2) instead of -d^2 / 2.
 
 from __future__ import annotations
 
+import copy
 import math
 from typing import Optional
 
@@ -117,6 +118,13 @@ class RewardEmission(Emission):
             (see the module docstring), and ``prior_scale`` only sets the proposals' fits and
             the first preconditioner.
         solver_options: keyword options of :func:`npbrs.domains.make_soft_solver`.
+        search_tol: the soft solves' relative tolerance (its derivatives' a tenth of it) in the
+            fits that steer the search and enter no acceptance ratio (:meth:`for_search`): the
+            chains' starting rewards and the warmup's greedy merges and splits. The sampler's
+            moves and every likelihood it keeps use the solver's own tolerance (1e-10 unless
+            ``solver_options`` says otherwise); a looser one of the solver's wins here too. At
+            1e-6 a second tiny highway fit took 4.3 s instead of 5.4 s, with the same skills
+            (``benchmarks/NOTES.md``, session 39).
         epsilon: probability that the demonstrator acts uniformly at random instead of by the
             skill's Boltzmann policy (a noisy expert): pi = (1 - eps) Boltzmann + eps / A. A few
             actions that no reward explains then cost log(eps / A) each instead of opening a
@@ -136,7 +144,8 @@ class RewardEmission(Emission):
                  update: str = "mala", mala_steps: int = 3, step_size: float = 0.5, target_accept: float = 0.6,
                  map_steps: int = 5, fit_steps: int = 20, refit_steps: int = 3, proposal_inflation: float = 1.5,
                  solver_options: Optional[dict] = None, epsilon: float = 0.0, proposal_broad_weight: float = 0.1,
-                 proposal_broad_scale: float = 10.0, scale_prior=False, start: str = "auto"):
+                 proposal_broad_scale: float = 10.0, scale_prior=False, start: str = "auto",
+                 search_tol: float = 1e-6):
         if start not in _STARTS:
             raise ValueError(f"unknown start {start!r}; expected one of {_STARTS}")
         if update not in _UPDATES:
@@ -146,7 +155,8 @@ class RewardEmission(Emission):
                 raise ValueError(f"prior_scale must be a positive number or 'auto', got {prior_scale!r}")
             prior_scale = auto_prior_scale(mdp.num_features)
         for name, value in [("prior_scale", prior_scale), ("temperature", temperature), ("step_size", step_size),
-                            ("proposal_inflation", proposal_inflation), ("proposal_broad_scale", proposal_broad_scale)]:
+                            ("proposal_inflation", proposal_inflation), ("proposal_broad_scale", proposal_broad_scale),
+                            ("search_tol", search_tol)]:
             if not (np.isfinite(value) and value > 0):
                 raise ValueError(f"{name} must be a positive number, got {value!r}")
         if not (np.isfinite(proposal_broad_weight) and 0 <= proposal_broad_weight < 1):
@@ -189,6 +199,7 @@ class RewardEmission(Emission):
         self.proposal_broad_scale = float(proposal_broad_scale)
         self.solver_options = dict(solver_options or {})
         self.solver = make_soft_solver(mdp, **self.solver_options)
+        self.search_tol = float(search_tol)
         self.num_states, self.num_actions = mdp.num_states, mdp.num_actions
         self.num_features = mdp.num_features
 
@@ -200,7 +211,8 @@ class RewardEmission(Emission):
                 "epsilon": self.epsilon, "proposal_broad_weight": self.proposal_broad_weight,
                 "proposal_broad_scale": self.proposal_broad_scale,
                 # False, not None, for a fixed scale: a saved configuration (TOML has no None) keeps it
-                "scale_prior": list(self.scale_prior) if self.scale_prior else False, "start": self.start}
+                "scale_prior": list(self.scale_prior) if self.scale_prior else False, "start": self.start,
+                "search_tol": self.search_tol}
 
     # ------------------------------------------------------------------ prior
     def _variance_prior(self):
@@ -234,6 +246,15 @@ class RewardEmission(Emission):
         if self.scale_prior:
             lp = lp + self._variance_prior().log_prob(params["sigma2"])
         return lp
+
+    def for_search(self) -> "RewardEmission":
+        """This emission with its solver at ``search_tol`` (see :meth:`Emission.for_search`); a
+        shallow copy sharing the arrays, so it can be made inside a trace."""
+        if self.search_tol <= self.solver.tol:
+            return self
+        search = copy.copy(self)
+        search.solver = self.solver.with_tolerance(self.search_tol)
+        return search
 
     # ------------------------------------------------------------------ likelihood
     def init_cache(self, K):
@@ -332,19 +353,20 @@ class RewardEmission(Emission):
         kernel = reward_mala.build_kernel(self.solver, prior_scale, temperature=self.temperature,
                                           epsilon=self.epsilon)
         minv = cache["scale"] ** 2
-        # only skills with steps (``active``) are solved: the others are redrawn from the prior after the move
-        state = reward_mala.init(self.solver, theta, counts, prior_scale, cache["V"],
-                                 temperature=self.temperature, epsilon=self.epsilon, active=active)
 
-        def step(carry, key):
+        def step(carry, x):
+            key, evaluate = x
             state, log_step, acc_sum = carry
-            state, info = kernel(key, state, counts, jnp.exp(log_step), minv, active)
-            log_step = jnp.where(adapt & active, log_step + 0.3 * (info.acceptance_rate - self.target_accept),
-                                 log_step)
+            # only skills with steps (``active``) are solved: the others are redrawn from the prior after the move
+            state, info = kernel(key, state, counts, jnp.exp(log_step), minv, active, evaluate)
+            log_step = jnp.where(adapt & active & ~evaluate,
+                                 log_step + 0.3 * (info.acceptance_rate - self.target_accept), log_step)
             return (state, log_step, acc_sum + info.acceptance_rate), None
 
-        init = (state, cache["log_step"], jnp.zeros(theta.shape[0]))
-        (state, log_step, acc_sum), _ = jax.lax.scan(step, init, jax.random.split(key, self.mala_steps))
+        # the chain's start (reward_mala.init) is the loop's first pass: one compiled solve for both
+        init = (reward_mala.unevaluated(theta, cache["V"]), cache["log_step"], jnp.zeros(theta.shape[0]))
+        keys = jnp.concatenate([key[None], jax.random.split(key, self.mala_steps)])
+        (state, log_step, acc_sum), _ = jax.lax.scan(step, init, (keys, jnp.arange(self.mala_steps + 1) == 0))
         return state.theta, {**cache, "V": state.V, "log_step": log_step}, acc_sum / self.mala_steps, state.log_density
 
     def _rescale(self, key, theta, sigma2, log_density, counts, cache, adapt):

@@ -36,7 +36,7 @@ from .reward import PRIOR_SCALE, Posterior, as_solver, log_posterior
 from npbrs.domains.compiling import jit
 from npbrs.domains.precision import float64_all
 
-__all__ = ["RewardMALAState", "RewardMALAInfo", "init", "build_kernel"]
+__all__ = ["RewardMALAState", "RewardMALAInfo", "init", "build_kernel", "unevaluated"]
 
 
 class RewardMALAState(NamedTuple):
@@ -149,9 +149,15 @@ def init(solver, theta, counts, prior_scale=PRIOR_SCALE, v0=None, *, temperature
     K = theta.shape[0]
     _check_counts(solver, counts, K)
     v0 = jnp.zeros((K, solver.num_states)) if v0 is None else jnp.asarray(v0, jnp.float64)
-    post = _posterior(solver, theta, counts, v0, prior_scale, temperature, epsilon, active,
-                      (jnp.zeros(K), jnp.zeros_like(theta), v0))
-    return RewardMALAState(theta, post.log_density, post.grad, post.V)
+    kernel = build_kernel(solver, prior_scale, temperature=temperature, epsilon=epsilon)
+    return kernel(jax.random.PRNGKey(0), unevaluated(theta, v0), counts, 1.0, active=active, evaluate=True)[0]
+
+
+def unevaluated(theta, v0) -> RewardMALAState:
+    """A state at theta (K, D) whose density is not computed yet (zeros), values v0 (K, S): the
+    start of a chain whose first kernel step has ``evaluate=True`` (:func:`init` in the same
+    compiled code as the steps)."""
+    return RewardMALAState(theta, jnp.zeros(theta.shape[0]), jnp.zeros_like(theta), v0)
 
 
 def build_kernel(solver, prior_scale=PRIOR_SCALE, *, temperature: float = 1.0, epsilon: float = 0.0) -> Callable:
@@ -162,18 +168,22 @@ def build_kernel(solver, prior_scale=PRIOR_SCALE, *, temperature: float = 1.0, e
         prior_scale: sigma of the Gaussian prior, scalar or (K,) (an array may be traced).
         temperature, epsilon: the demonstrator's inverse temperature and random-action rate.
     Returns:
-        ``kernel(rng_key, state, counts, step_size, inverse_mass=None, active=None) -> (state,
-        info)`` with counts (K, S, A), step_size scalar or (K,), inverse_mass (the diagonal
-        preconditioner M^-1) None, (D,) or (K, D), and active None (every skill moves) or (K,)
-        bool: only the active skills' proposals are solved (:func:`chunk_size` at a time) and
-        can be accepted; the others keep their state (acceptance rate 0, not a failed solve).
-        The random numbers are drawn for all K skills either way, so an active skill's step is
-        the same as in a step of all K (up to the solver's tolerance).
+        ``kernel(rng_key, state, counts, step_size, inverse_mass=None, active=None,
+        evaluate=False) -> (state, info)`` with counts (K, S, A), step_size scalar or (K,),
+        inverse_mass (the diagonal preconditioner M^-1) None, (D,) or (K, D), and active None
+        (every skill moves) or (K,) bool: only the active skills' proposals are solved
+        (:func:`chunk_size` at a time) and can be accepted; the others keep their state
+        (acceptance rate 0, not a failed solve). The random numbers are drawn for all K skills
+        either way, so an active skill's step is the same as in a step of all K (up to the
+        solver's tolerance). ``evaluate`` (a bool, traced or not): instead of a step, the
+        density, gradient and values at the state's own theta, solved from its values (what
+        :func:`init` does), so that a chain's start and its steps can share one compiled
+        solve in a loop (inactive skills keep the state's; the info's rate is 0).
     """
     solver = as_solver(solver)
     temperature, epsilon = _check_options(prior_scale, temperature, epsilon)
 
-    def kernel(rng_key, state: RewardMALAState, counts, step_size, inverse_mass=None, active=None):
+    def kernel(rng_key, state: RewardMALAState, counts, step_size, inverse_mass=None, active=None, evaluate=False):
         K, D = state.theta.shape
         counts = jnp.asarray(counts, jnp.float64)
         _check_counts(solver, counts, K)
@@ -184,6 +194,7 @@ def build_kernel(solver, prior_scale=PRIOR_SCALE, *, temperature: float = 1.0, e
         theta, lp, grad, V = state
         mean_fwd = theta + 0.5 * eps ** 2 * minv * grad
         prop = mean_fwd + eps * jnp.sqrt(minv) * jax.random.normal(k_prop, theta.shape)
+        prop = jnp.where(evaluate, theta, prop)
         # the (active) skills' proposals solved together, warm-started from the current values
         new = _posterior(solver, prop, counts, V, prior_scale, temperature, epsilon, active, (lp, grad, V))
         mean_bwd = prop + 0.5 * eps ** 2 * minv * new.grad
@@ -191,8 +202,9 @@ def build_kernel(solver, prior_scale=PRIOR_SCALE, *, temperature: float = 1.0, e
         log_q_bwd = -0.5 * jnp.sum((theta - mean_bwd) ** 2 / minv / eps ** 2, -1)
         log_ratio = new.log_density - lp + log_q_bwd - log_q_fwd
         accept, rate = metropolis_accept(k_acc, log_ratio, possible=new.ok)
+        accept, rate = accept | evaluate, jnp.where(evaluate, 0.0, rate)
         state = select(accept, RewardMALAState(prop, new.log_density, new.grad, new.V), state)
-        failed = ~new.ok if active is None else active & ~new.ok
+        failed = (~new.ok if active is None else active & ~new.ok) & ~evaluate
         return state, RewardMALAInfo(rate, accept, new.log_density, failed)
 
     return kernel

@@ -309,3 +309,59 @@ def test_fit_runs_greedy_merges_by_default_where_the_emission_supports_them():
     # (an emission without fit_evidence: no greedy moves; the windows are the only default left open)
     cfg = ModelConfig.from_dict({"sampler": {"init_window": 25}})
     assert fit_module.default_moves(cfg, AutoregressiveEmission.__new__(AutoregressiveEmission)) is cfg
+
+
+def test_the_search_solves_looser_and_only_the_search(monkeypatch):
+    """``RewardEmission.for_search``: a copy whose solver has ``search_tol`` (itself when the
+    solver is as loose already); warm-started as in the greedy moves, its Laplace evidences and
+    fits are the exact solver's within 1e-5 nats and 1e-4. The kernel hands it to the starting fits and the greedy moves
+    only: the reward move, its preconditioner and the likelihoods the sampler keeps see the
+    solver's own tolerance. (Traced, not compiled: each method records the tolerance it ran
+    with.) It failed with the greedy moves given the kernel's emission."""
+    from gridworld import gridworld
+
+    from npbrs.domains.demos import generate_demonstrations
+    from npbrs.inference import make_emission
+    from npbrs.models.emissions import HMMData
+    from npbrs.models.reward_emission import RewardEmission
+
+    dom = gridworld(size=3)
+    demos = generate_demonstrations(dom, num_trajectories=2, length=30, switch_prob=0.05, seed=1)
+    data = HMMData.from_demonstrations(demos)
+    em = make_emission("reward", dom.mdp, prior_scale=3.0)
+    search = em.for_search()
+    assert (em.search_tol, em.solver.tol, search.solver.tol) == (1e-6, 1e-10, 1e-6) and search is not em
+    assert search.solver.features is em.solver.features and em.describe()["search_tol"] == 1e-6
+    assert make_emission("reward", dom.mdp, solver_options={"tol": 1e-5}).for_search().solver.tol == 1e-5
+    assert make_emission("reward", dom.mdp, search_tol=1e-12).for_search().solver.tol == 1e-10
+    with pytest.raises(ValueError, match="search_tol"):
+        make_emission("reward", dom.mdp, search_tol=0.0)
+
+    z = np.zeros(data.mask.shape, int)
+    for i, s in enumerate(demos.skills):
+        z[i, :len(s)] = s
+    weights = jax.nn.one_hot(jnp.asarray(z), 3) * data.mask[..., None]
+    # from theta = 0 (20 L-BFGS steps) the looser fits stop a little earlier; warm-started, as
+    # the greedy moves fit (3 steps from the current rewards), they agree closely
+    both = jax.jit(lambda w, init: (em.fit_evidence(data, w, init), search.fit_evidence(data, w, init)))
+    (fits, log_ev), (loose_fits, loose_ev) = both(weights, None)
+    np.testing.assert_allclose(np.asarray(loose_ev), np.asarray(log_ev), atol=0.02)
+    np.testing.assert_allclose(np.asarray(loose_fits["theta"]), np.asarray(fits["theta"]), atol=0.1)
+    (fits, log_ev), (loose_fits, loose_ev) = both(weights, fits)
+    np.testing.assert_allclose(np.asarray(loose_ev), np.asarray(log_ev), atol=1e-5)
+    np.testing.assert_allclose(np.asarray(loose_fits["theta"]), np.asarray(fits["theta"]), atol=1e-4)
+
+    seen = {}
+    for name in ("update", "tune", "log_likelihoods", "fit_evidence", "fit_point", "init_params"):
+        method = getattr(RewardEmission, name)
+
+        def recording(self, *args, _name=name, _method=method, **kwargs):
+            seen.setdefault(_name, set()).add(self.solver.tol)
+            return _method(self, *args, **kwargs)
+
+        monkeypatch.setattr(RewardEmission, name, recording)
+    kernel = BPHMMKernel(em, data, max_skills=3, moves={"greedy_merge": 1, "greedy_split": 1, "greedy_from": 0.0})
+    state = jax.eval_shape(lambda k: kernel.initial_state(k, None, 4), jax.random.PRNGKey(0))
+    jax.eval_shape(kernel.sweep, state)
+    assert seen == {"init_params": {1e-6}, "fit_evidence": {1e-6}, "fit_point": {1e-6}, "update": {1e-10},
+                    "tune": {1e-10}, "log_likelihoods": {1e-10, 1e-6}}, seen

@@ -188,3 +188,54 @@ def test_only_the_active_skills_move_each_as_in_a_step_of_all(chunk, monkeypatch
     assert np.asarray(info.is_accepted)[act].any() and not np.asarray(info.is_accepted)[~act].any()
     assert np.all(np.asarray(info.acceptance_rate)[~act] == 0.0)
     assert not np.asarray(info.solver_failed).any()
+
+
+def test_the_emissions_one_loop_is_init_then_the_kernels_steps(monkeypatch):
+    """The reward emission runs a chain's start and its MALA steps in one loop (the start is the
+    kernel's ``evaluate`` pass, so the sweep's program holds one copy of the solve): it equals
+    ``init`` followed by ``mala_steps`` kernel steps with the keys split from the update's,
+    step sizes adapted after each real step only; ``init`` is ``log_posterior`` at theta for the
+    active skills and the given values for the others. Temperature 1.5, epsilon 0.05, one skill
+    inactive, skills solved one at a time."""
+    from npbrs.models import reward_mala
+    from npbrs.models.reward import log_posterior
+    from npbrs.models.reward_emission import RewardEmission
+
+    rng = np.random.default_rng(1)
+    S, A, D, K = 6, 3, 4, 3
+    mdp = TabularMDP(successors=rng.integers(S, size=(S, A, 2)), probs=np.full((S, A, 2), 0.5),
+                     features=rng.normal(size=(S, A, D)), discount=0.9)
+    em = RewardEmission(mdp, prior_scale=2.0, temperature=1.5, epsilon=0.05, mala_steps=3,
+                        solver_options={"tol": 1e-12})
+    monkeypatch.setattr(reward_mala, "BATCH_ENTRIES", S * A)
+    assert reward_mala.chunk_size(em.solver, K) == 1
+    theta = jnp.asarray(rng.normal(size=(K, D)))
+    counts = jnp.asarray(rng.poisson(2.0, size=(K, S, A)).astype(float)).at[1].set(0.0)
+    active = jnp.sum(counts, axis=(1, 2)) > 0
+    cache = dict(em.init_cache(K), V=jnp.asarray(rng.normal(size=(K, S))))
+    key = jax.random.PRNGKey(7)
+
+    def by_hand(key):
+        state = init(em.solver, theta, counts, 2.0, cache["V"], temperature=1.5, epsilon=0.05, active=active)
+        kernel = build_kernel(em.solver, 2.0, temperature=1.5, epsilon=0.05)
+        log_step, acc = cache["log_step"], jnp.zeros(K)
+        for k in jax.random.split(key, 3):
+            state, info = kernel(k, state, counts, jnp.exp(log_step), cache["scale"] ** 2, active)
+            log_step = jnp.where(active, log_step + 0.3 * (info.acceptance_rate - em.target_accept), log_step)
+            acc = acc + info.acceptance_rate
+        return state, log_step, acc / 3
+
+    start = jax.jit(lambda: init(em.solver, theta, counts, 2.0, cache["V"], temperature=1.5, epsilon=0.05,
+                                 active=active))()
+    post = log_posterior(em.solver, theta, counts, cache["V"], 2.0, 1.5, 0.05)
+    for got, want in ((start.log_density, post.log_density), (start.grad, post.grad), (start.V, post.V)):
+        np.testing.assert_allclose(np.asarray(got)[[0, 2]], np.asarray(want)[[0, 2]], rtol=1e-10)
+    assert float(start.log_density[1]) == 0.0 and np.all(np.asarray(start.V[1]) == np.asarray(cache["V"][1]))
+    want_state, want_step, want_acc = jax.jit(by_hand)(key)
+    theta_new, new_cache, acc, log_density = jax.jit(
+        lambda key: em._mala(key, theta, counts, cache, True, 2.0, active))(key)
+    np.testing.assert_allclose(np.asarray(theta_new), np.asarray(want_state.theta), rtol=1e-12)
+    np.testing.assert_allclose(np.asarray(log_density), np.asarray(want_state.log_density), rtol=1e-12)
+    np.testing.assert_allclose(np.asarray(new_cache["log_step"]), np.asarray(want_step), rtol=1e-12)
+    np.testing.assert_allclose(np.asarray(acc), np.asarray(want_acc), rtol=1e-12)
+    assert np.any(np.asarray(theta_new) != np.asarray(theta))  # (it moved)

@@ -330,3 +330,29 @@ def test_bad_input_names_the_problem():
         make_soft_solver(mdp, operator="factored")
     with pytest.raises(ValueError, match="tol"):
         make_soft_solver(mdp, tol=0.0)
+
+
+def test_a_looser_copy_of_a_solver_solves_to_its_tolerance_and_loosens_only(problem):
+    """``with_tolerance`` (the search's solves, ``RewardEmission.for_search``): a copy with the
+    looser tolerance (its derivatives' a tenth of it) that shares the MDP's arrays, works
+    inside jit on a traced solver, reaches the dense reference within its tolerance (by
+    value and by gradient) in fewer iterations, and never tightens the original's."""
+    mdp, P, solver, R = problem
+    loose = solver.with_tolerance(1e-6)
+    assert (loose.tol, loose.grad_tol) == (1e-6, 1e-7) and (solver.tol, solver.grad_tol) == (1e-12, 1e-11)
+    assert solver.with_tolerance(1e-14).tol == 1e-12 and solver.with_tolerance(1e-6, 1e-13).grad_tol == 1e-11
+    got = jax.jit(lambda s, r: s.with_tolerance(1e-6)(r))(solver, jnp.asarray(R))
+    tight = solver(R)
+    for k in range(len(R)):
+        V_ref, _ = numpy_soft_vi(P, R[k], mdp.discount)
+        np.testing.assert_allclose(got.V[k], V_ref, rtol=1e-5, atol=1e-5 * np.abs(V_ref).max())
+    assert np.all(np.asarray(got.num_iter) <= np.asarray(tight.num_iter))
+    assert np.sum(np.asarray(got.num_iter) + np.asarray(got.num_matvec)) < np.sum(np.asarray(tight.num_iter) + np.asarray(tight.num_matvec))
+    # the derivative's linear solves at the looser tolerance: the gradient of a smooth function of V
+    w = np.random.default_rng(4).normal(size=mdp.num_states)
+    g = [jax.grad(lambda r, s=s: jnp.sum(s(r).V * w))(jnp.asarray(R[1])) for s in (solver, loose)]
+    np.testing.assert_allclose(g[1], g[0], rtol=1e-5, atol=1e-6 * np.abs(np.asarray(g[0])).max())
+    with pytest.raises(ValueError, match="tol"):
+        solver.with_tolerance(0.0)
+    with pytest.raises(ValueError, match="grad_tol"):
+        solver.with_tolerance(1e-6, -1.0)

@@ -319,7 +319,8 @@ class BPHMMKernel(MCMCKernel, Pytree):
             z = z0
         z = jnp.where(self.data.mask, z, -1).astype(jnp.int32)
         weights = skill_weights(z, self.data.mask, K)
-        params = self.emission.init_params(keys[1], self.data, weights)
+        # (a starting point: fitted at the emission's search accuracy, Emission.for_search)
+        params = self.emission.for_search().init_params(keys[1], self.data, weights)
         if z0 is None:
             features = jnp.zeros((N, K)).at[:, :K0].set(1.0)
         else:  # a given segmentation: each trajectory has the features of the skills it uses
@@ -514,8 +515,10 @@ class BPHMMKernel(MCMCKernel, Pytree):
 
             def greedy_run(ops):
                 k_merge, k_split = jax.random.split(k_gm)
-                ops, merged, split = greedy_trials(k_merge, k_split, ops, self.emission, self.data, state.hyper,
-                                                   self.moves["greedy_merge"], self.moves["greedy_split"], blocks)
+                # not an MCMC move: its fits may be solved less exactly (Emission.for_search)
+                ops, merged, split = greedy_trials(k_merge, k_split, ops, self.emission.for_search(), self.data,
+                                                   state.hyper, self.moves["greedy_merge"], self.moves["greedy_split"],
+                                                   blocks)
                 return ops, (merged, split)
 
             # the trials stop for every chain at once (``greedy_any``: while any chain's last
