@@ -171,10 +171,12 @@ class Emission(Pytree):
         return jax.tree.map(lambda x: x[0], params)
 
     def for_search(self) -> "Emission":
-        """This emission as the fits that steer the sampler's search but enter no acceptance
-        ratio use it: a chain's starting parameters (:meth:`init_params`) and the warmup's
-        greedy merges and splits (their fits and evidences). An emission may trade accuracy for
-        time there (the reward emission solves them to ``search_tol``); the default is itself."""
+        """This emission as the work that steers the sampler but enters no acceptance ratio
+        uses it: a chain's starting parameters (:meth:`init_params`), the warmup's greedy merges
+        and splits (their fits and evidences) and the warmup's tuning of the emission's move
+        (``tune``: a preconditioner, any fixed one of which leaves the posterior invariant). An
+        emission may trade accuracy for time there (the reward emission solves to
+        ``search_tol``); the default is itself."""
         return self
 
     def init_params(self, key, data: HMMData, weights):

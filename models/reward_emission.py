@@ -119,11 +119,12 @@ class RewardEmission(Emission):
             the first preconditioner.
         solver_options: keyword options of :func:`npbrs.domains.make_soft_solver`.
         search_tol: the soft solves' relative tolerance (its derivatives' a tenth of it) in the
-            fits that steer the search and enter no acceptance ratio (:meth:`for_search`): the
-            chains' starting rewards and the warmup's greedy merges and splits. The sampler's
-            moves and every likelihood it keeps use the solver's own tolerance (1e-10 unless
-            ``solver_options`` says otherwise); a looser one of the solver's wins here too. At
-            1e-6 a second tiny highway fit took 4.3 s instead of 5.4 s, with the same skills
+            work that steers the sampler and enters no acceptance ratio (:meth:`for_search`):
+            the chains' starting rewards, the warmup's greedy merges and splits, and the MALA
+            preconditioner's Fisher information. The reward move and every likelihood the
+            sampler keeps use the solver's own tolerance (1e-10 unless ``solver_options`` says
+            otherwise); a looser one of the solver's wins here too. At 1e-6 a second tiny
+            highway fit took 4.2 s instead of 5.4 s, with the same skills
             (``benchmarks/NOTES.md``, session 39).
         epsilon: probability that the demonstrator acts uniformly at random instead of by the
             skill's Boltzmann policy (a noisy expert): pi = (1 - eps) Boltzmann + eps / A. A few

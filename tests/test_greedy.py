@@ -314,10 +314,11 @@ def test_fit_runs_greedy_merges_by_default_where_the_emission_supports_them():
 def test_the_search_solves_looser_and_only_the_search(monkeypatch):
     """``RewardEmission.for_search``: a copy whose solver has ``search_tol`` (itself when the
     solver is as loose already); warm-started as in the greedy moves, its Laplace evidences and
-    fits are the exact solver's within 1e-5 nats and 1e-4. The kernel hands it to the starting fits and the greedy moves
-    only: the reward move, its preconditioner and the likelihoods the sampler keeps see the
-    solver's own tolerance. (Traced, not compiled: each method records the tolerance it ran
-    with.) It failed with the greedy moves given the kernel's emission."""
+    fits are the exact solver's within 1e-5 nats and 1e-4. The kernel hands it to the starting
+    fits, the greedy moves and the reward move's preconditioner (``tune``) only: the reward
+    move and the likelihoods the sampler keeps see the solver's own tolerance. (Traced, not
+    compiled: each method records the tolerance it ran with.) It failed with the greedy moves
+    given the kernel's emission."""
     from gridworld import gridworld
 
     from npbrs.domains.demos import generate_demonstrations
@@ -364,4 +365,4 @@ def test_the_search_solves_looser_and_only_the_search(monkeypatch):
     state = jax.eval_shape(lambda k: kernel.initial_state(k, None, 4), jax.random.PRNGKey(0))
     jax.eval_shape(kernel.sweep, state)
     assert seen == {"init_params": {1e-6}, "fit_evidence": {1e-6}, "fit_point": {1e-6}, "update": {1e-10},
-                    "tune": {1e-10}, "log_likelihoods": {1e-10, 1e-6}}, seen
+                    "tune": {1e-6}, "log_likelihoods": {1e-10, 1e-6}}, seen

@@ -616,7 +616,8 @@ class _Chains:
         """One sweep of every chain; returns the records (a list of per-chain dicts or one batched dict)."""
         if self.method == "sequential":
             # the chains' greedy moves stop together, as vectorised chains' do (the same draws)
-            greedy = jnp.any(jnp.stack([self.kernel.greedy_open(s) for s in self.states]))
+            # (on the host: each state's last sweep is done by now, and no small program compiles)
+            greedy = np.any([self.kernel.greedy_open(np.asarray(s.greedy_idle)) for s in self.states])
             outs = on_threads(self.fn, [(s, greedy) for s in self.states], self.threads)
             self.states = [state for state, _ in outs]
             return [rec for _, rec in outs]

@@ -280,7 +280,9 @@ class BPHMMKernel(MCMCKernel, Pytree):
         passes this of all of them as the sweep's ``clock`` (numpyro's sequential chains, which
         see one chain at a time, stop each chain's on its own)."""
         patience = self.moves["greedy_patience"]
-        return jnp.any(state.greedy_idle < patience) if patience else jnp.bool_(True)
+        idle = getattr(state, "greedy_idle", state)  # (or the greedy_idle counts alone; NumPy stays NumPy)
+        xp = np if isinstance(idle, (np.ndarray, np.generic)) else jnp
+        return xp.any(idle < patience) if patience else xp.bool_(True)
 
     def gate(self, state: BPHMMState):
         """(N, T, K) every step's end probabilities under ``state``'s ends (the filters' gate),
@@ -542,7 +544,8 @@ class BPHMMKernel(MCMCKernel, Pytree):
         # the clock, not the state's step: under vectorised chains a batched flag would make
         # the emission's warmup-only work (e.g. the reward's Fisher preconditioner) run always
         cache = state.cache
-        tune = getattr(self.emission, "tune", None)
+        # (a preconditioner: any fixed one leaves the posterior invariant; the search's accuracy)
+        tune = getattr(self.emission.for_search(), "tune", None)
         if tune is not None:
             every = int(getattr(self.emission, "tune_every", 1))
             cache = jax.lax.cond((step < num_warmup) & (step % every == 0),
