@@ -617,7 +617,8 @@ class _Chains:
         if self.method == "sequential":
             # the chains' greedy moves stop together, as vectorised chains' do (the same draws)
             # (on the host: each state's last sweep is done by now, and no small program compiles)
-            greedy = np.any([self.kernel.greedy_open(np.asarray(s.greedy_idle)) for s in self.states])
+            greedy = np.any([self.kernel.greedy_open(s._replace(greedy_idle=np.asarray(s.greedy_idle)))
+                             for s in self.states])
             outs = on_threads(self.fn, [(s, greedy) for s in self.states], self.threads)
             self.states = [state for state, _ in outs]
             return [rec for _, rec in outs]

@@ -280,9 +280,8 @@ class BPHMMKernel(MCMCKernel, Pytree):
         passes this of all of them as the sweep's ``clock`` (numpyro's sequential chains, which
         see one chain at a time, stop each chain's on its own)."""
         patience = self.moves["greedy_patience"]
-        idle = getattr(state, "greedy_idle", state)  # (or the greedy_idle counts alone; NumPy stays NumPy)
-        xp = np if isinstance(idle, (np.ndarray, np.generic)) else jnp
-        return xp.any(idle < patience) if patience else xp.bool_(True)
+        xp = np if isinstance(state.greedy_idle, (np.ndarray, np.generic)) else jnp  # (a host state stays on the host)
+        return xp.any(state.greedy_idle < patience) if patience else xp.bool_(True)
 
     def gate(self, state: BPHMMState):
         """(N, T, K) every step's end probabilities under ``state``'s ends (the filters' gate),
@@ -470,6 +469,8 @@ class BPHMMKernel(MCMCKernel, Pytree):
         features = self._sample_features(k_feat, state, gate) if self.sample_features else state.features
         # the moves' state (``npbrs.inference.sampler.state``): each move maps it to a new one
         moved = MoveState.of(state, gate)._replace(features=features)
+        # the emission as the work that is not an MCMC move uses it: the greedy moves, the tune
+        search = self.emission.for_search()
         blocks = min(self.moves["blocks"], N)  # refits of a split's allocation (split-merge, greedy splits)
         if self.moves["start"]:
             moves_on = step >= self.moves["start"]
@@ -518,7 +519,7 @@ class BPHMMKernel(MCMCKernel, Pytree):
             def greedy_run(ops):
                 k_merge, k_split = jax.random.split(k_gm)
                 # not an MCMC move: its fits may be solved less exactly (Emission.for_search)
-                ops, merged, split = greedy_trials(k_merge, k_split, ops, self.emission.for_search(), self.data,
+                ops, merged, split = greedy_trials(k_merge, k_split, ops, search, self.data,
                                                    state.hyper, self.moves["greedy_merge"], self.moves["greedy_split"],
                                                    blocks)
                 return ops, (merged, split)
@@ -545,7 +546,7 @@ class BPHMMKernel(MCMCKernel, Pytree):
         # the emission's warmup-only work (e.g. the reward's Fisher preconditioner) run always
         cache = state.cache
         # (a preconditioner: any fixed one leaves the posterior invariant; the search's accuracy)
-        tune = getattr(self.emission.for_search(), "tune", None)
+        tune = getattr(search, "tune", None)
         if tune is not None:
             every = int(getattr(self.emission, "tune_every", 1))
             cache = jax.lax.cond((step < num_warmup) & (step % every == 0),
