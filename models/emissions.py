@@ -150,12 +150,15 @@ class Emission(Pytree):
     def supports_split_merge(cls) -> bool:
         return cls.fit_point is not Emission.fit_point
 
-    def fit_evidence(self, data: HMMData, weights, init=None):
+    def fit_evidence(self, data: HMMData, weights, init=None, with_evidence=True):
         """Point estimates (M, ...) of M skills' parameters from weighted steps ``weights``
         (N, T, M) and the log evidence (M,) of each skill's steps, log of the integral of
         p(steps | params) p0(params) over the parameters (exact, or e.g. a Laplace
         approximation at the estimate); ``init`` (M, ...) may start an iterative fit. Used by
-        the warmup's greedy merges; optional."""
+        the warmup's greedy merges and splits (a split's allocation fits by it too); optional.
+        ``with_evidence`` (a bool or a traced one; optional in an implementation, the greedy
+        moves pass it only where it is taken): where false the caller needs the estimates only,
+        and the log evidences may be anything (e.g. NaN, skipping their cost)."""
         raise NotImplementedError(f"the {self.name!r} emission has no fit_evidence (needed by greedy merges)")
 
     @classmethod
@@ -297,8 +300,9 @@ class PolicyEmission(Emission):
         conc = self.concentration + self.counts(data, weights)  # (M, S, A)
         return {"policy": conc / jnp.sum(conc, -1, keepdims=True)}
 
-    def fit_evidence(self, data, weights, init=None):
-        """Posterior means and the exact Dirichlet-multinomial log evidence of each skill."""
+    def fit_evidence(self, data, weights, init=None, with_evidence=True):
+        """Posterior means and the exact Dirichlet-multinomial log evidence of each skill
+        (computed whatever ``with_evidence`` says: it costs little)."""
         from jax.scipy.special import gammaln
 
         n = self.counts(data, weights)  # (M, S, A)

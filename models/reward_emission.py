@@ -419,6 +419,11 @@ class RewardEmission(Emission):
         refitted, ``fit_steps`` steps, at sigma^2 = (b + |theta|^2 / 2) / (a + D / 2) of the
         first fit (where the Student-t prior's gradient is the Gaussian's): one compiled fit for
         both passes."""
+        fit, log_lik, V, scale = self._laplace_fit(counts, init, at_sampled_scale)
+        return fit, log_lik, self._laplace_precision(fit, counts, V, scale), scale
+
+    def _laplace_fit(self, counts, init=None, at_sampled_scale=False):
+        """:meth:`laplace`'s fits: (theta (M, D), log_lik (M,), V (M, S), scale (M,))."""
         M, D = counts.shape[0], self.num_features
         theta0 = jnp.zeros((M, D)) if init is None else init["theta"]
         steps = self.fit_steps if init is None else self.refit_steps
@@ -427,34 +432,48 @@ class RewardEmission(Emission):
         scale = jnp.full((M,), self.prior_scale)
         if not at_sampled_scale:
             fit, log_lik, V = fit_at(theta0, jnp.zeros((M, self.num_states)), scale, steps)
-        else:
-            a, b = self.scale_prior
+            return fit, log_lik, V, scale
+        a, b = self.scale_prior
 
-            def one(carry, first):
-                theta, _, V, scale = carry
-                scale = jnp.where(first, scale, jnp.sqrt((b + 0.5 * jnp.sum(theta ** 2, -1)) / (a + 0.5 * D)))
-                return (*fit_at(theta, V, scale, max(steps, self.fit_steps)), scale), None
+        def one(carry, first):
+            theta, _, V, scale = carry
+            scale = jnp.where(first, scale, jnp.sqrt((b + 0.5 * jnp.sum(theta ** 2, -1)) / (a + 0.5 * D)))
+            return (*fit_at(theta, V, scale, max(steps, self.fit_steps)), scale), None
 
-            (fit, log_lik, V, scale), _ = jax.lax.scan(
-                one, (theta0, jnp.zeros(M), jnp.zeros((M, self.num_states)), scale), jnp.array([True, False]))
+        (fit, log_lik, V, scale), _ = jax.lax.scan(
+            one, (theta0, jnp.zeros(M), jnp.zeros((M, self.num_states)), scale), jnp.array([True, False]))
+        return fit, log_lik, V, scale
+
+    def _laplace_precision(self, fit, counts, V, scale):
+        """:meth:`laplace`'s precisions (M, D, D) at its fits."""
         F = fisher_information(self.solver, fit, counts, V, self.temperature)  # (M, D, D)
-        precision = F + jnp.eye(D) / scale[:, None, None] ** 2
-        return fit, log_lik, 0.5 * (precision + jnp.swapaxes(precision, -1, -2)), scale
+        precision = F + jnp.eye(self.num_features) / scale[:, None, None] ** 2
+        return 0.5 * (precision + jnp.swapaxes(precision, -1, -2))
 
-    def fit_evidence(self, data, weights, init=None):
+    def fit_evidence(self, data, weights, init=None, with_evidence=True):
         """IRL fits (M, D) to weighted steps (N, T, M) and each skill's Laplace log evidence at
         its fit, log p(steps | theta) + log p0(theta) + D/2 log 2 pi - 1/2 log det(precision)
         (see :meth:`laplace`); with a sampled prior variance, sigma^2 integrated out too
-        (:meth:`scale_mixture_evidence`)."""
+        (:meth:`scale_mixture_evidence`). ``with_evidence`` (a bool, or a traced one): where
+        false, the fits only, their log evidences NaN (no Fisher information computed), so
+        that one compiled call serves fits and evidences (the greedy split's allocation)."""
         counts = self.counts(data, weights)
-        if not self.scale_prior:
-            theta, log_lik, precision, _ = self.laplace(counts, init)
-            logdet = linalg.spd_logdet(precision)
-            log_ev = (log_lik + self.log_prior({"theta": theta}) + 0.5 * self.num_features * jnp.log(2 * jnp.pi)
-                      - 0.5 * logdet)
-            return self._point(theta), log_ev
-        theta, log_lik, precision, scale = self.laplace(counts, init, at_sampled_scale=True)
-        return self._point(theta), self.scale_mixture_evidence(theta, log_lik, precision, scale ** 2)
+        M = counts.shape[0]
+        theta, log_lik, V, scale = self._laplace_fit(counts, init, at_sampled_scale=bool(self.scale_prior))
+
+        def evidence(_):
+            precision = self._laplace_precision(theta, counts, V, scale)
+            if not self.scale_prior:
+                logdet = linalg.spd_logdet(precision)
+                return (log_lik + self.log_prior({"theta": theta}) + 0.5 * self.num_features * jnp.log(2 * jnp.pi)
+                        - 0.5 * logdet)
+            return self.scale_mixture_evidence(theta, log_lik, precision, scale ** 2)
+
+        if with_evidence is True:
+            log_ev = evidence(None)
+        else:
+            log_ev = jax.lax.cond(with_evidence, evidence, lambda _: jnp.full((M,), jnp.nan), None)
+        return self._point(theta), log_ev
 
     # the coarse grid of log sigma^2 that finds the peak of the evidence's integrand
     _LOG_VARIANCE_NODES = np.linspace(-16.0, 16.0, 257)

@@ -89,10 +89,10 @@ def test_greedy_merges_run_only_in_warmup_and_remove_a_copy_gibbs_keeps():
         fit_point = Emission.fit_point
 
     for emission, moves, missing in ((NoEvidence(4, 3), {"greedy_merge": 1}, "fit_evidence"),
-                                     (NoEvidence(4, 3), {"greedy_split": 1}, "fit_evidence"),
-                                     (NoPoint(4, 3), {"greedy_split": 1}, "fit_point")):
+                                     (NoEvidence(4, 3), {"greedy_split": 1}, "fit_evidence")):
         with pytest.raises(ValueError, match=missing):
             BPHMMKernel(emission, data3, max_skills=3, moves=moves)
+    BPHMMKernel(NoPoint(4, 3), data3, max_skills=3, moves={"greedy_split": 1})  # (a split fits by fit_evidence)
     gibbs, data, z_true, s_gibbs = _copy_start(None, num_warmup=4)
     greedy, _, _, s_greedy = _copy_start({"greedy_merge": 2, "greedy_from": 0.25}, num_warmup=4)
     assert _tree_equal(s_gibbs, s_greedy)
@@ -208,6 +208,16 @@ def test_reward_laplace_evidence_is_close_to_importance_sampling(scale_prior):
 
     estimates = [float(estimate(jax.random.PRNGKey(m), fits["theta"][m], weights[..., m])) for m in range(3)]
     np.testing.assert_allclose(np.asarray(log_ev), estimates, atol=0.3)
+    # a traced ``with_evidence`` (the greedy split's allocation fits by the same call): the same
+    # fits either way, the evidences where it is true, NaN where it is false
+    flagged = jax.jit(lambda flag: em.fit_evidence(data, weights, None, with_evidence=flag))
+    for flag in (True, False):
+        fits_f, log_ev_f = flagged(flag)
+        np.testing.assert_allclose(np.asarray(fits_f["theta"]), np.asarray(fits["theta"]), rtol=1e-9, atol=1e-12)
+        if flag:
+            np.testing.assert_allclose(np.asarray(log_ev_f), np.asarray(log_ev), rtol=1e-9)
+        else:
+            assert np.all(np.isnan(np.asarray(log_ev_f)))
     if scale_prior:
         # with the prior's variance pinned (at the variance of the fit), the fixed-scale Laplace evidence
         pinned = make_emission("reward", dom.mdp, prior_scale=3.0, scale_prior=(1e6, 9e6))
@@ -305,7 +315,8 @@ def test_fit_runs_greedy_merges_by_default_where_the_emission_supports_them():
     class NoPoint(PolicyEmission):
         fit_point = Emission.fit_point
 
-    assert moves(ModelConfig(), NoPoint(9, 5)) == {"greedy_merge": 1, "greedy_from": 0.75}  # splits need fit_point
+    # (a split's allocation fits by fit_evidence too: splits need no fit_point)
+    assert moves(ModelConfig(), NoPoint(9, 5)) == {"greedy_merge": 1, "greedy_split": 1, "greedy_from": 0.75}
     # (an emission without fit_evidence: no greedy moves; the windows are the only default left open)
     cfg = ModelConfig.from_dict({"sampler": {"init_window": 25}})
     assert fit_module.default_moves(cfg, AutoregressiveEmission.__new__(AutoregressiveEmission)) is cfg
@@ -364,5 +375,5 @@ def test_the_search_solves_looser_and_only_the_search(monkeypatch):
     kernel = BPHMMKernel(em, data, max_skills=3, moves={"greedy_merge": 1, "greedy_split": 1, "greedy_from": 0.0})
     state = jax.eval_shape(lambda k: kernel.initial_state(k, None, 4), jax.random.PRNGKey(0))
     jax.eval_shape(kernel.sweep, state)
-    assert seen == {"init_params": {1e-6}, "fit_evidence": {1e-6}, "fit_point": {1e-6}, "update": {1e-10},
+    assert seen == {"init_params": {1e-6}, "fit_evidence": {1e-6}, "update": {1e-10},
                     "tune": {1e-6}, "log_likelihoods": {1e-10, 1e-6}}, seen

@@ -1,22 +1,25 @@
 """Planted recovery on small versions of the three benchmark world kinds, with ``fit``'s defaults
 for one-hot rewards (each skill starts at its IRL fit: ``start="auto"`` above 16 reward weights,
 on an initial segmentation of 5-step windows: the reward emission's ``init_window``) and a short
-run (1 chain, 30 + 30 sweeps): the skills found and the share of steps they label right under
+run (2 chains, 30 + 30 sweeps): the skills found and the share of steps they label right under
 one-to-one matching.
 
 What these small worlds show today with the default reward prior (``prior_scale="auto"``: sigma
 20 / sqrt(D) here, 3.2-4.0; fit seeds 0 / 1 / 2), the levels the tests hold so that a regression
 shows: the grid's two modes are found, labelled nearly as well as by the generating model's own
-Viterbi segmentation (0.945 / 0.945 / 0.938 against 0.98); rooms' three skills mostly (0.885 /
-0.798 / 0.835 against the oracle's 0.97; with the 25-step windows of session 28, 0.628 / 0.617 /
-0.904, so its floor of 0.75 fails with them); the labyrinth's three skills are found, but
-labelled little better than by its most common skill alone (0.640 / 0.727 / 0.725; 25-step
-windows 0.66 / 0.58 / 0.73; the oracle 0.91; see ``benchmarks/results/worlds-probes/`` and
-``benchmarks/NOTES.md`` for why: the start and the mixing, and switching that depends on the
-state, which the sticky BP-HMM lacks; ``switching="state"`` has it, and
-``tests/test_termination.py`` checks that a fit with it finds where the small labyrinth's skills
-end). A fit with one skill slot scores each world's
-most common skill's share and fails all three."""
+Viterbi segmentation (0.948 / 0.933 / 0.949 against 0.98); rooms' three skills mostly (0.869 /
+0.852 / 0.845 against the oracle's 0.97); the labyrinth's three skills are found, but labelled
+little better than by its most common skill alone (0.735 / 0.698 / 0.671; the oracle 0.91; see
+``benchmarks/results/worlds-probes/`` and ``benchmarks/NOTES.md`` for why: the start and the
+mixing, and switching that depends on the state, which the sticky BP-HMM lacks;
+``switching="state"`` has it, and ``tests/test_termination.py`` checks that a fit with it finds
+where the small labyrinth's skills end). A fit with one skill slot scores each world's most
+common skill's share and fails all three.
+
+Two chains, not one (session 40): one chain's accuracy on small rooms spreads from 0.56 to 0.90
+over fit seeds (10 of 24 seeds under the floor of 0.75, with session 39's sampler), so a change
+that moved one seed's rounding failed the test without changing the distribution; the best
+draw of two chains was above 0.75 for 11 of 12 seeds."""
 
 import numpy as np
 import pytest
@@ -47,7 +50,7 @@ def test_a_default_fit_recovers_the_planted_skills_of_each_world_kind(name):
     steps = np.concatenate(truth)
     least, majority = FLOOR[name]
     assert np.max(np.bincount(steps)) / steps.size == pytest.approx(majority, abs=0.001)
-    result = fit(world.mdp, world.demos, num_chains=1, num_warmup=30, num_samples=30, seed=0, progress_bar=False)
+    result = fit(world.mdp, world.demos, num_chains=2, num_warmup=30, num_samples=30, seed=0, progress_bar=False)
     assert result.emission["start"] == "auto"
     found = hungarian_accuracy(truth, result.segmentation)
     K = world.model.num_skills

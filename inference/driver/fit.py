@@ -536,8 +536,7 @@ def default_moves(cfg: ModelConfig, emission: Emission) -> ModelConfig:
         moves.setdefault("redraw_unused", int(emission.redraw_unused))
     if cfg.max_skills >= 2 and emission.supports_greedy_merge():
         moves.setdefault("greedy_merge", DEFAULT_GREEDY_TRIALS["greedy_merge"])
-        if emission.supports_split_merge():
-            moves.setdefault("greedy_split", DEFAULT_GREEDY_TRIALS["greedy_split"])
+        moves.setdefault("greedy_split", DEFAULT_GREEDY_TRIALS["greedy_split"])
         if moves.get("greedy_merge", 0) or moves.get("greedy_split", 0):
             moves.setdefault("greedy_from", MOVE_DEFAULTS["greedy_from"])
     if moves == cfg.sampler.moves:

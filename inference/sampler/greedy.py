@@ -47,6 +47,7 @@ parameters. Since every kept move raises the score, a merge never undoes a split
 
 from __future__ import annotations
 
+import inspect
 from typing import NamedTuple
 
 import jax
@@ -57,7 +58,7 @@ from npbrs.models.bphmm import collapsed_feature_log_prob, collapsed_sequence_lo
 
 from npbrs.domains.precision import float64_all
 
-from .split_merge import allocate, skill_counts, visiting_order
+from .split_merge import Allocation, allocate_block, allocated_steps, allocation, skill_counts, visiting_order
 from .state import MoveState
 
 __all__ = ["GreedyInfo", "greedy_merge", "greedy_merge_at", "greedy_split", "greedy_split_at", "greedy_trials",
@@ -98,30 +99,30 @@ def _structure_log_prob(hyper, mask, z, features, gate=None):
     return jnp.sum(jnp.where(valid, seq, 0.0)) + collapsed_feature_log_prob(features, hyper.alpha, valid)
 
 
-class _Proposal(NamedTuple):
-    """A greedy trial's proposed change, before the one evidence computation that scores it:
-    the proposed (z, F); three step-weight columns ``w`` (N, T, 3) and the fits' starts
-    ``init`` (3, ...) for ``fit_evidence``: (part, part, whole), a merge's parts being j and k,
-    a split's its two new skills; ``merging``, which of the two it is (a merge's gain is
-    whole - parts, and its second slot gets a prior draw from ``prior_key``; a split's gain is
-    parts - whole, its slots the parts' fits); ``slots`` (2,), the skills that get new
-    parameters; ``possible`` (for the info) and ``valid`` (further conditions of keeping it);
-    ``j``, ``k``: the skills the info reports."""
+class _Trial(NamedTuple):
+    """A greedy trial before its fits (:func:`_run_trial`): ``merging`` (a merge or a split);
+    the three fits' starts ``init`` (3, ...) and their first step weights: ``parts`` (N, T, 2)
+    and ``whole`` (N, T), a merge's parts being j and k (the whole their union), a split's its
+    two new skills, whose steps the allocation ``plan`` makes (the whole: k1's steps);
+    ``z``, ``features``: a merge's proposed (z, F), a split's current ones; ``slots`` (2,),
+    the skills that get new parameters; ``prior_key`` (a merge's second slot gets a prior
+    draw); ``possible`` (for the info); ``j``, ``k``: the skills the info reports."""
 
+    merging: jax.Array
+    init: dict
+    parts: jax.Array
+    whole: jax.Array
     z: jax.Array
     features: jax.Array
-    w: jax.Array
-    init: dict
-    merging: jax.Array
     slots: jax.Array
     prior_key: jax.Array
     possible: jax.Array
-    valid: jax.Array
     j: jax.Array
     k: jax.Array
+    plan: Allocation
 
 
-def _merge_proposal(key, state: MoveState, data, j) -> _Proposal:
+def _merge_trial(key, state: MoveState, data, j, num_blocks) -> _Trial:
     """Merge skill j into the used skill under whose parameters its steps are likeliest."""
     features, z, params, log_lik = state.features, state.z, state.params, state.log_lik
     K = features.shape[1]
@@ -133,17 +134,20 @@ def _merge_proposal(key, state: MoveState, data, j) -> _Proposal:
     z_new = jnp.where(z == j, k, z).astype(z.dtype)
     f_new = features.at[:, k].set(jnp.maximum(features[:, k], features[:, j])).at[:, j].set(0.0)
     # the evidence of j's steps, k's steps and their union, fits started at the current parameters
-    w = jnp.stack([steps_j, onehot[..., k], steps_j + onehot[..., k]], -1)
     init = jax.tree.map(lambda p: jnp.stack([p[j], p[k], p[k]]), params)
     possible = used[j] & (jnp.sum(used) >= 2)
     slots = jnp.stack([k, j]).astype(jnp.int32)
-    return _Proposal(z_new, f_new, w, init, jnp.bool_(True), slots, key, possible, jnp.bool_(True), jnp.int32(j),
-                     jnp.int32(k))
+    # (no allocation: a plan of empty blocks, its anchors anywhere)
+    zero = jnp.int32(0)
+    plan = allocation(data, z, features, k, j, (zero, zero, zero, zero), jnp.arange(z.shape[0]), num_blocks)
+    plan = plan._replace(rows=jnp.full_like(plan.rows, -1))
+    return _Trial(jnp.bool_(True), init, jnp.stack([steps_j, onehot[..., k]], -1), steps_j + onehot[..., k], z_new,
+                  f_new, slots, key, possible, jnp.int32(j), jnp.int32(k), plan)
 
 
-def _split_proposal(key, state: MoveState, emission, data, anchors, num_blocks) -> _Proposal:
+def _split_trial(key, state: MoveState, data, anchors, num_blocks) -> _Trial:
     """Split the skill of anchor a between it and a free slot, anchor b going to the slot, by
-    the split-merge move's sequential allocation."""
+    the split-merge move's sequential allocation (its steps run in :func:`_run_trial`)."""
     features, z, params = state.features, state.z, state.params
     mask = data.mask
     ia, ta, ib, tb = anchors
@@ -152,46 +156,94 @@ def _split_proposal(key, state: MoveState, emission, data, anchors, num_blocks) 
     free = jnp.sum(jnp.where(real[:, None], features, 0.0), axis=0) == 0  # no trajectory may use the slot
     k2 = jnp.argmax(free)
     possible = jnp.any(free) & (z[ib, tb] == k1) & ~((ia == ib) & (ta == tb)) & mask[ia, ta] & mask[ib, tb]
-    order = visiting_order(key, mask, ia, ib)
-    theta_k1 = jax.tree.map(lambda p: p[k1], params)
-    z_new, alloc_fits = allocate(emission, data, z, features, k1, k2, anchors, order, theta_k1, num_blocks)
-    z_new = z_new.astype(z.dtype)
-    used_a = jnp.any((z_new == k1) & mask, axis=1)
-    used_b = jnp.any((z_new == k2) & mask, axis=1)
-    involved = features[:, k1] > 0
-    f_new = features.at[:, k1].set(jnp.where(involved & ~used_a & used_b, 0.0, features[:, k1]))
-    f_new = f_new.at[:, k2].set(used_b.astype(features.dtype))
-    steps_a = ((z_new == k1) & mask).astype(jnp.float64)
-    steps_b = ((z_new == k2) & mask).astype(jnp.float64)
-    w = jnp.stack([steps_a, steps_b, steps_a + steps_b], -1)
-    # the two parts' fits start at the allocation's, the whole's at k1's current parameters
-    init = jax.tree.map(lambda a, p: jnp.stack([a[0], a[1], p]), alloc_fits, theta_k1)
+    plan = allocation(data, z, features, k1, k2, anchors, visiting_order(key, mask, ia, ib), num_blocks)
+    # the parts' fits start at k1's current parameters, and so does the whole's
+    init = jax.tree.map(lambda p: jnp.stack([p[k1], p[k1], p[k1]]), params)
     slots = jnp.stack([k1, k2]).astype(jnp.int32)
-    return _Proposal(z_new, f_new, w, init, jnp.bool_(False), slots, key, possible, jnp.any(used_a) & jnp.any(used_b),
-                     jnp.int32(k1), jnp.int32(k2))
+    whole = ((z == k1) & mask).astype(jnp.float64)
+    return _Trial(jnp.bool_(False), init, plan.start, whole, z, features, slots, key, possible, jnp.int32(k1),
+                  jnp.int32(k2), plan)
 
 
-def _keep_if_better(prop: _Proposal, state: MoveState, emission, data, hyper):
-    """Score a proposal by the change of :func:`merge_score` (the three log evidences by one
-    ``fit_evidence`` call), give its two slots their new parameters, and keep it when the score
-    rises: (state, :class:`GreedyInfo`)."""
+def _run_trial(trial: _Trial, state: MoveState, emission, data, hyper):
+    """Fit and score a trial by the change of :func:`merge_score`, give its two slots their new
+    parameters, and keep it when the score rises: (state, :class:`GreedyInfo`).
+
+    One loop of the allocation's ``num_blocks + 1`` steps, each one ``fit_evidence`` of three
+    columns (the two parts, the whole) and one ``log_likelihoods`` of two, so that the
+    program holds one compiled copy of each (for the reward emission, an IRL fit with its
+    solves and their adjoints). A split's step fits the parts to the allocation so far (the
+    whole again from its start, the same fit each time), then allocates the step's block; its
+    last step (no block) fits the final allocation and computes the evidences. A merge runs
+    the last step only. The kept likelihood columns are the last step's."""
+    plan, merging = trial.plan, trial.merging
+    N = data.mask.shape[0]
+    last_step = plan.rows.shape[0] - 1
+    prior = emission.sample_prior_one(trial.prior_key)
+    nan3 = jnp.full((3,), jnp.nan)
+
+    def fit_step(carry, x):
+        z, done, parts, fits, log_ev, lik = carry
+        rows, fit_on, step = x
+        last = step == last_step
+
+        def fit(operand):
+            fits, _, _ = operand
+            # the parts from the last fits, the whole from its start
+            init = jax.tree.map(lambda f, i: i.at[:2].set(f[:2]), fits, trial.init)
+            w = jnp.concatenate([parts, trial.whole[..., None]], -1)
+            new, log_ev = _fit_evidence(emission, data, w, init, last)
+            # the likelihoods of the allocation's fits, or of the two slots' new parameters:
+            # a merge's whole and a prior draw, a split's parts
+            two = jax.tree.map(lambda f, p: jnp.where(merging & last, jnp.stack([f[2], p]), f[:2]), new, prior)
+            lik, _ = emission.log_likelihoods(two, data, emission.init_cache(2))  # (N, T, 2)
+            return new, log_ev, lik
+
+        run = jnp.where(merging, last, fit_on | last)
+        fits, log_ev, lik = jax.lax.cond(run, fit, lambda operand: operand, (fits, log_ev, lik))
+        z, done = jax.lax.cond(jnp.any(rows >= 0), lambda zd: allocate_block(plan, data, *zd, lik, rows),
+                               lambda zd: zd, (z, done))
+        parts = jnp.where(merging, parts, allocated_steps(plan, data, z, done))
+        return (z, done, parts, fits, log_ev, lik), None
+
+    steps = jnp.arange(last_step + 1)
+    start = (trial.z, jnp.zeros(N, bool), trial.parts, trial.init, nan3, state.log_lik[..., :2])
+    (z_alloc, _, parts, fits, log_ev, lik), _ = jax.lax.scan(fit_step, start, (plan.rows, plan.fit_on, steps))
+    # a split's proposed state: k2 gets the features of the trajectories that use it, and k1
+    # loses those of the involved trajectories that use only k2 now
+    mask, k1, k2 = data.mask, plan.k1, plan.k2
+    used_a = jnp.any((z_alloc == k1) & mask, axis=1)
+    used_b = jnp.any((z_alloc == k2) & mask, axis=1)
+    f = trial.features
+    involved = f[:, k1] > 0
+    f_split = f.at[:, k1].set(jnp.where(involved & ~used_a & used_b, 0.0, f[:, k1])).at[:, k2].set(
+        used_b.astype(f.dtype))
+    z_new = jnp.where(merging, trial.z, z_alloc.astype(trial.z.dtype))
+    f_new = jnp.where(merging, trial.features, f_split)
+    valid = merging | (jnp.any(used_a) & jnp.any(used_b))
+
     features, z, params, log_lik = state.features, state.z, state.params, state.log_lik
-    fits, log_ev = emission.fit_evidence(data, prop.w, prop.init)
     parts_minus_whole = log_ev[0] + log_ev[1] - log_ev[2]
-    structure = (_structure_log_prob(hyper, data.mask, prop.z, prop.features, state.gate)
+    structure = (_structure_log_prob(hyper, data.mask, z_new, f_new, state.gate)
                  - _structure_log_prob(hyper, data.mask, z, features, state.gate))
-    gain = jnp.where(prop.merging, -parts_minus_whole, parts_minus_whole) + structure
-    prior = emission.sample_prior_one(prop.prior_key)
+    gain = jnp.where(merging, -parts_minus_whole, parts_minus_whole) + structure
     # a merge: the whole's fit, then a prior draw; a split: the two parts' fits
-    two = jax.tree.map(lambda f, p: jnp.where(prop.merging, jnp.stack([f[2], p]), f[:2]), fits, prior)
-    a, b = prop.slots[0], prop.slots[1]
+    two = jax.tree.map(lambda f, p: jnp.where(merging, jnp.stack([f[2], p]), f[:2]), fits, prior)
+    a, b = trial.slots[0], trial.slots[1]
     new_params = jax.tree.map(lambda p, t: p.at[a].set(t[0]).at[b].set(t[1]), params, two)
-    cols, _ = emission.log_likelihoods(two, data, emission.init_cache(2))  # (N, T, 2)
-    new_log_lik = log_lik.at[..., a].set(cols[..., 0]).at[..., b].set(cols[..., 1])
-    accept = prop.possible & prop.valid & jnp.isfinite(gain) & (gain > 0)
-    info = GreedyInfo(prop.j, prop.k, prop.possible, accept, jnp.where(prop.possible, gain, -jnp.inf))
-    new = state._replace(features=prop.features, z=prop.z, params=new_params, log_lik=new_log_lik)
+    new_log_lik = log_lik.at[..., a].set(lik[..., 0]).at[..., b].set(lik[..., 1])
+    accept = trial.possible & valid & jnp.isfinite(gain) & (gain > 0)
+    info = GreedyInfo(trial.j, trial.k, trial.possible, accept, jnp.where(trial.possible, gain, -jnp.inf))
+    new = state._replace(features=f_new, z=z_new, params=new_params, log_lik=new_log_lik)
     return select(accept, new, state), info
+
+
+def _fit_evidence(emission, data, weights, init, with_evidence):
+    """``emission.fit_evidence``, told when only the fits are needed if it takes
+    ``with_evidence`` (an emission written without it computes its evidences always)."""
+    if "with_evidence" in inspect.signature(emission.fit_evidence).parameters:
+        return emission.fit_evidence(data, weights, init, with_evidence=with_evidence)
+    return emission.fit_evidence(data, weights, init)
 
 
 def _pick_merge(key, state: MoveState, data):
@@ -230,7 +282,7 @@ def greedy_merge_at(key, state: MoveState, emission, data, hyper, j):
     :func:`merge_score`: returns (state, :class:`GreedyInfo`). The state's ``log_lik`` holds
     the likelihoods of its ``params``, before and after. ``key`` draws slot j's new parameters
     from the prior. The emission needs ``fit_evidence``."""
-    return _keep_if_better(_merge_proposal(key, state, data, j), state, emission, data, hyper)
+    return _run_trial(_merge_trial(key, state, data, j, 1), state, emission, data, hyper)
 
 
 def greedy_split(key, state: MoveState, emission, data, hyper, num_blocks: int = 2):
@@ -248,8 +300,7 @@ def greedy_split_at(key, state: MoveState, emission, data, hyper, anchors, num_b
     (i_b, t_b) of the same skill going to the new slot, if that raises :func:`merge_score`
     (see the module notes): returns (state, :class:`GreedyInfo`). ``key`` orders the
     allocation's trajectories after the anchors'."""
-    prop = _split_proposal(key, state, emission, data, anchors, num_blocks)
-    return _keep_if_better(prop, state, emission, data, hyper)
+    return _run_trial(_split_trial(key, state, data, anchors, num_blocks), state, emission, data, hyper)
 
 
 def greedy_trials(key_merge, key_split, state: MoveState, emission, data, hyper, num_merges: int,
@@ -259,9 +310,10 @@ def greedy_trials(key_merge, key_split, state: MoveState, emission, data, hyper,
     with the same random numbers: returns (state, kept merges, kept splits).
 
     The trials run in one loop whose body holds one ``fit_evidence`` and one
-    ``log_likelihoods``; only the proposal differs between a merge and a split. For the reward
-    emission, an evidence is an IRL fit and a Fisher information: one compiled copy instead of
-    two is a large part of a fit's compile time."""
+    ``log_likelihoods`` (:func:`_run_trial`: a split's allocation fits by them too); only the
+    setup differs between a merge and a split. For the reward emission, an evidence is an IRL
+    fit and a Fisher information: one compiled copy instead of three is a large part of a
+    fit's compile time."""
     if num_merges + num_splits == 0:
         return state, jnp.int32(0), jnp.int32(0)
     keys = jnp.concatenate([jax.random.split(key_merge, num_merges), jax.random.split(key_split, num_splits)]
@@ -271,19 +323,19 @@ def greedy_trials(key_merge, key_split, state: MoveState, emission, data, hyper,
 
     def merge(key, carry):
         j, k_move = _pick_merge(key, carry, data)
-        return _merge_proposal(k_move, carry, data, j)
+        return _merge_trial(k_move, carry, data, j, num_blocks)
 
     def split(key, carry):
         anchors, k_move = _pick_split(key, carry, data)
-        return _split_proposal(k_move, carry, emission, data, anchors, num_blocks)
+        return _split_trial(k_move, carry, data, anchors, num_blocks)
 
     def one(carry, x):
         key, splitting = x
         if num_merges and num_splits:
-            prop = jax.lax.cond(splitting, split, merge, key, carry)
+            trial = jax.lax.cond(splitting, split, merge, key, carry)
         else:
-            prop = (merge if num_merges else split)(key, carry)
-        carry, info = _keep_if_better(prop, carry, emission, data, hyper)
+            trial = (merge if num_merges else split)(key, carry)
+        carry, info = _run_trial(trial, carry, emission, data, hyper)
         return carry, info.accepted
 
     state, accepted = jax.lax.scan(one, state, (keys, is_split))

@@ -190,9 +190,6 @@ class BPHMMKernel(MCMCKernel, Pytree):
             if self.moves[name] and not emission.supports_greedy_merge():
                 raise ValueError(f"moves.{name}: the {emission.name!r} emission has no fit_evidence, which greedy "
                                  "moves need; implement Emission.fit_evidence")
-        if self.moves["greedy_split"] and not emission.supports_split_merge():
-            raise ValueError(f"moves.greedy_split: the {emission.name!r} emission has no fit_point, which greedy "
-                             "splits need; implement Emission.fit_point")
 
     # ------------------------------------------------------------------ numpyro hooks
     @property

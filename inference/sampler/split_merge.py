@@ -79,7 +79,8 @@ from npbrs.domains.precision import float64_all
 from .state import MoveState
 
 __all__ = ["SplitMergeInfo", "SplitMergeProposal", "split_merge", "propose_split_merge", "split_merge_log_ratio",
-           "allocate", "skill_counts", "visiting_order"]
+           "allocate", "Allocation", "allocation", "allocate_block", "allocated_steps", "skill_counts",
+           "visiting_order"]
 
 # probability of each feature pair other than the one that matches the allocation
 PAIR_EPS = 0.1
@@ -159,30 +160,63 @@ def _blocks(order, num_real, num_blocks):
     return jnp.where(take, order[jnp.clip(pos, 0, N - 1)], -1), jnp.arange(num_blocks) < used_blocks
 
 
-def allocate(emission, data, z_m, f_m, k1, k2, anchors, order, init_one, num_blocks):
-    """Deterministic sequential allocation of the k1-steps of (z_m, f_m) between k1 and k2,
-    trajectories in ``order`` (:func:`visiting_order`: padding last) in ``num_blocks`` blocks,
-    the point fits refitted after each block.
+class Allocation(NamedTuple):
+    """The sequential allocation of the k1-steps of (z, features) between k1 and k2
+    (:func:`allocation`), before its fits: ``start`` (N, T, 2) the anchors' runs, the first
+    fits' steps; ``rows`` (num_blocks + 1, per_block) the trajectories of each scan step's block
+    (-1: none; the last step has none and fits the final allocation); ``fit_on``
+    (num_blocks + 1,) whether each step refits (the first always, a later one when the block
+    before it was in use). :func:`allocate_block` allocates one block given the fits'
+    likelihoods, :func:`allocated_steps` gives the fits' step weights of an allocation."""
 
-    Returns (z (N, T) allocated, point fits (2, ...) of the final allocation)."""
+    z: jax.Array
+    features: jax.Array
+    k1: jax.Array
+    k2: jax.Array
+    anchors: tuple
+    start: jax.Array
+    rows: jax.Array
+    fit_on: jax.Array
+
+
+def allocation(data, z_m, f_m, k1, k2, anchors, order, num_blocks) -> Allocation:
+    """The :class:`Allocation` of the k1-steps of (z_m, f_m) between k1 and k2, trajectories in
+    ``order`` (:func:`visiting_order`: padding last) in ``num_blocks`` blocks."""
     N, T = data.mask.shape
-    K = f_m.shape[1]
     mask = data.mask
+    anchors = tuple(jnp.asarray(a, jnp.int32) for a in anchors)
     ia, ta, ib, tb = anchors
-    blocks, in_use = _blocks(order, jnp.sum(jnp.any(mask, axis=1)), num_blocks)
+    k1, k2 = jnp.asarray(k1, jnp.int32), jnp.asarray(k2, jnp.int32)
+    blocks, in_use = _blocks(jnp.asarray(order, jnp.int32), jnp.sum(jnp.any(mask, axis=1)), num_blocks)
+    start = jnp.zeros((N, T, 2)).at[ia, :, 0].set(_run_around(z_m[ia], mask[ia], ta).astype(jnp.float64))
+    start = start.at[ib, :, 1].set(_run_around(z_m[ib], mask[ib], tb).astype(jnp.float64))
+    # one point fit per scan step, then that step's block: the first step fits the anchors' runs,
+    # each later one the steps allocated so far (kept where its block was in use), and a last
+    # step with no block fits the final allocation (one call site of the fit in the program)
+    fit_on = jnp.concatenate([jnp.ones(1, bool), in_use])  # (num_blocks + 1,)
+    rows = jnp.concatenate([blocks, jnp.full((1,) + blocks.shape[1:], -1, blocks.dtype)])
+    return Allocation(z_m, f_m, k1, k2, anchors, start, rows, fit_on)
+
+
+def allocated_steps(plan: Allocation, data, z, done):
+    """(N, T, 2) float: the steps of k1 and k2 in the trajectories allocated so far (``done``)."""
+    w = jnp.stack([(z == plan.k1), (z == plan.k2)], -1) & (data.mask & done[:, None])[..., None]
+    return w.astype(jnp.float64)
+
+
+def allocate_block(plan: Allocation, data, z, done, lik_ab, rows):
+    """Allocate the trajectories ``rows`` (-1: none) of the k1-steps of ``plan`` by Viterbi over
+    {k1, k2} under the fits' log-likelihoods ``lik_ab`` (N, T, 2), the anchors and other steps
+    held, a sticky chain between them: returns (z, done)."""
+    N, T = data.mask.shape
+    mask, z_m, f_m, k1, k2 = data.mask, plan.z, plan.features, plan.k1, plan.k2
+    ia, ta, ib, tb = plan.anchors
+    K = f_m.shape[1]
     t_idx = jnp.arange(T)
     cols = jnp.arange(K)
     log_trans = jnp.log(jnp.ones((K, K)) + 10.0 * jnp.eye(K))  # a sticky chain for the allocation
 
-    def weights_of(z, done):
-        w = jnp.stack([(z == k1), (z == k2)], -1) & (mask & done[:, None])[..., None]
-        return w.astype(jnp.float64)  # (N, T, 2)
-
-    seg = jnp.zeros((N, T, 2)).at[ia, :, 0].set(_run_around(z_m[ia], mask[ia], ta).astype(jnp.float64))
-    seg = seg.at[ib, :, 1].set(_run_around(z_m[ib], mask[ib], tb).astype(jnp.float64))
-    init = jax.tree.map(lambda x: jnp.stack([x, x]), init_one)
-
-    def one_trajectory(i, valid, lik_ab):
+    def one_trajectory(i, valid):
         i = jnp.maximum(i, 0)
         zi, mi = z_m[i], mask[i]
         is_k = (zi == k1) & mi
@@ -195,12 +229,21 @@ def allocate(emission, data, z_m, f_m, k1, k2, anchors, order, init_one, num_blo
         path, _ = viterbi(jnp.zeros(K), log_trans, jnp.where(allowed, emit, NEG_LOG), mi, (f_m[i] > 0) | (cols == k2))
         return jnp.where(go, path, zi)
 
-    # One point fit per scan step, then that step's block: the first step fits the anchors' runs
-    # (from ``init_one``), each later one the steps allocated so far (kept where its block was in
-    # use), and a last step with no block fits the final allocation. (One call site of the fit
-    # in the compiled program, not two: its code is a large part of the sweep's.)
-    fit_on = jnp.concatenate([jnp.ones(1, bool), in_use])  # (num_blocks + 1,)
-    rows_of = jnp.concatenate([blocks, jnp.full((1,) + blocks.shape[1:], -1, blocks.dtype)])
+    valid = rows >= 0
+    zs = jax.vmap(one_trajectory)(rows, valid)
+    safe = jnp.where(valid, rows, N)  # out of range: dropped by the scatter
+    return z.at[safe].set(zs, mode="drop"), done.at[safe].set(True, mode="drop")
+
+
+def allocate(emission, data, z_m, f_m, k1, k2, anchors, order, init_one, num_blocks):
+    """Deterministic sequential allocation of the k1-steps of (z_m, f_m) between k1 and k2,
+    trajectories in ``order`` (:func:`visiting_order`: padding last) in ``num_blocks`` blocks,
+    the point fits (``emission.fit_point``, started at ``init_one``) refitted after each block.
+
+    Returns (z (N, T) allocated, point fits (2, ...) of the final allocation)."""
+    N = data.mask.shape[0]
+    plan = allocation(data, z_m, f_m, k1, k2, anchors, order, num_blocks)
+    init = jax.tree.map(lambda x: jnp.stack([x, x]), init_one)
 
     def block(carry, step):
         z, done, fits, weights = carry
@@ -208,14 +251,10 @@ def allocate(emission, data, z_m, f_m, k1, k2, anchors, order, init_one, num_blo
         refit = emission.fit_point(data, weights, fits)
         fits = jax.tree.map(lambda new, old: jnp.where(fit_now, new, old), refit, fits)
         lik_ab, _ = emission.log_likelihoods(fits, data, emission.init_cache(2))  # (N, T, 2)
-        valid = rows >= 0
-        zs = jax.vmap(lambda i, v: one_trajectory(i, v, lik_ab))(rows, valid)
-        safe = jnp.where(valid, rows, N)  # out of range: dropped by the scatter
-        z = z.at[safe].set(zs, mode="drop")
-        done = done.at[safe].set(True, mode="drop")
-        return (z, done, fits, weights_of(z, done)), None
+        z, done = allocate_block(plan, data, z, done, lik_ab, rows)
+        return (z, done, fits, allocated_steps(plan, data, z, done)), None
 
-    (z, _, fits, _), _ = jax.lax.scan(block, (z_m, jnp.zeros(N, bool), init, seg), (rows_of, fit_on))
+    (z, _, fits, _), _ = jax.lax.scan(block, (z_m, jnp.zeros(N, bool), init, plan.start), (plan.rows, plan.fit_on))
     return z, fits
 
 
