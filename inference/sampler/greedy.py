@@ -34,9 +34,10 @@ conditional).
 A greedy split is the converse, for a start that lumps two true skills into one slot (seen on
 the highway: ``benchmarks/NOTES.md``). It picks a used skill k1 and two of its steps (see
 :func:`greedy_split`), allocates k1's steps between k1 and a free slot k2 by the split-merge
-move's deterministic sequential allocation (:func:`npbrs.inference.sampler.split_merge.allocate`,
-point fits refitted as the allocation grows), gives k2 the features of the trajectories that
-use it, and keeps the split when the same score rises:
+move's deterministic sequential allocation (:func:`npbrs.inference.sampler.split_merge.allocation`,
+the two parts' fits refitted as the allocation grows, by the same ``fit_evidence`` call that
+then scores the final allocation: :func:`_run_trial`), gives k2 the features of the
+trajectories that use it, and keeps the split when the same score rises:
 
     gain = log ev(steps of k1') + log ev(steps of k2) - log ev(steps of k1)
            + log p(z' | F') - log p(z | F) + log p(F') - log p(F).
@@ -207,7 +208,7 @@ def _run_trial(trial: _Trial, state: MoveState, emission, data, hyper):
         return (z, done, parts, fits, log_ev, lik), None
 
     steps = jnp.arange(last_step + 1)
-    start = (trial.z, jnp.zeros(N, bool), trial.parts, trial.init, nan3, state.log_lik[..., :2])
+    start = (trial.z, jnp.zeros(N, bool), trial.parts, trial.init, nan3, jnp.zeros(data.mask.shape + (2,)))
     (z_alloc, _, parts, fits, log_ev, lik), _ = jax.lax.scan(fit_step, start, (plan.rows, plan.fit_on, steps))
     # a split's proposed state: k2 gets the features of the trajectories that use it, and k1
     # loses those of the involved trajectories that use only k2 now
