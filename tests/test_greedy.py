@@ -263,6 +263,13 @@ def test_a_lumped_pair_is_split_and_a_true_skill_is_not():
     out, out_info = split_at(jax.random.PRNGKey(0), state, *args, (*c, *d))
     assert bool(out_info.possible) and not bool(out_info.accepted), float(out_info.gain)
     assert _tree_equal(out, state)
+
+    class WithoutFlag(PolicyEmission):  # an emission written before ``with_evidence``
+        def fit_evidence(self, data, weights, init=None):
+            return PolicyEmission.fit_evidence(self, data, weights, init)
+
+    old_style = split_at(jax.random.PRNGKey(0), state, WithoutFlag(4, 3), data, kernel.hyper0, (*a, *b))
+    assert _tree_equal(old_style, (new, info))
     # the random trial (anchors drawn towards badly explained steps) finds the split, reproducibly
     from npbrs.inference.sampler import greedy_split
 
