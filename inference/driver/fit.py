@@ -523,7 +523,7 @@ def _compiled(cfg: ModelConfig, em: Emission, em_key: str, demos: Demonstrations
 def default_moves(cfg: ModelConfig, emission: Emission) -> ModelConfig:
     """``cfg`` with the warmup's greedy moves on where the configuration does not set them and
     there is more than one skill slot: ``DEFAULT_GREEDY_TRIALS`` merge trials per sweep if the
-    emission has ``fit_evidence``, split trials if it also has ``fit_point``, from the kernel's
+    emission has ``fit_evidence``, and as many split trials (a split's allocation fits by it too), from the kernel's
     ``MOVE_DEFAULTS["greedy_from"]`` x warmup on (unless ``greedy_from`` is set; see
     ``npbrs.inference.sampler.greedy``), the emission's ``redraw_unused`` (sweeps between
     prior redraws of unused skills' parameters) where it is above the kernel's 1, and the
@@ -831,7 +831,7 @@ def fit(mdp, demos: Demonstrations, config: Union[ModelConfig, dict, str, os.Pat
         moves: options of the kernel's trans-dimensional moves, e.g. {"birth_death": 2}. Unless
             it says otherwise, greedy merges and splits run late in warmup
             (:data:`DEFAULT_GREEDY_TRIALS` from ``MOVE_DEFAULTS["greedy_from"]`` x warmup on,
-            see :func:`default_moves`) for emissions with ``fit_evidence`` and ``fit_point``
+            see :func:`default_moves`) for emissions with ``fit_evidence``
             (the reward and policy emissions), until no chain has kept one in its last
             ``greedy_patience`` (10) greedy sweeps; ``{"greedy_merge": 0, "greedy_split": 0}``
             turns them off. The other options' defaults: ``npbrs.inference.sampler.options.MOVE_DEFAULTS``.

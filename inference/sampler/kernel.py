@@ -146,7 +146,7 @@ class BPHMMKernel(MCMCKernel, Pytree):
             merge trials per sweep in the warmup sweeps from ``greedy_from`` x warmup on (0:
             off; the emission needs ``fit_evidence``; see ``npbrs.inference.sampler.greedy``:
             not an MCMC move, so it never runs in the sampling sweeps), "greedy_split": greedy
-            split trials per sweep there (the emission also needs ``fit_point``),
+            split trials per sweep there (their allocation fits by ``fit_evidence`` too),
             "greedy_from": that fraction of warmup, in [0, 1), "greedy_patience": the greedy
             moves stop for the rest of warmup once every chain's last this many greedy sweeps
             have kept nothing (0: never; a long warmup's chains have mostly settled by then, and
