@@ -183,6 +183,11 @@ def _run_trial(trial: _Trial, state: MoveState, emission, data, hyper):
     prior = emission.sample_prior_one(trial.prior_key)
     nan3 = jnp.full((3,), jnp.nan)
 
+    def pair(fits, final):
+        """The two columns whose likelihoods a step needs: the allocation's two fits, or at the
+        end the two slots' new parameters (a merge's whole and a prior draw, a split's parts)."""
+        return jax.tree.map(lambda f, p: jnp.where(merging & final, jnp.stack([f[2], p]), f[:2]), fits, prior)
+
     def fit_step(carry, x):
         z, done, parts, fits, log_ev, lik = carry
         rows, fit_on, step = x
@@ -194,10 +199,7 @@ def _run_trial(trial: _Trial, state: MoveState, emission, data, hyper):
             init = jax.tree.map(lambda f, i: i.at[:2].set(f[:2]), fits, trial.init)
             w = jnp.concatenate([parts, trial.whole[..., None]], -1)
             new, log_ev = _fit_evidence(emission, data, w, init, last)
-            # the likelihoods of the allocation's fits, or of the two slots' new parameters:
-            # a merge's whole and a prior draw, a split's parts
-            two = jax.tree.map(lambda f, p: jnp.where(merging & last, jnp.stack([f[2], p]), f[:2]), new, prior)
-            lik, _ = emission.log_likelihoods(two, data, emission.init_cache(2))  # (N, T, 2)
+            lik, _ = emission.log_likelihoods(pair(new, last), data, emission.init_cache(2))  # (N, T, 2)
             return new, log_ev, lik
 
         run = jnp.where(merging, last, fit_on | last)
@@ -228,8 +230,7 @@ def _run_trial(trial: _Trial, state: MoveState, emission, data, hyper):
     structure = (_structure_log_prob(hyper, data.mask, z_new, f_new, state.gate)
                  - _structure_log_prob(hyper, data.mask, z, features, state.gate))
     gain = jnp.where(merging, -parts_minus_whole, parts_minus_whole) + structure
-    # a merge: the whole's fit, then a prior draw; a split: the two parts' fits
-    two = jax.tree.map(lambda f, p: jnp.where(merging, jnp.stack([f[2], p]), f[:2]), fits, prior)
+    two = pair(fits, True)  # (the last step's: ``lik`` holds their likelihoods)
     a, b = trial.slots[0], trial.slots[1]
     new_params = jax.tree.map(lambda p, t: p.at[a].set(t[0]).at[b].set(t[1]), params, two)
     new_log_lik = log_lik.at[..., a].set(lik[..., 0]).at[..., b].set(lik[..., 1])
