@@ -47,7 +47,8 @@ __all__ = ["Hyper", "Termination", "prior_distributions", "sample_prior_eta", "h
            "end_gate", "end_counts", "end_log_prior", "sample_end_means", "sample_ends",
            "log_marginal_likelihoods", "feature_predictive", "predictive_log_likelihoods",
            "bphmm_model", "log_joint_terms",
-           "collapsed_feature_log_prob", "collapsed_sequence_log_prob"]
+           "collapsed_feature_log_prob", "collapsed_sequence_log_prob", "sequence_counts",
+           "collapsed_transition_log_prob"]
 
 class Hyper(NamedTuple):
     """BP-HMM hyperparameters: IBP mass alpha, stickiness kappa, transition concentration gamma."""
@@ -360,41 +361,64 @@ def collapsed_sequence_log_prob(z, mask, features, kappa, gamma, gate=None):
     Dirichlet-multinomial over the other active skills (Dirichlet(gamma), the diagonal left
     out).
 
+    The work splits into what depends on z (:func:`sequence_counts`) and what depends on kappa
+    and gamma (:func:`collapsed_transition_log_prob`), so that the hyperparameters' moves count
+    once.
+
     Args:
         z: (N, T) skills (-1 or anything at masked steps); mask: (N, T) bool;
         features: (N, K) 0/1; kappa, gamma: the hyperparameters.
     """
-    from jax.scipy.special import gammaln
+    counts, rest = sequence_counts(z, mask, features, gate)
+    return collapsed_transition_log_prob(counts, features, kappa, gamma, gate is not None) + rest
 
+
+def sequence_counts(z, mask, features, gate=None):
+    """What :func:`collapsed_sequence_log_prob` needs of z: (transition counts (N, K, K), the
+    terms that do not depend on kappa and gamma (N,)): the first skill's uniform probability,
+    with ``gate`` the ends' and continuations' log-probabilities, and -inf where a sequence uses
+    an inactive skill or a trajectory with steps has none. With ``gate`` the diagonal counts are
+    left out (only switches inform eta)."""
     from .hmm import transition_counts
 
     N, K = features.shape
     active = features > 0
     z = jnp.where(mask, z, -1)
     counts = transition_counts(z, mask, K).astype(jnp.float64)  # (N, K, K)
-    conc = gamma + kappa * jnp.eye(K)
-    pair = active[:, :, None] & active[:, None, :]
     ends = 0.0
     if gate is not None:
-        pair = pair & ~jnp.eye(K, dtype=bool)
         counts = jnp.where(jnp.eye(K, dtype=bool), 0.0, counts)
         prev, nxt = jnp.clip(z[:, :-1], 0, K - 1), z[:, 1:]
         g = jnp.clip(jnp.take_along_axis(gate[:, 1:], prev[..., None], axis=-1)[..., 0], 1e-300, 1.0)
         step = jnp.where(nxt == prev, jnp.log1p(-jnp.minimum(g, 1.0 - 1e-16)), jnp.log(g))
         several = jnp.sum(active, -1) >= 2
         ends = jnp.where(several, jnp.sum(jnp.where(mask[:, 1:] & mask[:, :-1], step, 0.0), -1), 0.0)
-    c = jnp.where(pair, conc, 0.0)
-    c_row = jnp.sum(c, -1)
-    row = (gammaln(jnp.maximum(c_row, 1e-300)) - gammaln(jnp.maximum(c_row + jnp.sum(counts, -1), 1e-300))
-           + jnp.sum(jnp.where(pair, gammaln(c + counts) - gammaln(jnp.where(pair, c, 1.0)), 0.0), -1))
-    row = jnp.where(c_row > 0, row, 0.0)  # (gated: a single skill's row has no switch to make)
-    trans = jnp.sum(jnp.where(active, row, 0.0), -1) + ends
     has_steps = jnp.any(mask, -1)
     n_active = jnp.sum(active, -1)
     init = jnp.where(has_steps, -jnp.log(jnp.maximum(n_active, 1)), 0.0)
     used = jnp.any(jax.nn.one_hot(z, K, dtype=bool) & mask[..., None], axis=1)
     ok = ~jnp.any(used & ~active, -1) & (n_active > 0)
-    return jnp.where(ok, trans + init, -jnp.inf)
+    return counts, jnp.where(ok, ends + init, -jnp.inf)
+
+
+def collapsed_transition_log_prob(counts, features, kappa, gamma, gated: bool = False):
+    """The rows' Dirichlet-multinomial terms of :func:`collapsed_sequence_log_prob` from
+    :func:`sequence_counts`' counts (N, K, K), per trajectory (N,); ``gated``: state-dependent
+    ends (the diagonal left out, so kappa plays no part)."""
+    from jax.scipy.special import gammaln
+
+    K = features.shape[1]
+    active = features > 0
+    conc = gamma + kappa * jnp.eye(K)
+    pair = active[:, :, None] & active[:, None, :]
+    if gated:
+        pair = pair & ~jnp.eye(K, dtype=bool)
+    c = jnp.where(pair, conc, 0.0)
+    c_row = jnp.sum(c, -1)
+    row = (gammaln(jnp.maximum(c_row, 1e-300)) - gammaln(jnp.maximum(c_row + jnp.sum(counts, -1), 1e-300))
+           + jnp.sum(jnp.where(pair, gammaln(c + counts) - gammaln(jnp.where(pair, c, 1.0)), 0.0), -1))
+    row = jnp.where(c_row > 0, row, 0.0)  # (gated: a single skill's row has no switch to make)
+    return jnp.sum(jnp.where(active, row, 0.0), -1)
 
 
 def _hyper_value(name, value, hyperpriors):

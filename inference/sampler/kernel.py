@@ -32,9 +32,10 @@ import numpyro.distributions as dist
 from numpyro.infer.mcmc import MCMCKernel
 
 from npbrs.domains.pytree import Pytree
-from npbrs.models.bphmm import (Hyper, Termination, bphmm_model, end_counts, end_gate, eta_from_gammas,
+from npbrs.models.bphmm import (Hyper, Termination, bphmm_model, collapsed_feature_log_prob,
+                                collapsed_transition_log_prob, end_counts, end_gate, eta_from_gammas,
                                 eta_gamma_shapes, hmm_parameters, log_joint_terms, log_marginal_likelihoods,
-                                sample_end_means, sample_ends)
+                                sample_end_means, sample_ends, sequence_counts)
 from npbrs.models.mcmc import metropolis_accept, select
 from npbrs.models.emissions import Emission, EmissionInfo, HMMData
 from npbrs.models.hmm import batch_backward_sample, batch_forward_filter, transition_counts
@@ -532,8 +533,11 @@ class BPHMMKernel(MCMCKernel, Pytree):
         else:
             greedy_kept = {}
         features, z, params = moved.features, moved.z, moved.params
+        hyper = state.hyper
+        if self.hyperpriors:  # (hyperparameters | z, F), then (eta, omega | z, F, hyperparameters)
+            hyper = self.sample_hyperparameters(k_hyp, z, features, hyper, gate)
         # eta | z, F and omega | F are conditionally independent: one block
-        eta, omega = self._sample_eta_omega(k_eta, z, features, state.hyper)
+        eta, omega = self._sample_eta_omega(k_eta, z, features, hyper)
         ends = {}
         if self.termination is not None:
             end_mean, new_ends = self._sample_ends(jax.random.fold_in(k_eta, 1), z, features, state.end_mean)
@@ -562,9 +566,7 @@ class BPHMMKernel(MCMCKernel, Pytree):
         accept = jnp.asarray(info.accept, jnp.float64)
         new = state._replace(rng_key=key, omega=omega, features=features, eta=eta, params=params, cache=cache,
                              z=z, accept=jnp.mean(accept), birth_accept=births, split_accept=splits,
-                             **greedy_kept, **ends)
-        if self.hyperpriors:
-            new = new._replace(hyper=self.sample_hyperparameters(k_hyp, new))
+                             hyper=hyper, **greedy_kept, **ends)
         if sticky:
             new = new._replace(hyper=new.hyper._replace(kappa=model_kappa))
         new = self._finish(new)
@@ -574,28 +576,46 @@ class BPHMMKernel(MCMCKernel, Pytree):
                             best_z=pick(new.z, state.best_z), best_params=pick(new.params, state.best_params),
                             best_features=pick(new.features, state.best_features))
 
-    def sample_hyperparameters(self, key, state: BPHMMState) -> Hyper:
-        """The hyperparameters with a prior (``hyperpriors``) after one random-walk Metropolis
-        step each on log alpha, log kappa, log gamma (in turn), given the rest of ``state``; the
-        others as they are."""
-        hyper = state.hyper
-        zeros = jnp.zeros(state.features.shape[0])
+    #: random-walk Metropolis steps per sweep on each sampled hyperparameter's log (cheap: the
+    #: counts are made once, each step is O(N K^2))
+    HYPER_STEPS = 10
 
-        def log_target(h):
-            terms = log_joint_terms(state.omega, state.features, state.eta, state.params, zeros, h,
-                                    self.emission, self.hyperpriors, valid=self._valid)
-            return terms["omega"] + terms["features"] + terms["eta"] + sum(
-                terms[n] for n in self.hyperpriors)
+    def sample_hyperparameters(self, key, z, features, hyper: Hyper, gate=None) -> Hyper:
+        """The hyperparameters with a prior (``hyperpriors``) given the skill sequences z (N, T)
+        and the features (N, K), with omega and eta integrated out: alpha's target is
+        log p(F | alpha) (:func:`~npbrs.models.bphmm.collapsed_feature_log_prob`), kappa's and
+        gamma's log p(z | F, kappa, gamma) (the rows' Dirichlet-multinomials,
+        :func:`~npbrs.models.bphmm.collapsed_transition_log_prob`), each times its Gamma
+        hyperprior; ``HYPER_STEPS`` random-walk Metropolis steps each on the log scale (in turn).
+        The sweep then draws eta and omega given the new values: together a blocked Gibbs step
+        of (hyperparameters, eta, omega) | z, F. Conditioned on eta instead, kappa barely moves
+        (eta's row totals, which the data do not inform, are drawn with the current kappa; see
+        ``benchmarks/NOTES.md``, session 41). ``gate``: the ends' with state-dependent ends
+        (then kappa plays no part). The others as they are."""
+        valid = self._valid
+        counts, _ = sequence_counts(z, self.data.mask, features, gate)
+        gated = gate is not None
+
+        def log_target(name, h):
+            shape, rate = self.hyperpriors[name]
+            prior = dist.Gamma(shape, rate).log_prob(getattr(h, name))
+            if name == "alpha":
+                return prior + collapsed_feature_log_prob(features, h.alpha, valid)
+            seq = collapsed_transition_log_prob(counts, features, h.kappa, h.gamma, gated)
+            return prior + jnp.sum(jnp.where(valid, seq, 0.0))
 
         for name, k in zip(self.hyperpriors, jax.random.split(key, len(self.hyperpriors))):
-            k1, k2 = jax.random.split(k)
-            old = getattr(hyper, name)
-            prop = old * jnp.exp(0.3 * jax.random.normal(k1))
-            cand = hyper._replace(**{name: prop})
-            # log-scale proposal: Jacobian log(prop / old)
-            log_ratio = log_target(cand) - log_target(hyper) + jnp.log(prop) - jnp.log(old)
-            accept, _ = metropolis_accept(k2, log_ratio)
-            hyper = hyper._replace(**{name: jnp.where(accept, prop, old)})
+            def step(h, k, name=name):
+                k1, k2 = jax.random.split(k)
+                old = getattr(h, name)
+                prop = old * jnp.exp(0.3 * jax.random.normal(k1))
+                cand = h._replace(**{name: prop})
+                # log-scale proposal: Jacobian log(prop / old)
+                log_ratio = log_target(name, cand) - log_target(name, h) + jnp.log(prop) - jnp.log(old)
+                accept, _ = metropolis_accept(k2, log_ratio)
+                return h._replace(**{name: jnp.where(accept, prop, old)}), None
+
+            hyper, _ = jax.lax.scan(step, hyper, jax.random.split(k, self.HYPER_STEPS))
         return hyper
 
 
