@@ -187,16 +187,18 @@ def hmm_parameters(features, eta, gated: bool = False):
         features: (N, K) 0/1 skills each trajectory may use.
         eta: (N, K, K) positive transition weights.
         gated: the switch matrix of state-dependent ends (the filters' ``gate``): the diagonal
-            left out, except in a trajectory with a single skill (which can only continue).
+            left out, except in a trajectory with a single skill (which can only continue). A
+            bool, or a traced one (the kernel's sticky phase).
     Returns:
         log_init (N, K) (zeros: uniform over the active skills), log_trans (N, K, K)
         (log eta, normalised over the active skills by the filters), active (N, K) bool.
     """
     log_trans = jnp.log(eta)
-    if gated:
+    if gated is not False:
         K = features.shape[1]
         alone = jnp.sum(features > 0, -1) < 2
-        log_trans = jnp.where(jnp.eye(K, dtype=bool), jnp.where(alone, 0.0, NEG_LOG)[:, None, None], log_trans)
+        diag = jnp.eye(K, dtype=bool) & jnp.asarray(gated, bool)
+        log_trans = jnp.where(diag, jnp.where(alone, 0.0, NEG_LOG)[:, None, None], log_trans)
     return jnp.zeros(features.shape, eta.dtype), log_trans, features > 0
 
 
@@ -221,10 +223,11 @@ def eta_from_gammas(g, total, active):
     return jnp.maximum(jnp.where(active, scaled, g), 1e-300)
 
 
-def log_marginal_likelihoods(features, eta, log_lik, mask, gate=None):
+def log_marginal_likelihoods(features, eta, log_lik, mask, gate=None, gated=None):
     """log p(data_i | f_i, eta_i, params) with the skill sequence summed out, per trajectory (N,);
-    ``gate``: (N, T, K) :func:`end_gate` with state-dependent ends, else None."""
-    log_init, log_trans, active = hmm_parameters(features, eta, gate is not None)
+    ``gate``: (N, T, K) :func:`end_gate` with state-dependent ends, else None; ``gated``: as
+    :func:`hmm_parameters`' (default: whether a gate is given)."""
+    log_init, log_trans, active = hmm_parameters(features, eta, gate is not None if gated is None else gated)
     log_marg, _ = batch_forward_filter(log_init, log_trans, log_lik, mask, active, gate)
     return log_marg
 
@@ -373,12 +376,13 @@ def collapsed_sequence_log_prob(z, mask, features, kappa, gamma, gate=None):
     return collapsed_transition_log_prob(counts, features, kappa, gamma, gate is not None) + rest
 
 
-def sequence_counts(z, mask, features, gate=None):
+def sequence_counts(z, mask, features, gate=None, gated=None):
     """What :func:`collapsed_sequence_log_prob` needs of z: (transition counts (N, K, K), the
     terms that do not depend on kappa and gamma (N,)): the first skill's uniform probability,
     with ``gate`` the ends' and continuations' log-probabilities, and -inf where a sequence uses
     an inactive skill or a trajectory with steps has none. With ``gate`` the diagonal counts are
-    left out (only switches inform eta)."""
+    left out (only switches inform eta). ``gated``: a traced bool that turns the gate's part
+    off where false (the kernel's sticky phase; default: on)."""
     from .hmm import transition_counts
 
     N, K = features.shape
@@ -387,12 +391,13 @@ def sequence_counts(z, mask, features, gate=None):
     counts = transition_counts(z, mask, K).astype(jnp.float64)  # (N, K, K)
     ends = 0.0
     if gate is not None:
-        counts = jnp.where(jnp.eye(K, dtype=bool), 0.0, counts)
+        on = jnp.asarray(True if gated is None else gated, bool)
+        counts = jnp.where(jnp.eye(K, dtype=bool) & on, 0.0, counts)
         prev, nxt = jnp.clip(z[:, :-1], 0, K - 1), z[:, 1:]
         g = jnp.clip(jnp.take_along_axis(gate[:, 1:], prev[..., None], axis=-1)[..., 0], 1e-300, 1.0)
         step = jnp.where(nxt == prev, jnp.log1p(-jnp.minimum(g, 1.0 - 1e-16)), jnp.log(g))
         several = jnp.sum(active, -1) >= 2
-        ends = jnp.where(several, jnp.sum(jnp.where(mask[:, 1:] & mask[:, :-1], step, 0.0), -1), 0.0)
+        ends = jnp.where(several & on, jnp.sum(jnp.where(mask[:, 1:] & mask[:, :-1], step, 0.0), -1), 0.0)
     has_steps = jnp.any(mask, -1)
     n_active = jnp.sum(active, -1)
     init = jnp.where(has_steps, -jnp.log(jnp.maximum(n_active, 1)), 0.0)
@@ -404,15 +409,15 @@ def sequence_counts(z, mask, features, gate=None):
 def collapsed_transition_log_prob(counts, features, kappa, gamma, gated: bool = False):
     """The rows' Dirichlet-multinomial terms of :func:`collapsed_sequence_log_prob` from
     :func:`sequence_counts`' counts (N, K, K), per trajectory (N,); ``gated``: state-dependent
-    ends (the diagonal left out, so kappa plays no part)."""
+    ends (the diagonal left out, so kappa plays no part; a bool or a traced one)."""
     from jax.scipy.special import gammaln
 
     K = features.shape[1]
     active = features > 0
     conc = gamma + kappa * jnp.eye(K)
     pair = active[:, :, None] & active[:, None, :]
-    if gated:
-        pair = pair & ~jnp.eye(K, dtype=bool)
+    if gated is not False:
+        pair = pair & ~(jnp.eye(K, dtype=bool) & jnp.asarray(gated, bool))
     c = jnp.where(pair, conc, 0.0)
     c_row = jnp.sum(c, -1)
     row = (gammaln(jnp.maximum(c_row, 1e-300)) - gammaln(jnp.maximum(c_row + jnp.sum(counts, -1), 1e-300))

@@ -435,3 +435,40 @@ def test_state_ends_sweeps_alternated_with_simulated_data_sample_the_prior():
         worst = min(worst, p)
         lines.append(f"{name}: chains {means[:, j].mean():.4f}, prior {x.mean():.4f}, t {t:+.2f}, p {p:.2g}")
     assert worst > 1e-3 / len(names), "\n".join(lines)
+
+
+def test_the_sticky_phase_is_a_sticky_sweep_and_ends_after_it():
+    """moves["sticky_phase"] = 0.5 with 10 warmup sweeps: sweeps 0-4 of the state-ends kernel
+    are sweeps of the sticky BP-HMM's kernel from the same state (the same features, skill
+    sequences, eta, omega and parameters, with greedy moves on: they wait for the phase's end),
+    while the ends are drawn from the skill sequences as in every sweep; sweep 5 on is the
+    model's own sweep (it differs from the sticky kernel's), and the log joint is always the
+    model's. (Checked to fail: the diagonal left out of eta's counts in the phase; the gate not
+    replaced by ones in the phase.)"""
+    data = ragged_data(7, N=5, T=25, pad=False)
+    moves = {"greedy_merge": 1, "greedy_split": 1, "greedy_from": 0.0}
+    term = Termination(S, 2.0, (1.0, 4.0))
+    state_k = BPHMMKernel(PolicyEmission(S, A), data, max_skills=4, kappa=5.0, termination=term,
+                          moves={**moves, "sticky_phase": 0.5})
+    sticky_k = BPHMMKernel(PolicyEmission(S, A), data, max_skills=4, kappa=5.0)  # (no moves: they wait)
+    plain_k = BPHMMKernel(PolicyEmission(S, A), data, max_skills=4, kappa=5.0, termination=term, moves=moves)
+    state = state_k.init(jax.random.PRNGKey(3), 10, None, (), {})
+    sweeps = {name: jax.jit(k.sweep) for name, k in (("state", state_k), ("sticky", sticky_k), ("plain", plain_k))}
+    same = ("features", "z", "eta", "omega")
+    for step in range(7):
+        s = state._replace(step=jnp.int32(step))
+        new = sweeps["state"](s)
+        as_sticky = s._replace(ends=None, end_mean=None)
+        as_sticky = sticky_k._finish(as_sticky)  # (its own log marginals: the sticky model's)
+        other = sweeps["sticky"](as_sticky)
+        plain = sweeps["plain"](s)
+        if step < 5:
+            for name in same:
+                np.testing.assert_array_equal(np.asarray(getattr(new, name)), np.asarray(getattr(other, name)), f"{name} {step}")
+            np.testing.assert_array_equal(np.asarray(new.params["policy"]), np.asarray(other.params["policy"]))
+        else:
+            np.testing.assert_array_equal(np.asarray(new.z), np.asarray(plain.z))
+            np.testing.assert_array_equal(np.asarray(new.eta), np.asarray(plain.eta))
+            assert not np.array_equal(np.asarray(new.z), np.asarray(other.z))
+        np.testing.assert_allclose(float(new.log_joint), model_log_density(state_k, new), rtol=1e-10)
+        state = new

@@ -46,6 +46,7 @@ A TOML variant (every key optional; these are the defaults)::
     # greedy_split = 0         # (0: off; fit turns them on for emissions with fit_evidence)
     # greedy_from = 0.5        # ... from this fraction of warmup on
     # greedy_patience = 10     # ... until every chain's last this many greedy sweeps kept nothing (0: never stop)
+    # sticky_phase = 0.5       # with switching = "state": the fraction of warmup searched under sticky switching
 
 The moves' defaults are in one table, ``npbrs.inference.sampler.options.MOVE_DEFAULTS`` (every
 move off), which the kernel reads too; ``fit`` turns the warmup's greedy moves on where the

@@ -492,6 +492,9 @@ _COMPILED_MAX = 4
 #: choice of one trial of each: ``benchmarks/NOTES.md``). They start at the kernel's default
 #: fraction of warmup, ``MOVE_DEFAULTS["greedy_from"]``.
 DEFAULT_GREEDY_TRIALS = {"greedy_merge": 1, "greedy_split": 1}
+#: with state-dependent ends (``switching="state"``), the fraction of warmup searched under the
+#: sticky BP-HMM (the kernel's ``moves["sticky_phase"]``; ``benchmarks/NOTES.md``, session 41)
+DEFAULT_STICKY_PHASE = 0.5
 
 
 def _compiled(cfg: ModelConfig, em: Emission, em_key: str, demos: Demonstrations, multiple: int = 1,
@@ -528,7 +531,8 @@ def default_moves(cfg: ModelConfig, emission: Emission) -> ModelConfig:
     ``npbrs.inference.sampler.greedy``), the emission's ``redraw_unused`` (sweeps between
     prior redraws of unused skills' parameters) where it is above the kernel's 1, and the
     initial segmentation's window length where the configuration leaves it open (the kernel's
-    :func:`~npbrs.inference.sampler.kernel.initial_window`). The run's configuration records them."""
+    :func:`~npbrs.inference.sampler.kernel.initial_window`), and with state-dependent ends a sticky
+    first ``DEFAULT_STICKY_PHASE`` of warmup. The run's configuration records them."""
     if cfg.sampler.init_window is None:
         cfg = cfg.replace(sampler=dataclasses.replace(cfg.sampler, init_window=initial_window(emission)))
     moves = dict(cfg.sampler.moves)
@@ -539,6 +543,8 @@ def default_moves(cfg: ModelConfig, emission: Emission) -> ModelConfig:
         moves.setdefault("greedy_split", DEFAULT_GREEDY_TRIALS["greedy_split"])
         if moves.get("greedy_merge", 0) or moves.get("greedy_split", 0):
             moves.setdefault("greedy_from", MOVE_DEFAULTS["greedy_from"])
+    if cfg.prior.switching == "state":
+        moves.setdefault("sticky_phase", DEFAULT_STICKY_PHASE)
     if moves == cfg.sampler.moves:
         return cfg
     return cfg.replace(sampler=dataclasses.replace(cfg.sampler, moves=moves))

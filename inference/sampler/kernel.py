@@ -159,7 +159,13 @@ class BPHMMKernel(MCMCKernel, Pytree):
             falling linearly from f at the first sweep to 1 at mid-warmup (``benchmarks/NOTES.md``:
             long segments while the skills form keep one-hot rewards' search from over-switched
             modes; not an MCMC move, so the sampling sweeps and the log joint keep the model's
-            kappa; no effect when kappa is sampled)}; the
+            kappa; no effect when kappa is sampled), "sticky_phase": with state-dependent ends,
+            the fraction of warmup, in [0, 1), whose sweeps search under the sticky BP-HMM (each
+            trajectory's own stays, eta's diagonal, instead of the ends; the trans-dimensional
+            moves wait for its end). The state model's search from a random start mixes the
+            skills' goals where the sticky one does not (``benchmarks/NOTES.md``, session 41);
+            the ends are drawn from the skill sequences in every sweep, so they are ready when
+            it ends. Not an MCMC move: the sampling sweeps and the log joint are the model's}; the
             defaults (every move off, a redraw every sweep):
             :data:`npbrs.inference.sampler.options.MOVE_DEFAULTS`.
         termination: a :class:`~npbrs.models.bphmm.Termination`: skills end with a probability
@@ -361,7 +367,7 @@ class BPHMMKernel(MCMCKernel, Pytree):
         :meth:`_sample_eta_omega`, which the sweep calls to draw omega in the same batch)."""
         return self._sample_eta_omega(key, z, features, hyper)[0]
 
-    def _sample_eta_omega(self, key, z, features, hyper):
+    def _sample_eta_omega(self, key, z, features, hyper, gated=None):
         """eta | z, F and omega | F, from a single batch of Gamma draws (one Gamma sampler
         in the compiled sweep instead of five).
 
@@ -376,12 +382,14 @@ class BPHMMKernel(MCMCKernel, Pytree):
         do not depend on how many trajectories follow it (padding the data with empty
         trajectories, for shape buckets or devices, leaves the real ones' draws alone). (Under
         a mesh that shards the trajectories the batch is gathered: JAX's Gamma sampler flattens
-        it; it is small next to the filtering.)
+        it; it is small next to the filtering.) ``gated``: a traced bool, false in the sticky
+        phase (then the stays inform eta's diagonal, as in the sticky BP-HMM).
         """
         N, K = features.shape
         counts = transition_counts(z, self.data.mask, K)
         if self.termination is not None:  # with state-dependent ends only the switches inform eta
-            counts = jnp.where(jnp.eye(K, dtype=bool), 0, counts)
+            on = jnp.asarray(True if gated is None else gated, bool)
+            counts = jnp.where(jnp.eye(K, dtype=bool) & on, 0, counts)
         shape_g, shape_total, active = eta_gamma_shapes(counts, features, hyper)
         valid = self._valid
         m = jnp.sum(jnp.where(valid[:, None], features, 0.0), axis=0)
@@ -405,16 +413,16 @@ class BPHMMKernel(MCMCKernel, Pytree):
         sweep carries them); otherwise they are filtered too."""
         return self._feature_logits_and_marginals(state, features, k, current)[0]
 
-    def _feature_logits_and_marginals(self, state: BPHMMState, features, k, current=None, gate=None):
+    def _feature_logits_and_marginals(self, state: BPHMMState, features, k, current=None, gate=None, gated=None):
         """(logits (N,), log marginals with f_ik = 1 (N,), with f_ik = 0 (N,)); ``gate``: the
-        state's :meth:`gate` when known."""
+        state's :meth:`gate` when known (``gated``: as ``log_marginal_likelihoods``')."""
         off = features.at[:, k].set(0.0)
         gate = self.gate(state) if gate is None else gate
         if current is None:
-            current = log_marginal_likelihoods(features, state.eta, state.log_lik, self.data.mask, gate)
+            current = log_marginal_likelihoods(features, state.eta, state.log_lik, self.data.mask, gate, gated)
         is_on = features[:, k] > 0
         flipped = features.at[:, k].set(jnp.where(is_on, 0.0, 1.0))
-        lm_flip = log_marginal_likelihoods(flipped, state.eta, state.log_lik, self.data.mask, gate)
+        lm_flip = log_marginal_likelihoods(flipped, state.eta, state.log_lik, self.data.mask, gate, gated)
         lm_on, lm_off = jnp.where(is_on, current, lm_flip), jnp.where(is_on, lm_flip, current)
         # a trajectory must keep at least one skill (to emit its steps: one without steps, padding
         # to a shape bucket, may have none, or its features would weigh on omega)
@@ -422,22 +430,24 @@ class BPHMMKernel(MCMCKernel, Pytree):
         prior = dist.Bernoulli(probs=state.omega[k])
         return (lm_on + prior.log_prob(1.0)) - (lm_off + prior.log_prob(0.0)), lm_on, lm_off
 
-    def _sample_features(self, key, state: BPHMMState, gate=None) -> jax.Array:
+    def _sample_features(self, key, state: BPHMMState, gate=None, gated=None, current=None) -> jax.Array:
         """Gibbs on every f_ik with z summed out; skills in turn, trajectories at once
         (given omega, the trajectories' features are conditionally independent). The log
         marginals of the current features are carried from skill to skill (they start as the
         state's, which ``_finish`` computed for its features, eta and likelihoods), so each
-        skill filters every trajectory once, with its feature flipped."""
+        skill filters every trajectory once, with its feature flipped. ``current``: the log
+        marginals under ``gate`` and ``gated`` when they are not the model's (the sticky phase)."""
         K = state.features.shape[1]
 
         def one_skill(carry, k_key):
             features, current = carry
             k, key = k_key
-            logit, lm_on, lm_off = self._feature_logits_and_marginals(state, features, k, current, gate)
+            logit, lm_on, lm_off = self._feature_logits_and_marginals(state, features, k, current, gate, gated)
             new = jax.random.bernoulli(key, jax.nn.sigmoid(logit))
             return (features.at[:, k].set(new.astype(features.dtype)), jnp.where(new, lm_on, lm_off)), None
 
-        (features, _), _ = jax.lax.scan(one_skill, (state.features, state.log_marginals),
+        start = state.log_marginals if current is None else current
+        (features, _), _ = jax.lax.scan(one_skill, (state.features, start),
                                         (jnp.arange(K), jax.random.split(key, K)))
         return features
 
@@ -464,20 +474,32 @@ class BPHMMKernel(MCMCKernel, Pytree):
         key, k_feat, k_bd, k_z, k_eta, k_em, k_hyp, k_sm = jax.random.split(state.rng_key, 8)
         k_gm = jax.random.fold_in(k_sm, 1)
         gate = self.gate(state)  # the ends are held fixed until step 3
-        features = self._sample_features(k_feat, state, gate) if self.sample_features else state.features
+        # the filters' switching: the model's, or in the sticky phase the sticky BP-HMM's (a gate
+        # of ones with eta's diagonal: every step "ends" and redraws from its trajectory's row)
+        ends_on, current = True, state.log_marginals
+        if gate is not None and self.moves["sticky_phase"] > 0.0:
+            ends_on = step >= jnp.floor(self.moves["sticky_phase"] * num_warmup)
+            gate = jnp.where(ends_on, gate, 1.0)
+            current = jax.lax.cond(ends_on, lambda s: s.log_marginals, lambda s: log_marginal_likelihoods(
+                s.features, s.eta, s.log_lik, mask, gate, False), state)
+        gated = ends_on if gate is not None else False
+        features = (self._sample_features(k_feat, state, gate, gated, current) if self.sample_features
+                    else state.features)
         # the moves' state (``npbrs.inference.sampler.state``): each move maps it to a new one
-        moved = MoveState.of(state, gate)._replace(features=features)
+        # (they wait for the sticky phase's end, so they see the model's ends)
+        moved = MoveState.of(state, self.gate(state))._replace(features=features)
         # the emission as the work that is not an MCMC move uses it: the greedy moves, the tune
         search = self.emission.for_search()
         blocks = min(self.moves["blocks"], N)  # refits of a split's allocation (split-merge, greedy splits)
+        moves_on = ends_on
         if self.moves["start"]:
-            moves_on = step >= self.moves["start"]
-
-            def gated(run, operands, skipped):
+            moves_on = moves_on & (step >= self.moves["start"])
+        if moves_on is not True:
+            def gated_move(run, operands, skipped):
                 """run(operands) from the start sweep on; before it, (operands, skipped)."""
                 return jax.lax.cond(moves_on, run, lambda ops: (ops, skipped), operands)
         else:
-            def gated(run, operands, skipped):
+            def gated_move(run, operands, skipped):
                 return run(operands)
 
         def trials(move, key, count):
@@ -497,8 +519,8 @@ class BPHMMKernel(MCMCKernel, Pytree):
                 ops, accepted = run(ops)
                 return ops, jnp.mean(accepted.astype(jnp.float64))
 
-            moved, births = gated(births_run, moved, births)
-        log_init, log_trans, active = hmm_parameters(moved.features, state.eta, gate is not None)
+            moved, births = gated_move(births_run, moved, births)
+        log_init, log_trans, active = hmm_parameters(moved.features, state.eta, gated)
         _, log_alpha = batch_forward_filter(log_init, log_trans, moved.log_lik, mask, active, gate)
         moved = moved._replace(z=batch_backward_sample(k_z, log_trans, log_alpha, mask, active, gate))
         splits = jnp.zeros(())
@@ -510,7 +532,7 @@ class BPHMMKernel(MCMCKernel, Pytree):
                 return ops, jnp.mean(accepted.astype(jnp.float64))
 
             # eta changes here only for trajectories a move touched; eta is redrawn after the moves
-            moved, splits = gated(splits_run, moved, splits)
+            moved, splits = gated_move(splits_run, moved, splits)
         if self.moves["greedy_merge"] or self.moves["greedy_split"]:
             greedy_on = (step < num_warmup) & (step >= jnp.floor(self.moves["greedy_from"] * num_warmup))
 
@@ -524,7 +546,7 @@ class BPHMMKernel(MCMCKernel, Pytree):
 
             # the trials stop for every chain at once (``greedy_any``: while any chain's last
             # ``greedy_patience`` greedy sweeps kept something), so that skipping them saves time
-            ran = greedy_on & greedy_any
+            ran = greedy_on & greedy_any & ends_on
             moved, (merged, split) = jax.lax.cond(ran, greedy_run, lambda ops: (ops, (jnp.int32(0), jnp.int32(0))),
                                                   moved)
             idle = jnp.where(ran, jnp.where(merged + split > 0, 0, state.greedy_idle + 1), state.greedy_idle)
@@ -535,9 +557,9 @@ class BPHMMKernel(MCMCKernel, Pytree):
         features, z, params = moved.features, moved.z, moved.params
         hyper = state.hyper
         if self.hyperpriors:  # (hyperparameters | z, F), then (eta, omega | z, F, hyperparameters)
-            hyper = self.sample_hyperparameters(k_hyp, z, features, hyper, gate)
+            hyper = self.sample_hyperparameters(k_hyp, z, features, hyper, gate, gated)
         # eta | z, F and omega | F are conditionally independent: one block
-        eta, omega = self._sample_eta_omega(k_eta, z, features, hyper)
+        eta, omega = self._sample_eta_omega(k_eta, z, features, hyper, gated)
         ends = {}
         if self.termination is not None:
             end_mean, new_ends = self._sample_ends(jax.random.fold_in(k_eta, 1), z, features, state.end_mean)
@@ -580,7 +602,7 @@ class BPHMMKernel(MCMCKernel, Pytree):
     #: counts are made once, each step is O(N K^2))
     HYPER_STEPS = 10
 
-    def sample_hyperparameters(self, key, z, features, hyper: Hyper, gate=None) -> Hyper:
+    def sample_hyperparameters(self, key, z, features, hyper: Hyper, gate=None, gated=None) -> Hyper:
         """The hyperparameters with a prior (``hyperpriors``) given the skill sequences z (N, T)
         and the features (N, K), with omega and eta integrated out: alpha's target is
         log p(F | alpha) (:func:`~npbrs.models.bphmm.collapsed_feature_log_prob`), kappa's and
@@ -591,10 +613,11 @@ class BPHMMKernel(MCMCKernel, Pytree):
         of (hyperparameters, eta, omega) | z, F. Conditioned on eta instead, kappa barely moves
         (eta's row totals, which the data do not inform, are drawn with the current kappa; see
         ``benchmarks/NOTES.md``, session 41). ``gate``: the ends' with state-dependent ends
-        (then kappa plays no part). The others as they are."""
+        (then kappa plays no part; ``gated``, a traced bool, false in the sticky phase). The
+        others as they are."""
         valid = self._valid
-        counts, _ = sequence_counts(z, self.data.mask, features, gate)
-        gated = gate is not None
+        counts, _ = sequence_counts(z, self.data.mask, features, gate, gated)
+        gated = (gate is not None) if gated is None else gated
 
         def log_target(name, h):
             shape, rate = self.hyperpriors[name]

@@ -21,10 +21,12 @@ __all__ = ["MOVE_DEFAULTS", "check_moves"]
 #: between they are kept as they are); ``sticky_start``, a factor on a fixed kappa at the first
 #: warmup sweep that falls linearly to 1 at mid-warmup (1: off; a search aid of warmup only);
 #: ``greedy_patience``: the greedy moves stop for the rest of warmup once no chain has kept one in
-#: its last this many greedy sweeps (0: they never stop).
+#: its last this many greedy sweeps (0: they never stop); ``sticky_phase``, with state-dependent
+#: ends, the fraction of warmup whose sweeps search under the sticky BP-HMM (0: none; a search aid
+#: of warmup only).
 MOVE_DEFAULTS = {"birth_death": 0, "window": (10, 50), "split_merge": 0, "blocks": 2, "start": 0,
                  "greedy_merge": 0, "greedy_split": 0, "greedy_from": 0.75, "redraw_unused": 1,
-                 "sticky_start": 1.0, "greedy_patience": 10}
+                 "sticky_start": 1.0, "greedy_patience": 10, "sticky_phase": 0.0}
 
 
 def check_moves(moves) -> dict:
@@ -50,9 +52,11 @@ def check_moves(moves) -> dict:
     if isinstance(f, bool) or not isinstance(f, (int, float)) or not (math.isfinite(f) and f >= 1.0):
         raise ValueError(f"moves.sticky_start must be a factor >= 1 on kappa (1: off), got {f!r}")
     out["sticky_start"] = float(f)
-    g = out["greedy_from"]
-    if isinstance(g, bool) or not isinstance(g, (int, float)) or not 0.0 <= g < 1.0:
-        raise ValueError(f"moves.greedy_from must be a fraction of warmup in [0, 1), got {g!r}")
+    for name in ("greedy_from", "sticky_phase"):
+        g = out[name]
+        if isinstance(g, bool) or not isinstance(g, (int, float)) or not 0.0 <= g < 1.0:
+            raise ValueError(f"moves.{name} must be a fraction of warmup in [0, 1), got {g!r}")
+        out[name] = float(g)
     lo, hi = out["window"]
     if not (1 <= int(lo) <= int(hi)):
         raise ValueError(f"moves.window must be (min, max) with 1 <= min <= max, got {out['window']!r}")
