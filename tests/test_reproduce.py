@@ -148,6 +148,23 @@ def test_bad_methods_and_settings_are_refused():
         reproduce("highway", 30, settings={"npbrs": {"sweeps": 3}})
 
 
+def test_a_methods_switching_setting_reaches_its_fit_and_the_record(oracle_fit, monkeypatch):
+    """``settings={"npbrs": {"switching": "state"}}`` (the state-dependent ends' table in
+    ``benchmarks/NOTES.md``, session 41) is passed to ``fit`` and kept in the result."""
+    module = sys.modules["npbrs.inference.driver.fit"]
+    inner, seen = module.fit, []
+
+    def spy(*args, **kwargs):
+        seen.append(kwargs)
+        return inner(*args, **kwargs)
+
+    monkeypatch.setattr(module, "fit", spy)
+    result = reproduce("highway", 30, runs=1, methods=["npbrs"], settings={"npbrs": {"switching": "state"}},
+                       progress=False)
+    assert [k.get("switching") for k in seen] == ["state"]
+    assert result["settings"]["npbrs"]["switching"] == "state"
+
+
 def test_the_quadcopter_subgoal_baseline_bounds_its_candidates():
     assert rep.default_settings("quadcopter")["subgoal"]["emission_options"]["max_candidates"] >= 1
     assert "max_candidates" not in rep.default_settings("highway")["subgoal"]["emission_options"]

@@ -87,12 +87,12 @@ _DOMAIN_SETTINGS = {"quadcopter": {"npbrs": {"warmup": 15, "samples": 15},
 _QUICK = {"chains": 1, "warmup": 1, "samples": 2, "init_window": 10}
 #: Keys a method's settings may hold; the last ones are passed to ``fit`` as they are.
 _SETTING_KEYS = ("chains", "warmup", "samples", "max_skills", "emission_options", "alpha", "kappa", "gamma",
-                 "init_skills", "init_window", "moves")
+                 "init_skills", "init_window", "moves", "switching")
 
 
 def default_settings(domain_name: str, quick: bool = False) -> Dict[str, dict]:
     """The sampler settings of every method for a domain: {method: {chains, warmup, samples,
-    max_skills, emission_options[, alpha, kappa, gamma, init_skills, init_window, moves]}}.
+    max_skills, emission_options[, alpha, kappa, gamma, init_skills, init_window, moves, switching]}}.
 
     Args:
         domain_name: the domain (its own overrides apply, e.g. the quadcopter's subgoal candidates).
