@@ -394,14 +394,9 @@ class RewardEmission(Emission):
     # ------------------------------------------------------------------ data-driven proposal
     def fit_point(self, data, weights, init=None):
         """IRL fits (M, D) to weighted steps (N, T, M): ``refit_steps`` L-BFGS steps from
-        ``init``, or twice as many from theta = 0."""
-        counts = self.counts(data, weights)  # (M, S, A)
-        M, D = counts.shape[0], self.num_features
-        theta0 = jnp.zeros((M, D)) if init is None else init["theta"]
-        steps = 2 * self.refit_steps if init is None else self.refit_steps
-        fit, _, _, _, _ = fit_reward(self.solver, counts, theta0, jnp.zeros((M, self.num_states)), self.prior_scale,
-                                     steps, epsilon=self.epsilon, temperature=self.temperature)
-        return self._point(fit)
+        ``init``, or ``fit_steps`` from theta = 0 (:meth:`laplace`'s fits, at the fixed prior
+        scale)."""
+        return self._point(self._laplace_fit(self.counts(data, weights), init)[0])
 
     def _point(self, theta):
         """Params at fitted weights: sigma^2, when sampled, at its conditional mode given them."""
