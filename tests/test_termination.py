@@ -253,6 +253,7 @@ def test_a_fit_with_state_dependent_ends_finds_where_the_planted_skills_end(tmp_
     again = load(tmp_path / "run.nc")
     np.testing.assert_array_equal(np.asarray(again.samples["ends"]), np.asarray(result.samples["ends"]))
     assert again.model_config.prior.switching == "state"
+    assert again.model_config.sampler.moves["sticky_phase"] == 0.5  # fit's default with state ends
     held = again.log_predictive(world.mdp, world.heldout, num_samples=4, num_draws=4)
     assert np.isfinite(held.per_step)
     # the skills as options terminate as the run's ends say (their posterior mean per skill)
@@ -435,6 +436,13 @@ def test_state_ends_sweeps_alternated_with_simulated_data_sample_the_prior():
         worst = min(worst, p)
         lines.append(f"{name}: chains {means[:, j].mean():.4f}, prior {x.mean():.4f}, t {t:+.2f}, p {p:.2g}")
     assert worst > 1e-3 / len(names), "\n".join(lines)
+
+
+@pytest.mark.parametrize("bad", [1.0, -0.1, True, "half"])
+def test_a_bad_sticky_phase_is_named(bad):
+    with pytest.raises(ValueError, match="moves.sticky_phase must be a fraction of warmup"):
+        BPHMMKernel(PolicyEmission(S, A), ragged_data(), max_skills=3, termination=Termination(S),
+                    moves={"sticky_phase": bad})
 
 
 def test_the_sticky_phase_is_a_sticky_sweep_and_ends_after_it():
