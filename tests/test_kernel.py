@@ -114,13 +114,19 @@ def test_transition_weights_follow_the_gamma_dirichlet_conditional(kernel_and_st
 def test_vectorized_and_sequential_chains_give_the_same_draws():
     from numpyro.infer import MCMC
 
+    from npbrs.models.bphmm import Termination
+
     data, _ = planted_policy_data(seed=1, N=3, T=20)
-    # (and with the warmup's greedy merges and splits, whose loops hold conds on per-chain values)
-    for moves in (None, {"greedy_merge": 1, "greedy_split": 1, "greedy_from": 0.0}):
+    # (and with the warmup's greedy merges and splits, whose loops hold conds on per-chain values;
+    # and with state-dependent ends, a sticky phase (a cond on the clock) and a sampled kappa)
+    greedy = {"greedy_merge": 1, "greedy_split": 1, "greedy_from": 0.0}
+    for moves, extra in ((None, {}), (greedy, {}),
+                         ({**greedy, "sticky_phase": 0.5},
+                          {"termination": Termination(4), "hyperpriors": {"kappa": (2.0, 0.2)}})):
         runs = []
         for method in ("vectorized", "sequential"):
-            kernel = BPHMMKernel(PolicyEmission(4, 3), data, max_skills=3, moves=moves)
-            mcmc = MCMC(kernel, num_warmup=3, num_samples=5, num_chains=2, chain_method=method, progress_bar=False)
+            kernel = BPHMMKernel(PolicyEmission(4, 3), data, max_skills=3, moves=moves, **extra)
+            mcmc = MCMC(kernel, num_warmup=4, num_samples=5, num_chains=2, chain_method=method, progress_bar=False)
             mcmc.run(jax.random.PRNGKey(7))
             runs.append(np.asarray(mcmc.get_extra_fields(group_by_chain=True)["log_joint"]))
         np.testing.assert_allclose(runs[0], runs[1], rtol=1e-9)
