@@ -47,7 +47,7 @@ __all__ = ["Hyper", "Termination", "prior_distributions", "sample_prior_eta", "h
            "end_gate", "end_counts", "end_log_prior", "sample_end_means", "sample_ends",
            "log_marginal_likelihoods", "feature_predictive", "predictive_log_likelihoods",
            "bphmm_model", "log_joint_terms",
-           "collapsed_feature_log_prob", "collapsed_sequence_log_prob", "sequence_counts",
+           "collapsed_feature_log_prob", "collapsed_sequence_log_prob", "eta_counts", "sequence_counts",
            "collapsed_transition_log_prob"]
 
 class Hyper(NamedTuple):
@@ -376,6 +376,19 @@ def collapsed_sequence_log_prob(z, mask, features, kappa, gamma, gate=None):
     return collapsed_transition_log_prob(counts, features, kappa, gamma, gate is not None) + rest
 
 
+def eta_counts(z, mask, num_skills: int, gated=False):
+    """The transition counts (N, K, K) that inform eta, float64: with state-dependent ends
+    (``gated``: a bool, or a traced one, false in the kernel's sticky phase) the diagonal left
+    out, since only the switches inform eta there (a skill that continues says nothing of it).
+    The kernel's conditional, the collapsed sequence probability and split-merge count here."""
+    from .hmm import transition_counts
+
+    counts = transition_counts(jnp.where(mask, z, -1), mask, num_skills).astype(jnp.float64)
+    if gated is False:
+        return counts
+    return jnp.where(jnp.eye(num_skills, dtype=bool) & jnp.asarray(gated, bool), 0.0, counts)
+
+
 def sequence_counts(z, mask, features, gate=None, gated=None):
     """What :func:`collapsed_sequence_log_prob` needs of z: (transition counts (N, K, K), the
     terms that do not depend on kappa and gamma (N,)): the first skill's uniform probability,
@@ -383,16 +396,13 @@ def sequence_counts(z, mask, features, gate=None, gated=None):
     an inactive skill or a trajectory with steps has none. With ``gate`` the diagonal counts are
     left out (only switches inform eta). ``gated``: a traced bool that turns the gate's part
     off where false (the kernel's sticky phase; default: on)."""
-    from .hmm import transition_counts
-
     N, K = features.shape
     active = features > 0
     z = jnp.where(mask, z, -1)
-    counts = transition_counts(z, mask, K).astype(jnp.float64)  # (N, K, K)
+    on = (gate is not None) and jnp.asarray(True if gated is None else gated, bool)
+    counts = eta_counts(z, mask, K, on)  # (N, K, K)
     ends = 0.0
     if gate is not None:
-        on = jnp.asarray(True if gated is None else gated, bool)
-        counts = jnp.where(jnp.eye(K, dtype=bool) & on, 0.0, counts)
         prev, nxt = jnp.clip(z[:, :-1], 0, K - 1), z[:, 1:]
         g = jnp.clip(jnp.take_along_axis(gate[:, 1:], prev[..., None], axis=-1)[..., 0], 1e-300, 1.0)
         step = jnp.where(nxt == prev, jnp.log1p(-jnp.minimum(g, 1.0 - 1e-16)), jnp.log(g))

@@ -33,12 +33,12 @@ from numpyro.infer.mcmc import MCMCKernel
 
 from npbrs.domains.pytree import Pytree
 from npbrs.models.bphmm import (Hyper, Termination, bphmm_model, collapsed_feature_log_prob,
-                                collapsed_transition_log_prob, end_counts, end_gate, eta_from_gammas,
+                                collapsed_transition_log_prob, end_counts, end_gate, eta_counts, eta_from_gammas,
                                 eta_gamma_shapes, hmm_parameters, log_joint_terms, log_marginal_likelihoods,
                                 sample_end_means, sample_ends, sequence_counts)
 from npbrs.models.mcmc import metropolis_accept, select
 from npbrs.models.emissions import Emission, EmissionInfo, HMMData
-from npbrs.models.hmm import batch_backward_sample, batch_forward_filter, transition_counts
+from npbrs.models.hmm import batch_backward_sample, batch_forward_filter
 
 from npbrs.domains.compiling import jit
 from npbrs.domains.precision import float64_all
@@ -386,10 +386,8 @@ class BPHMMKernel(MCMCKernel, Pytree):
         phase (then the stays inform eta's diagonal, as in the sticky BP-HMM).
         """
         N, K = features.shape
-        counts = transition_counts(z, self.data.mask, K)
-        if self.termination is not None:  # with state-dependent ends only the switches inform eta
-            on = jnp.asarray(True if gated is None else gated, bool)
-            counts = jnp.where(jnp.eye(K, dtype=bool) & on, 0, counts)
+        # with state-dependent ends only the switches inform eta
+        counts = eta_counts(z, self.data.mask, K, self.termination is not None if gated is None else gated)
         shape_g, shape_total, active = eta_gamma_shapes(counts, features, hyper)
         valid = self._valid
         m = jnp.sum(jnp.where(valid[:, None], features, 0.0), axis=0)
@@ -473,7 +471,7 @@ class BPHMMKernel(MCMCKernel, Pytree):
             state = state._replace(hyper=state.hyper._replace(kappa=model_kappa * factor))
         key, k_feat, k_bd, k_z, k_eta, k_em, k_hyp, k_sm = jax.random.split(state.rng_key, 8)
         k_gm = jax.random.fold_in(k_sm, 1)
-        gate = self.gate(state)  # the ends are held fixed until step 3
+        model_gate = gate = self.gate(state)  # the ends are held fixed until step 3
         # the filters' switching: the model's, or in the sticky phase the sticky BP-HMM's (a gate
         # of ones with eta's diagonal: every step "ends" and redraws from its trajectory's row)
         ends_on, current = True, state.log_marginals
@@ -487,7 +485,7 @@ class BPHMMKernel(MCMCKernel, Pytree):
                     else state.features)
         # the moves' state (``npbrs.inference.sampler.state``): each move maps it to a new one
         # (they wait for the sticky phase's end, so they see the model's ends)
-        moved = MoveState.of(state, self.gate(state))._replace(features=features)
+        moved = MoveState.of(state, model_gate)._replace(features=features)
         # the emission as the work that is not an MCMC move uses it: the greedy moves, the tune
         search = self.emission.for_search()
         blocks = min(self.moves["blocks"], N)  # refits of a split's allocation (split-merge, greedy splits)

@@ -72,8 +72,9 @@ import jax
 import jax.numpy as jnp
 
 from npbrs.models.mcmc import metropolis_accept, select
-from npbrs.models.bphmm import collapsed_feature_log_prob, eta_from_gammas, eta_gamma_shapes, hmm_parameters
-from npbrs.models.hmm import NEG_LOG, batch_backward_sample, batch_forward_filter, transition_counts, viterbi
+from npbrs.models.bphmm import (collapsed_feature_log_prob, eta_counts, eta_from_gammas, eta_gamma_shapes,
+                                hmm_parameters)
+from npbrs.models.hmm import NEG_LOG, batch_backward_sample, batch_forward_filter, viterbi
 from npbrs.domains.precision import float64_all
 
 from .state import MoveState
@@ -262,9 +263,7 @@ def _eta_counts(z_alloc, f, mask, gated=False):
     """Transition counts (N, K, K) of an allocation in the active columns of F; ``gated``
     (state-dependent ends): the switches only, as in the kernel's conditional (a skill that
     continues says nothing of eta there)."""
-    K = f.shape[1]
-    counts = jnp.where((f > 0)[:, None, :], transition_counts(z_alloc, mask, K), 0).astype(jnp.float64)
-    return jnp.where(jnp.eye(K, dtype=bool), 0.0, counts) if gated else counts
+    return jnp.where((f > 0)[:, None, :], eta_counts(z_alloc, mask, f.shape[1], gated), 0.0)
 
 
 def _draw_eta(key, eta, counts, f, involved, hyper):
