@@ -350,7 +350,7 @@ def collapsed_feature_log_prob(features, alpha, valid=None):
     return jnp.sum(betaln(m + a, N - m + 1.0) - betaln(a, 1.0))
 
 
-def collapsed_sequence_log_prob(z, mask, features, kappa, gamma, gate=None):
+def collapsed_sequence_log_prob(z, mask, features, kappa, gamma, gate=None, gated=None):
     """log p(z_i | f_i) with the transition weights eta_i integrated out, per trajectory (N,).
 
     Given f_i, row j of pi_i is Dirichlet(gamma + kappa [j == k], k active) (normalised
@@ -371,9 +371,12 @@ def collapsed_sequence_log_prob(z, mask, features, kappa, gamma, gate=None):
     Args:
         z: (N, T) skills (-1 or anything at masked steps); mask: (N, T) bool;
         features: (N, K) 0/1; kappa, gamma: the hyperparameters.
+        gated: as :func:`sequence_counts`' (a traced bool, false in the kernel's sticky phase:
+            then the sticky BP-HMM's probability, the gate's part off).
     """
-    counts, rest = sequence_counts(z, mask, features, gate)
-    return collapsed_transition_log_prob(counts, features, kappa, gamma, gate is not None) + rest
+    counts, rest = sequence_counts(z, mask, features, gate, gated)
+    on = (gate is not None) if gated is None or gate is None else gated
+    return collapsed_transition_log_prob(counts, features, kappa, gamma, on) + rest
 
 
 def eta_counts(z, mask, num_skills: int, gated=False):

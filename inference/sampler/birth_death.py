@@ -85,8 +85,8 @@ def _get_slot(params, k):
     return jax.tree.map(lambda p: p[k], params)
 
 
-def _trajectory_log_marginal(features_i, eta_i, log_lik_i, mask_i, gate_i=None):
-    log_init, log_trans, active = hmm_parameters(features_i[None], eta_i[None], gate_i is not None)
+def _trajectory_log_marginal(features_i, eta_i, log_lik_i, mask_i, gate_i=None, gated=False):
+    log_init, log_trans, active = hmm_parameters(features_i[None], eta_i[None], gated)
     lm, _ = forward_filter(log_init[0], log_trans[0], log_lik_i, mask_i, active[0], gate_i)
     return lm
 
@@ -116,8 +116,10 @@ def birth_death_log_ratio(current: MoveState, proposed: MoveState, emission, dat
     features, new_features = current.features, proposed.features
     is_birth = new_features[i, k] > 0
     gate_i = None if current.gate is None else current.gate[i]  # the moves hold the ends' gate fixed
-    lm_old = _trajectory_log_marginal(features[i], current.eta[i], current.log_lik[i], data.mask[i], gate_i)
-    lm_new = _trajectory_log_marginal(new_features[i], proposed.eta[i], proposed.log_lik[i], data.mask[i], gate_i)
+    gated = current.is_gated
+    lm_old = _trajectory_log_marginal(features[i], current.eta[i], current.log_lik[i], data.mask[i], gate_i, gated)
+    lm_new = _trajectory_log_marginal(new_features[i], proposed.eta[i], proposed.log_lik[i], data.mask[i], gate_i,
+                                      gated)
     # the skill that is (or becomes) used: its parameters, prior and proposal density
     used = jax.tree.map(lambda n, o: jnp.where(is_birth, n, o), _get_slot(proposed.params, k),
                         _get_slot(current.params, k))

@@ -91,12 +91,12 @@ def merge_score(emission, data, hyper, features, z, init=None, gate=None):
     return jnp.sum(jnp.where(used, log_ev, 0.0)) + _structure_log_prob(hyper, data.mask, z, features, gate)
 
 
-def _structure_log_prob(hyper, mask, z, features, gate=None):
+def _structure_log_prob(hyper, mask, z, features, gate=None, gated=None):
     """log p(z | F) + log p(F), eta and omega integrated out (trajectories without steps,
     padding, left out); with state-dependent ends, given the ends' ``gate`` (the moves hold
-    the ends fixed)."""
+    the ends fixed; ``gated`` false: the sticky phase's)."""
     valid = jnp.any(mask, axis=1)
-    seq = collapsed_sequence_log_prob(z, mask, features, hyper.kappa, hyper.gamma, gate)
+    seq = collapsed_sequence_log_prob(z, mask, features, hyper.kappa, hyper.gamma, gate, gated)
     return jnp.sum(jnp.where(valid, seq, 0.0)) + collapsed_feature_log_prob(features, hyper.alpha, valid)
 
 
@@ -227,8 +227,8 @@ def _run_trial(trial: _Trial, state: MoveState, emission, data, hyper):
 
     features, z, params, log_lik = state.features, state.z, state.params, state.log_lik
     parts_minus_whole = log_ev[0] + log_ev[1] - log_ev[2]
-    structure = (_structure_log_prob(hyper, data.mask, z_new, f_new, state.gate)
-                 - _structure_log_prob(hyper, data.mask, z, features, state.gate))
+    structure = (_structure_log_prob(hyper, data.mask, z_new, f_new, state.gate, state.gated)
+                 - _structure_log_prob(hyper, data.mask, z, features, state.gate, state.gated))
     gain = jnp.where(merging, -parts_minus_whole, parts_minus_whole) + structure
     two = pair(fits, True)  # (the last step's: ``lik`` holds their likelihoods)
     a, b = trial.slots[0], trial.slots[1]

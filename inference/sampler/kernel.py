@@ -471,7 +471,7 @@ class BPHMMKernel(MCMCKernel, Pytree):
             state = state._replace(hyper=state.hyper._replace(kappa=model_kappa * factor))
         key, k_feat, k_bd, k_z, k_eta, k_em, k_hyp, k_sm = jax.random.split(state.rng_key, 8)
         k_gm = jax.random.fold_in(k_sm, 1)
-        model_gate = gate = self.gate(state)  # the ends are held fixed until step 3
+        gate = self.gate(state)  # the ends are held fixed until step 3
         # the filters' switching: the model's, or in the sticky phase the sticky BP-HMM's (a gate
         # of ones with eta's diagonal: every step "ends" and redraws from its trajectory's row)
         ends_on, current = True, state.log_marginals
@@ -484,14 +484,14 @@ class BPHMMKernel(MCMCKernel, Pytree):
         features = (self._sample_features(k_feat, state, gate, gated, current) if self.sample_features
                     else state.features)
         # the moves' state (``npbrs.inference.sampler.state``): each move maps it to a new one
-        # (they wait for the sticky phase's end, so they see the model's ends)
-        moved = MoveState.of(state, model_gate)._replace(features=features)
+        # (in the sticky phase they move the sticky BP-HMM, as the sweep does)
+        moved = MoveState.of(state, gate, gated)._replace(features=features)
         # the emission as the work that is not an MCMC move uses it: the greedy moves, the tune
         search = self.emission.for_search()
         blocks = min(self.moves["blocks"], N)  # refits of a split's allocation (split-merge, greedy splits)
-        moves_on = ends_on
+        moves_on = True
         if self.moves["start"]:
-            moves_on = moves_on & (step >= self.moves["start"])
+            moves_on = step >= self.moves["start"]
         if moves_on is not True:
             def gated_move(run, operands, skipped):
                 """run(operands) from the start sweep on; before it, (operands, skipped)."""
@@ -544,7 +544,7 @@ class BPHMMKernel(MCMCKernel, Pytree):
 
             # the trials stop for every chain at once (``greedy_any``: while any chain's last
             # ``greedy_patience`` greedy sweeps kept something), so that skipping them saves time
-            ran = greedy_on & greedy_any & ends_on
+            ran = greedy_on & greedy_any
             moved, (merged, split) = jax.lax.cond(ran, greedy_run, lambda ops: (ops, (jnp.int32(0), jnp.int32(0))),
                                                   moved)
             idle = jnp.where(ran, jnp.where(merged + split > 0, 0, state.greedy_idle + 1), state.greedy_idle)

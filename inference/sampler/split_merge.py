@@ -400,8 +400,8 @@ def _log_ratio(current: MoveState, proposed: MoveState, emission, data, hyper, a
     allocation's transition counts ``counts_fwd``; the reverse move's density is computed here,
     from the proposed state and its skill sequences. ``lm_new``: the proposed state's clamped log
     marginals (N,), when known."""
-    features, eta, z, params, log_lik, gate = current
-    new_f, new_eta, new_z, new_params, new_log_lik, _ = proposed
+    features, eta, z, params, log_lik, gate = current[:6]
+    new_f, new_eta, new_z, new_params, new_log_lik = proposed[:5]
     mask = data.mask
     real = jnp.any(mask, axis=1)
     split_proposal, merge_proposal = proposals
@@ -410,7 +410,7 @@ def _log_ratio(current: MoveState, proposed: MoveState, emission, data, hyper, a
     new_labels = (k1, jnp.where(is_split, k2, k1))
     # the trajectories whose transition weights the move redraws: those that use k1 or k2
     involved = ((features[:, k1] > 0) | (features[:, k2] > 0)) & real
-    gated = gate is not None  # the ends' gate is the same in both states
+    gated = current.is_gated  # the ends' gate is the same in both states
     li_o, lt_o, act_o = hmm_parameters(features, eta, gated)
     lm_old, _ = batch_forward_filter(li_o, lt_o, _clamp(log_lik, anchors, old_labels), mask, act_o, gate)
     if lm_new is None:
@@ -441,7 +441,8 @@ def propose_split_merge(key, state: MoveState, emission, data, hyper, anchors, n
     ratio leaves out the anchors' choice (which :func:`split_merge` adds)."""
     K = state.features.shape[1]
     mask = data.mask
-    features, eta, z, params, log_lik, gate = state
+    features, eta, z, params, log_lik, gate = state[:6]
+    gated = state.is_gated
     ia, ta, ib, tb = anchors
     k_slot, k_order, k_feat, k_prop, k_prior, k_z, k_eta = jax.random.split(key, 7)
     k1 = z[ia, ta]
@@ -476,14 +477,14 @@ def propose_split_merge(key, state: MoveState, emission, data, hyper, anchors, n
     # transition weights of the trajectories that use k1 or k2: redrawn from their
     # conditional given the move's allocation (the merged labels, or the split's)
     involved = ((features[:, k1] > 0) | (features[:, k2] > 0)) & real
-    counts_fwd = _eta_counts(alloc_fwd, new_f, mask, gate is not None)  # one count for the draw and its density
+    counts_fwd = _eta_counts(alloc_fwd, new_f, mask, gated)  # one count for the draw and its density
     new_eta = _draw_eta(k_eta, eta, counts_fwd, new_f, involved, hyper)
     # skill sequences: redrawn given the proposed state with the anchors clamped
     new_labels = (k1, jnp.where(is_split, k2, k1))
-    li_n, lt_n, act_n = hmm_parameters(new_f, new_eta, gate is not None)
+    li_n, lt_n, act_n = hmm_parameters(new_f, new_eta, gated)
     lm_new, alpha_new = batch_forward_filter(li_n, lt_n, _clamp(new_log_lik, anchors, new_labels), mask, act_n, gate)
     new_z = batch_backward_sample(k_z, lt_n, alpha_new, mask, act_n, gate)
-    proposed = MoveState(new_f, new_eta, new_z, new_params, new_log_lik, gate)
+    proposed = MoveState(new_f, new_eta, new_z, new_params, new_log_lik, gate, state.gated)
 
     log_ratio = _log_ratio(state, proposed, emission, data, hyper, anchors, k1, k2, is_split, proposals, lq_fwd,
                            counts_fwd, lm_new)
@@ -520,7 +521,7 @@ def split_merge_log_ratio(current: MoveState, proposed: MoveState, emission, dat
         return merge_proposal(z, current_two, new_two, None)[1], jnp.where(z == k2, k1, z)
 
     lq_fwd, alloc_fwd = jax.lax.cond(is_split, forward_split, forward_merge, None)
-    counts_fwd = _eta_counts(alloc_fwd, proposed.features, data.mask, proposed.gate is not None)
+    counts_fwd = _eta_counts(alloc_fwd, proposed.features, data.mask, proposed.is_gated)
     return _log_ratio(current, proposed, emission, data, hyper, anchors, k1, k2, is_split, proposals, lq_fwd,
                       counts_fwd)
 

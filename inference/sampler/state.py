@@ -24,7 +24,10 @@ class MoveState(NamedTuple):
     features: (N, K) 0/1, which skills each trajectory may use. eta: (N, K, K) unnormalised
     transition weights. z: (N, T) skill sequences (-1 on padding). params: the emission's
     parameters {site: (K, ...)}. log_lik: (N, T, K) per-step log-likelihoods of ``params``
-    (every move keeps them equal).
+    (every move keeps them equal). gate: the ends' (N, T, K) with state-dependent ends (the
+    moves hold it fixed), else None. gated: with a gate, a traced bool, false in the kernel's
+    sticky phase (a gate of ones with eta's diagonal: the sticky BP-HMM, whose moves then run
+    too); None: whether a gate is given (:attr:`is_gated`).
     """
 
     features: jax.Array
@@ -33,9 +36,17 @@ class MoveState(NamedTuple):
     params: Dict[str, jax.Array]
     log_lik: jax.Array
     gate: Optional[jax.Array] = None
+    gated: Optional[jax.Array] = None
+
+    @property
+    def is_gated(self):
+        """Whether the ends switch: False without a gate, else ``gated`` (True when None)."""
+        if self.gate is None:
+            return False
+        return True if self.gated is None else self.gated
 
     @classmethod
-    def of(cls, state, gate=None) -> "MoveState":
+    def of(cls, state, gate=None, gated=None) -> "MoveState":
         """The moves' part of a state with these fields (e.g. the kernel's ``BPHMMState``), and
-        the ``gate`` given."""
-        return cls(*(getattr(state, name) for name in cls._fields[:-1]), gate)
+        the ``gate`` and ``gated`` given."""
+        return cls(*(getattr(state, name) for name in cls._fields[:-2]), gate, gated)
