@@ -31,15 +31,18 @@ with the functions below (``prior_distributions``, ``hmm_parameters``,
 
 from __future__ import annotations
 
+from functools import partial
 from typing import Dict, NamedTuple, Optional, Tuple
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 import numpyro
 import numpyro.distributions as dist
 from jax.scipy.special import betaln
 
 from .hmm import NEG_LOG, batch_forward_filter, batch_viterbi, transition_counts
+from npbrs.domains.compiling import jit
 from npbrs.domains.options import arrival_counts
 from npbrs.domains.precision import float64_all
 
@@ -48,7 +51,7 @@ __all__ = ["Hyper", "Termination", "prior_distributions", "sample_prior_eta", "h
            "log_marginal_likelihoods", "feature_predictive", "predictive_log_likelihoods",
            "bphmm_model", "log_joint_terms",
            "collapsed_feature_log_prob", "collapsed_sequence_log_prob", "eta_counts", "sequence_counts",
-           "collapsed_transition_log_prob"]
+           "collapsed_transition_log_prob", "collapsed_end_log_prob", "switching_log_evidence"]
 
 class Hyper(NamedTuple):
     """BP-HMM hyperparameters: IBP mass alpha, stickiness kappa, transition concentration gamma."""
@@ -123,6 +126,84 @@ def _mean_log_target(mean, counts, term: Termination):
     seen = (ended + stayed) > 0
     ll = jnp.sum(jnp.where(seen, betaln(x + ended, y + stayed) - betaln(x, y), 0.0), -1)
     return ll + dist.Beta(a, b).log_prob(mean)
+
+
+def collapsed_end_log_prob(z, mask, states, features, mean, concentration, num_states: int):
+    """log p(z's ends and stays | mu) with the ends beta integrated out, per skill (K,): a
+    Beta-binomial of each (skill, state entered)'s :func:`end_counts` under Beta(c mu_k,
+    c (1 - mu_k)). What the greedy moves score skill sequences by under state-dependent ends,
+    so that a proposed skill is not judged by ends drawn for another's steps."""
+    ended, stayed = end_counts(z, mask, states, features, num_states)
+    x, y = concentration * mean[:, None], concentration * (1.0 - mean[:, None])
+    seen = (ended + stayed) > 0
+    return jnp.sum(jnp.where(seen, betaln(x + ended, y + stayed) - betaln(x, y), 0.0), -1)
+
+
+#: quadrature nodes of :func:`switching_log_evidence`'s integrals over kappa and each mu_k
+EVIDENCE_NODES = 64
+
+
+def switching_log_evidence(z, mask, states, num_states: int, termination: Termination, gamma: float = 1.0,
+                           kappa_prior: Tuple[float, float] = (1.0, 0.02), features=None,
+                           num_skills: Optional[int] = None) -> Tuple[float, float]:
+    """(sticky, state): log p(z) of skill sequences under the sticky BP-HMM and under
+    state-dependent ends, each trajectory's skills being those it uses, with everything else
+    integrated out: eta exactly (:func:`collapsed_sequence_log_prob`'s Dirichlet-multinomials),
+    the ends given their means exactly (:func:`collapsed_end_log_prob`), the sticky model's
+    kappa under Gamma(``kappa_prior``) (shape, rate) and each skill's mean end probability mu_k
+    under Beta(``termination.mean_prior``) by quadrature at :data:`EVIDENCE_NODES` quantiles of
+    the prior. Their difference is the Bayes factor of the two switching models given z (the
+    emission's terms are the same in both). Host arrays in, floats out: one compiled program
+    per shape (N, T), ``num_skills`` and ``num_states``; the quadrature's nodes are its
+    arguments, so other priors or data of the same shapes reuse it.
+
+    Args:
+        z: (N, T) skill indices (anything at masked steps); mask: (N, T) bool (trajectories
+            without steps, padding, are left out); states: (N, T).
+        num_states: S; termination: the state model's prior (its concentration and mean prior).
+        gamma: the transition concentration; kappa_prior: (shape, rate) of kappa's Gamma.
+        features: (N, K) 0/1, each trajectory's skills; None: those it uses.
+        num_skills: K, the skill slots (at least the largest index in z plus one; default that).
+    """
+    from scipy import stats
+    from scipy.special import logsumexp
+
+    mask = np.asarray(mask, bool)
+    z = np.where(mask, np.asarray(z), -1).astype(np.int32)
+    K = int(num_skills) if num_skills is not None else max(int(z.max()) + 1, 1)
+    if int(z.max()) >= K:
+        raise ValueError(f"z holds skill {int(z.max())}, past num_skills={K}")
+    if features is None:
+        features = np.stack([np.any((z == k) & mask, axis=1) for k in range(K)], 1)
+    q = (np.arange(EVIDENCE_NODES) + 0.5) / EVIDENCE_NODES
+    kappas = stats.gamma.ppf(q, kappa_prior[0], scale=1.0 / kappa_prior[1])
+    means = stats.beta.ppf(q, *termination.mean_prior)
+    per_kappa, per_mean, sticky_rest, state_rest = (np.asarray(x) for x in _switching_terms(
+        jnp.asarray(z), jnp.asarray(mask), jnp.asarray(np.asarray(states), jnp.int32),
+        jnp.asarray(np.asarray(features, np.float64)), jnp.asarray(kappas), jnp.asarray(means),
+        jnp.float64(termination.concentration), jnp.float64(gamma), int(num_states)))
+    log_g = np.log(EVIDENCE_NODES)
+    sticky = float(logsumexp(per_kappa) - log_g + sticky_rest)
+    state = float(state_rest + np.sum(logsumexp(per_mean, axis=0) - log_g))
+    return sticky, state
+
+
+@partial(jit, static_argnums=(8,))
+def _switching_terms(z, mask, states, features, kappas, means, concentration, gamma, num_states):
+    """:func:`switching_log_evidence`'s terms at its quadrature nodes: the sticky transitions'
+    log-probability per kappa (G,), the ends' per mean and skill (G, K), and the parts that
+    depend on neither (the first skills', and the state model's switches)."""
+    K = features.shape[1]
+    valid = jnp.any(mask, axis=1)
+    counts, rest = sequence_counts(z, mask, features)
+    rest = jnp.sum(jnp.where(valid, rest, 0.0))
+    per_kappa = jax.vmap(lambda k: jnp.sum(jnp.where(valid, collapsed_transition_log_prob(
+        counts, features, k, gamma), 0.0)))(kappas)
+    switches = eta_counts(z, mask, K, True)
+    state = jnp.sum(jnp.where(valid, collapsed_transition_log_prob(switches, features, 0.0, gamma, True), 0.0)) + rest
+    per_mean = jax.vmap(lambda m: collapsed_end_log_prob(z, mask, states, features, jnp.full((K,), m),
+                                                         concentration, num_states))(means)  # (G, K)
+    return per_kappa, per_mean, rest, state
 
 
 def sample_end_means(key, mean, counts, term: Termination, steps: int = 5, scale: float = 0.5):

@@ -184,8 +184,10 @@ def test_a_registered_toy_emission_fits_through_the_config_by_name(tmp_path):
     result = fit(mdp, demos, path, progress_bar=False)
     assert result.emission == {"name": "toy_policy", "concentration": 0.3, "note": "mine"}
     # the run records the configuration it ran, with fit's default greedy merges filled in
+    # (and the switching model that "auto", the default, chose)
     ran = TOY.replace(sampler=dataclasses.replace(TOY.sampler, moves={"greedy_merge": 1, "greedy_split": 1,
-                                                                   "greedy_from": 0.75}))
+                                                                   "greedy_from": 0.75}),
+                      prior=dataclasses.replace(TOY.prior, switching="sticky"))
     assert result.model_config == ran
     assert result.samples["policy"].shape == (1, 4, 3, 4, 3)
     # keyword arguments override the config (same model, so no new compilation)
@@ -257,7 +259,9 @@ def test_fit_starts_from_a_given_segmentation(tmp_path):
     again = fit(mdp, demos, TOY, num_warmup=0, num_samples=1, init_segmentation=result, progress_bar=False)
     assert hungarian_accuracy(truth, again.segmentation) == 1.0
     repeat = fit(mdp, demos, result.model_config, init_segmentation=result.init_segmentation, progress_bar=False)
-    assert repeat.equals(result)
+    # (the recorded configuration names the switching model "auto" chose: no choice to record again)
+    assert result.switching["chosen"] == "sticky" and repeat.switching is None
+    assert repeat.equals(dataclasses.replace(result, switching=None))
     default = fit(mdp, demos, TOY, num_warmup=0, num_samples=1, progress_bar=False)
     assert default.init_segmentation is None and "started from" not in default.summary()
     assert not default.equals(result)

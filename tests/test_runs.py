@@ -167,7 +167,9 @@ def test_a_saved_run_holds_the_draws_segmentation_skills_and_description(workdir
     attrs = idata.constant_data.attrs
     given = ModelConfig.from_toml(workdir / "model.toml")  # with fit's default greedy merges filled in
     ran = given.replace(sampler=dataclasses.replace(given.sampler, moves={**given.sampler.moves, "greedy_merge": 1,
-                                                                            "greedy_split": 1, "greedy_from": 0.75}))
+                                                                            "greedy_split": 1, "greedy_from": 0.75}),
+                        prior=dataclasses.replace(given.prior, switching="sticky"))  # (the model "auto" chose)
+    assert whole_run.switching["chosen"] == "sticky"
     assert ModelConfig.from_dict(json.loads(attrs["config"])) == ran
     assert attrs["fingerprint"] == Demonstrations.load(workdir / "demos.npz").fingerprint()
     assert whole_run.demos == Demonstrations.load(workdir / "demos.npz")

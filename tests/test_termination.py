@@ -483,3 +483,161 @@ def test_the_sticky_phase_is_a_sticky_sweep_and_ends_after_it():
             assert not np.array_equal(np.asarray(new.eta), np.asarray(other.eta))  # (the stays inform only the sticky eta)
         np.testing.assert_allclose(float(new.log_joint), model_log_density(state_k, new), rtol=1e-10)
         state = new
+
+
+# ------------------------------------------------------------------ switching="auto": the evidence
+def _evidence_reference(z, lengths, states, K, S, kappa_prior, term, gamma=1.0):
+    """The two log evidences of switching_log_evidence written out with NumPy/SciPy: each
+    trajectory's skills those it uses, eta's rows as Dirichlet-multinomials, kappa and each
+    skill's mean end integrated by adaptive quadrature (scipy.integrate.quad)."""
+    from scipy import integrate
+    from scipy.special import gammaln
+
+    def dm(c, a):
+        return gammaln(a.sum()) - gammaln(a.sum() + c.sum()) + np.sum(gammaln(a + c) - gammaln(a))
+
+    seqs = [np.asarray(z[i, :n]) for i, n in enumerate(lengths)]
+
+    def sticky_given(kappa):
+        total = 0.0
+        for zi in seqs:
+            act = list(np.unique(zi))
+            total -= np.log(len(act))
+            C = np.zeros((K, K))
+            for a, b in zip(zi[:-1], zi[1:]):
+                C[a, b] += 1
+            for r in act:
+                a = np.full(len(act), gamma)
+                a[act.index(r)] += kappa
+                total += dm(C[r, act], a)
+        return total
+
+    shape, rate = kappa_prior
+    sticky = np.log(integrate.quad(lambda k: np.exp(sticky_given(k)) * stats.gamma.pdf(k, shape, scale=1 / rate),
+                                   0, np.inf, limit=200)[0])
+    state, E, Nn = 0.0, np.zeros((K, S)), np.zeros((K, S))
+    for i, zi in enumerate(seqs):
+        act = list(np.unique(zi))
+        state -= np.log(len(act))
+        if len(act) < 2:
+            continue
+        C = np.zeros((K, K))
+        for t in range(1, len(zi)):
+            a, b = zi[t - 1], zi[t]
+            if a != b:
+                C[a, b] += 1
+                E[a, states[i, t]] += 1
+            else:
+                Nn[a, states[i, t]] += 1
+        for r in act:
+            others = [k for k in act if k != r]
+            state += dm(C[r, others], np.full(len(others), gamma))
+    c, (a0, b0) = term.concentration, term.mean_prior
+    for k in range(K):
+        seen = E[k] + Nn[k] > 0
+        if not seen.any():
+            continue
+
+        def given(mu):
+            return np.exp(np.sum(betaln(c * mu + E[k][seen], c * (1 - mu) + Nn[k][seen]) - betaln(c * mu, c * (1 - mu))))
+
+        state += np.log(integrate.quad(lambda mu: given(mu) * stats.beta.pdf(mu, a0, b0), 0, 1, limit=200)[0])
+    return sticky, state
+
+
+def test_the_switching_evidence_matches_quadrature_on_ragged_trajectories():
+    """switching_log_evidence (64 prior quantiles for kappa and each mu_k) against the NumPy
+    reference with adaptive quadrature: ragged lengths, a one-skill trajectory, kappa and ends
+    priors other than the defaults. (Checked to fail: the stays left in eta's counts under
+    state ends; the ends' Beta-binomial over the one-skill trajectory too.)"""
+    from npbrs.models.bphmm import switching_log_evidence
+
+    rng = np.random.default_rng(4)
+    K, S, lengths = 3, 4, [14, 7, 9, 6]
+    T = max(lengths)
+    mask = np.arange(T)[None] < np.array(lengths)[:, None]
+    z = np.zeros((4, T), np.int64)
+    for i, n in enumerate(lengths):  # runs of a few steps each
+        z[i, :n] = np.repeat(rng.integers(0, K, n), rng.integers(2, 5, n))[:n]
+    z[3] = 2  # one skill only
+    states = rng.integers(0, S, (4, T))
+    term = Termination(S, 3.0, (1.0, 4.0))
+    got = switching_log_evidence(z, mask, states, S, term, 1.0, (2.0, 0.1))
+    want = _evidence_reference(z, lengths, states, K, S, (2.0, 0.1), term)
+    np.testing.assert_allclose(got, want, atol=0.05)
+
+
+def test_the_switching_evidence_sums_to_one_over_every_skill_sequence():
+    """Given the features (every skill on) and the states, both evidences are distributions
+    over the skill sequences: they sum to one over all of them (two ragged trajectories, two
+    skills; one trajectory, three skills). (Checked to fail: the first skill's uniform term left
+    out; the diagonal kept under state ends.)"""
+    import itertools
+
+    from scipy.special import logsumexp
+
+    from npbrs.models.bphmm import switching_log_evidence
+
+    term = Termination(3, 2.0, (2.0, 3.0))
+    rng = np.random.default_rng(0)
+    for lengths, K in (([4, 3], 2), ([4], 3)):
+        N, T = len(lengths), max(lengths)
+        mask = np.arange(T)[None] < np.array(lengths)[:, None]
+        states = rng.integers(0, 3, (N, T))
+        totals = []
+        for flat in itertools.product(range(K), repeat=sum(lengths)):
+            z = np.zeros((N, T), np.int64)
+            z[mask] = flat
+            totals.append(switching_log_evidence(z, mask, states, 3, term, 1.5, (2.0, 0.3), np.ones((N, K))))
+        np.testing.assert_allclose(logsumexp(np.array(totals), axis=0), 0.0, atol=1e-9)
+
+
+
+def test_the_greedy_moves_score_the_ends_integrated_out():
+    """Under state-dependent ends the greedy moves score skill sequences with the ends
+    integrated out given their means (collapsed_end_log_prob): each (skill, state) a
+    Beta-binomial, against one-dimensional quadrature over beta; and the greedy score's
+    structure term is the switches' collapsed probability plus that, whatever ends the chain
+    holds. (Checked to fail: the stays and ends swapped in the Beta-binomial.)"""
+    from scipy import integrate
+
+    from npbrs.inference.sampler.greedy import _structure_log_prob
+    from npbrs.models.bphmm import Hyper, collapsed_end_log_prob, collapsed_transition_log_prob, eta_counts
+
+    rng = np.random.default_rng(2)
+    N, T, K = 4, 9, 3
+    mask = np.arange(T)[None] < np.array([9, 6, 8, 5])[:, None]
+    z = np.repeat(rng.integers(0, K, (N, 3)), 3, axis=1)
+    states = rng.integers(0, S, (N, T))
+    features = np.ones((N, K))
+    features[3] = [1.0, 0.0, 0.0]
+    z[3] = 0
+    mean, c = np.array([0.2, 0.5, 0.05]), 3.0
+    got = np.asarray(collapsed_end_log_prob(jnp.asarray(z), jnp.asarray(mask), jnp.asarray(states),
+                                            jnp.asarray(features), jnp.asarray(mean), c, S))
+    ended, stayed = (np.asarray(x) for x in end_counts(z, mask, states, features, S))
+    for k in range(K):
+        want = 0.0
+        for s in range(S):
+            e, n = ended[k, s], stayed[k, s]
+            if e + n:
+                want += np.log(integrate.quad(lambda b: b ** e * (1 - b) ** n * stats.beta.pdf(b, c * mean[k],
+                                                                                               c * (1 - mean[k])),
+                                              0, 1)[0])
+        np.testing.assert_allclose(got[k], want, rtol=1e-6)
+    hyper = Hyper(jnp.float64(1.0), jnp.float64(5.0), jnp.float64(1.0))
+    lp = {}
+    for seed in (0, 1):  # two different ends held by the chain: the score does not see them
+        ends = jax.random.uniform(jax.random.PRNGKey(seed), (K, S))
+        model = (ends, jnp.asarray(mean), jnp.float64(c))
+        lp[seed] = float(_structure_log_prob(hyper, jnp.asarray(mask), jnp.asarray(z), jnp.asarray(features),
+                                             end_gate(ends, jnp.asarray(states), jnp.asarray(mask)), None, model,
+                                             jnp.asarray(states)))
+    assert lp[0] == lp[1]
+    from npbrs.models.bphmm import collapsed_feature_log_prob, sequence_counts
+
+    counts = eta_counts(jnp.asarray(z), jnp.asarray(mask), K, True)
+    _, rest = sequence_counts(jnp.asarray(z), jnp.asarray(mask), jnp.asarray(features))
+    want = (float(jnp.sum(collapsed_transition_log_prob(counts, jnp.asarray(features), 5.0, 1.0, True) + rest))
+            + got.sum() + float(collapsed_feature_log_prob(jnp.asarray(features), 1.0, jnp.ones(N, bool))))
+    np.testing.assert_allclose(lp[0], want, rtol=1e-10)

@@ -78,9 +78,11 @@ def _add_fit(sub):
     p.add_argument("--grow", action="store_true",
                    help="while every skill slot is in use in most draws, refit with twice the slots from the "
                         "run's segmentation (up to 64; fit's grow=True; no checkpoints then)")
-    p.add_argument("--switching", choices=("sticky", "state"),
-                   help="how skills end: 'sticky' (the paper's BP-HMM) or 'state' (each skill ends with a "
-                        "probability per state entered, as when it ends at its goal; overrides the config)")
+    p.add_argument("--switching", choices=("sticky", "state", "auto"),
+                   help="how skills end: 'sticky' (the paper's BP-HMM), 'state' (each skill ends with a "
+                        "probability per state entered, as when it ends at its goal) or 'auto' (the default: "
+                        "the sticky fit, refitted with state ends when its skills favour them; overrides the "
+                        "config)")
     p.add_argument("-o", "--output", required=True, help="the run file to write (.nc)")
     p.add_argument("--init-from", metavar="RUN", help="start every chain from the segmentation of a saved run (.nc)")
     p.add_argument("--resume", action="store_true", help="continue from the output's checkpoint if there is one")

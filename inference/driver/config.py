@@ -22,7 +22,8 @@ A TOML variant (every key optional; these are the defaults)::
     value = 10.0
     shape = 2.0
     rate = 0.2
-    # switching = "sticky"     # or "state": skills end with a probability per state entered
+    # switching = "auto"       # "sticky", "state" (skills end with a probability per state entered)
+    #                          # or "auto": the sticky fit, then state ends if its skills favour them
     # end_concentration = 8.0  # ... beta_k(s) ~ Beta(c mu_k, c (1 - mu_k)), c this
     # end_mean = [1.0, 9.0]    # ... mu_k ~ Beta(a, b)
 
@@ -253,19 +254,22 @@ class PriorConfig:
     transition concentration ``gamma``; each a number (fixed) or a :class:`Hyperparameter`.
 
     ``switching``: "sticky" (the paper's BP-HMM: a skill continues with a probability of its
-    trajectory's, wherever the agent is) or "state" (skills are options that end with a
+    trajectory's, wherever the agent is), "state" (skills are options that end with a
     probability per state entered, beta_k(s) ~ Beta(c mu_k, c (1 - mu_k)), mu_k ~ Beta(a, b):
-    ``end_concentration`` c, ``end_mean`` (a, b); see ``npbrs.models.bphmm``)."""
+    ``end_concentration`` c, ``end_mean`` (a, b); see ``npbrs.models.bphmm``) or "auto" (the
+    default: ``fit`` fits the sticky model and refits with state-dependent ends when the sticky
+    fit's skill sequences favour them by a Bayes factor; a fit's recorded configuration says
+    which it chose)."""
 
     alpha: Union[float, Hyperparameter] = 1.0
     kappa: Union[float, Hyperparameter] = 10.0
     gamma: Union[float, Hyperparameter] = 1.0
-    switching: str = "sticky"
+    switching: str = "auto"
     end_concentration: float = Termination._field_defaults["concentration"]
     end_mean: Any = Termination._field_defaults["mean_prior"]
 
     NAMES = ("alpha", "kappa", "gamma")
-    SWITCHING = ("sticky", "state")
+    SWITCHING = ("sticky", "state", "auto")
     KEYS = NAMES + ("switching", "end_concentration", "end_mean")
 
     def __post_init__(self):
@@ -297,7 +301,7 @@ class PriorConfig:
         keys = ("switching", "end_concentration", "end_mean")
         ends = {k: getattr(self, k) for k in keys}
         if ends != {k: getattr(PriorConfig, k) for k in keys}:
-            out.update(ends, end_mean=list(self.end_mean))  # (a default sticky description stays as it was)
+            out.update(ends, end_mean=list(self.end_mean))  # (the default description stays short)
         return out
 
 

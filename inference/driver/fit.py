@@ -34,7 +34,7 @@ import numpy as np
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
 from npbrs.domains.demos import Demonstrations
-from npbrs.models.bphmm import Termination
+from npbrs.models.bphmm import Termination, switching_log_evidence
 from npbrs.models.emissions import Emission, HMMData, get_emission_class
 
 from npbrs.domains.compiling import jit
@@ -887,10 +887,16 @@ def fit(mdp, demos: Demonstrations, config: Union[ModelConfig, dict, str, os.Pat
             (64) slots; the result is the last fit's, with ``truncation`` recording each fit's
             slots, skills and saturation. Without it such a run warns (``UserWarning``) and says
             how to refit. Not with ``checkpoint_path``.
-        switching: "sticky" (the paper's BP-HMM, the default) or "state": skills end with a
-            probability that depends on the state entered (options with a termination
-            function, sampled; see :class:`~npbrs.inference.driver.config.PriorConfig`), as when
-            a skill ends once its goal is reached.
+        switching: "sticky" (the paper's BP-HMM), "state": skills end with a probability that
+            depends on the state entered (options with a termination function, sampled; see
+            :class:`~npbrs.inference.driver.config.PriorConfig`), as when a skill ends once its
+            goal is reached, or "auto" (the default): the sticky fit, and when its skill
+            sequences favour state-dependent ends by a log Bayes factor above
+            :data:`SWITCHING_MARGIN` (:func:`switching_evidence`), a fit with them started from
+            its segmentation (its sticky search phase off); the result is the chosen model's,
+            its ``switching`` recording the evidence and the choice. With checkpoints the second
+            fit's is at :func:`state_stage_path`, and ``resume`` repeats (or resumes) the sticky
+            fit first: the same seed gives the same fit.
     Returns:
         a :class:`~npbrs.inference.driver.results.FitResult`.
     Raises:
@@ -911,26 +917,99 @@ def fit(mdp, demos: Demonstrations, config: Union[ModelConfig, dict, str, os.Pat
         if grow and checkpoint_path is not None:
             raise ValueError("grow=True refits with more skill slots, which a checkpoint of one run cannot hold; "
                              "give either grow or checkpoint_path")
+        prior = resolve_config(config, switching=switching).prior
+        if prior.switching != "auto":
+            return _fit_grown(args, grow)
+        return _fit_auto(args, grow, prior)
+
+
+#: ``switching="auto"``: the log Bayes factor (nats) of state-dependent ends over sticky switching,
+#: given the sticky fit's skill sequences, above which ``fit`` refits with state-dependent ends
+#: (``benchmarks/NOTES.md``, session 42: the labyrinth's fits +175 to +200, the grid's +733;
+#: rooms' -26 to -48, the highway table's -16 to -44)
+SWITCHING_MARGIN = 10.0
+#: kappa's Gamma (shape, rate) in the sticky model's evidence when kappa is fixed in the fit
+EVIDENCE_KAPPA_PRIOR = (1.0, 0.02)
+
+
+def state_stage_path(checkpoint_path) -> str:
+    """Where ``switching="auto"`` keeps the checkpoint of its fit with state-dependent ends
+    (the sticky fit's is ``checkpoint_path`` itself): "RUN.checkpoint.npz" -> "RUN.checkpoint.state.npz"."""
+    root, ext = os.path.splitext(os.fspath(checkpoint_path))
+    return f"{root}.state{ext}"
+
+
+def switching_evidence(result: FitResult, mdp, demos: Demonstrations, prior: PriorConfig) -> dict:
+    """The log evidence of ``result``'s skill sequences (its best draw's segmentation) under
+    sticky switching and under state-dependent ends (the prior's end concentration and end-mean
+    prior; kappa under its hyperprior if sampled, else :data:`EVIDENCE_KAPPA_PRIOR`), and their
+    difference ("log_bayes_factor", state over sticky): see
+    :func:`npbrs.models.bphmm.switching_log_evidence`."""
+    lengths = [len(z) for z in result.segmentation]
+    N, T = len(lengths), max(lengths)
+    if result.config.get("sampler", {}).get("bucket"):  # (the bucket's shapes: its program is shared)
+        from npbrs.models.emissions import bucket_size
+
+        N, T = bucket_size(N), bucket_size(T)
+    z = np.zeros((N, T), np.int64)
+    states = np.zeros((N, T), np.int64)
+    mask = np.arange(T)[None, :] < np.asarray(lengths + [0] * (N - len(lengths)))[:, None]
+    for i, (seg, s) in enumerate(zip(result.segmentation, demos.states)):
+        z[i, :len(seg)], states[i, :len(s)] = seg, s
+    term = Termination(int(mdp.num_states), prior.end_concentration, prior.end_mean)
+    kappa = prior.kappa
+    kappa_prior = (kappa.shape, kappa.rate) if kappa.sampled else EVIDENCE_KAPPA_PRIOR
+    sticky, state = switching_log_evidence(z, mask, states, int(mdp.num_states), term, float(prior.gamma.value),
+                                           kappa_prior, num_skills=int(result.config["max_skills"]))
+    return {"sticky": round(sticky, 3), "state": round(state, 3), "log_bayes_factor": round(state - sticky, 3)}
+
+
+def _fit_auto(args: dict, grow: bool, prior: PriorConfig) -> FitResult:
+    """``switching="auto"``: the sticky fit, then, when its skill sequences favour
+    state-dependent ends by more than :data:`SWITCHING_MARGIN` nats, a fit with them started
+    from its segmentation (with checkpoints: at :func:`state_stage_path`; on ``resume`` the
+    sticky fit is repeated or resumed first: the same seed gives the same fit)."""
+    path = args["checkpoint_path"]
+    if path is not None and not args["resume"] and os.path.exists(state_stage_path(path)):
+        raise ValueError(f"{state_stage_path(path)} holds the checkpoint of an earlier, interrupted run; continue "
+                         "it with resume=True (npbrs fit --resume), or move it away, or write the new run elsewhere")
+    result = _fit_grown(dict(args, switching="sticky"), grow)
+    choice = dict(switching_evidence(result, args["mdp"], args["demos"], prior), margin=SWITCHING_MARGIN,
+                  chosen="sticky")
+    if choice["log_bayes_factor"] > SWITCHING_MARGIN:
+        moves = dict(resolve_config(args["config"], moves=args["moves"]).sampler.moves)
+        moves.setdefault("sticky_phase", 0.0)  # (it starts from a sticky fit's skills: no sticky search)
+        stage = dict(args, switching="state", init_segmentation=result, moves=moves,
+                     max_skills=int(result.config["max_skills"]),
+                     checkpoint_path=None if path is None else state_stage_path(path))
+        result = _fit_grown(stage, grow)
+        choice["chosen"] = "state"
+    return dataclasses.replace(result, switching=choice)
+
+
+def _fit_grown(args: dict, grow: bool) -> FitResult:
+    """One fit (:func:`_fit`), refitted with more skill slots while they are all in use when
+    ``grow``."""
+    result = _fit(**args)
+    record = {"max_skills": [], "skills": [], "saturated": []}
+    while True:
+        K, share = saturation(result)
+        record["max_skills"].append(K)
+        record["skills"].append(int(result.num_skills))
+        record["saturated"].append(share)
+        if K < 2 or share <= SATURATED:
+            break
+        if not grow or 2 * K > GROW_LIMIT:
+            warnings.warn(f"npbrs.fit: all {K} skill slots were in use in {share:.0%} of the sampling draws, "
+                          "so the truncation may be hiding skills; "
+                          + (f"refit with max_skills={2 * K} or with grow=True" if not grow else
+                             f"grow=True stops at {GROW_LIMIT} slots"), UserWarning, stacklevel=3)
+            break
+        args.update(max_skills=2 * K, init_segmentation=result)
         result = _fit(**args)
-        record = {"max_skills": [], "skills": [], "saturated": []}
-        while True:
-            K, share = saturation(result)
-            record["max_skills"].append(K)
-            record["skills"].append(int(result.num_skills))
-            record["saturated"].append(share)
-            if K < 2 or share <= SATURATED:
-                break
-            if not grow or 2 * K > GROW_LIMIT:
-                warnings.warn(f"npbrs.fit: all {K} skill slots were in use in {share:.0%} of the sampling draws, "
-                              "so the truncation may be hiding skills; "
-                              + (f"refit with max_skills={2 * K} or with grow=True" if not grow else
-                                 f"grow=True stops at {GROW_LIMIT} slots"), UserWarning, stacklevel=2)
-                break
-            args.update(max_skills=2 * K, init_segmentation=result)
-            result = _fit(**args)
-        if len(record["max_skills"]) > 1:
-            result = dataclasses.replace(result, truncation=record)
-        return result
+    if len(record["max_skills"]) > 1:
+        result = dataclasses.replace(result, truncation=record)
+    return result
 
 
 #: ``switching="state"``: the most memory (bytes) the kept draws of the end probabilities may take

@@ -182,6 +182,11 @@ class FitResult:
         truncation: for a run whose skill slots grew (``fit(..., grow=True)``): the slots of
             each fit in turn ("max_skills", e.g. [8, 16]), the skills each found ("skills") and
             the share of its sampling draws that used every slot ("saturated"); None otherwise.
+        switching: for a run whose switching model ``fit`` chose (``switching="auto"``, the
+            default): the log evidence of the sticky fit's skill sequences under each model
+            ("sticky", "state"; :func:`~npbrs.models.bphmm.switching_log_evidence`), their
+            difference ("log_bayes_factor", state over sticky), the margin it had to pass
+            ("margin") and the model of this result ("chosen"); None otherwise.
         restart: for a run of several chains with ``restart_margin`` on (see
             :class:`~npbrs.inference.driver.config.SamplerConfig`): the margin ("margin"), each
             chain's score at the end of warmup ("scores", its log joint averaged over the last
@@ -219,6 +224,7 @@ class FitResult:
     run_length: Optional[dict] = None
     truncation: Optional[dict] = None
     restart: Optional[dict] = None
+    switching: Optional[dict] = None
     step_skill_counts: Optional[np.ndarray] = None
 
     @classmethod
@@ -320,6 +326,7 @@ class FitResult:
                 and json.dumps(self.run_length, sort_keys=True) == json.dumps(other.run_length, sort_keys=True)
                 and json.dumps(self.truncation, sort_keys=True) == json.dumps(other.truncation, sort_keys=True)
                 and json.dumps(self.restart, sort_keys=True) == json.dumps(other.restart, sort_keys=True)
+                and json.dumps(self.switching, sort_keys=True) == json.dumps(other.switching, sort_keys=True)
                 and (not wall_time or same(self.wall_time, other.wall_time)))
 
     @property
@@ -493,6 +500,8 @@ class FitResult:
             attrs["truncation"] = json.dumps(self.truncation, sort_keys=True)
         if self.restart is not None:
             attrs["restart"] = json.dumps(self.restart, sort_keys=True)
+        if self.switching is not None:
+            attrs["switching"] = json.dumps(self.switching, sort_keys=True)
         groups = {"posterior": xr.Dataset(posterior, coords=chain_draw),
                   "sample_stats": xr.Dataset(sample_stats, coords=chain_draw),
                   "constant_data": xr.Dataset(constant, attrs=attrs)}
@@ -560,6 +569,7 @@ class FitResult:
                    run_length=json.loads(attrs["run_length"]) if "run_length" in attrs else None,
                    truncation=json.loads(attrs["truncation"]) if "truncation" in attrs else None,
                    restart=json.loads(attrs["restart"]) if "restart" in attrs else None,
+                   switching=json.loads(attrs["switching"]) if "switching" in attrs else None,
                    step_skill_counts=np.asarray(const[STEP_COUNTS].values) if STEP_COUNTS in const else None)
 
     def summary(self) -> str:
@@ -597,6 +607,11 @@ class FitResult:
             steps = "; ".join(f"{k} slots: {n} skills, every slot in use in {p:.0%} of the draws"
                               for k, n, p in zip(t["max_skills"], t["skills"], t["saturated"]))
             lines.append(f"skill slots grew ({steps})")
+        if self.switching is not None:
+            c = self.switching
+            lines.append(f"switching chosen: {c['chosen']} (log Bayes factor of state-dependent ends over sticky "
+                         f"switching, given the sticky fit's skill sequences: {c['log_bayes_factor']:+.1f} nats; "
+                         f"state needs more than {c['margin']:g})")
         rhat, ess = self.rhat, self.ess
 
         def shown(value, fmt):

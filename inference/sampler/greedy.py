@@ -42,8 +42,15 @@ trajectories that use it, and keeps the split when the same score rises:
     gain = log ev(steps of k1') + log ev(steps of k2) - log ev(steps of k1)
            + log p(z' | F') - log p(z | F) + log p(F') - log p(F).
 
+With state-dependent ends the structure term integrates the ends out too, given the skills'
+mean end probabilities (each (skill, state) a Beta-binomial, ``collapsed_end_log_prob``; a
+split's new skill starts with its parent's mean): scored given the chain's current ends, a
+proposed skill would pay for ends drawn for other steps (a split's new slot holds a prior draw),
+and on the highway under ``switching="state"`` the moves then kept extra skills (one-to-one
+accuracy 0.915 against 0.983 with the ends integrated out, ``benchmarks/NOTES.md``, session 42).
+
 The sweep redraws eta and omega given (z', F') right after either move, then the emission's
-parameters. Since every kept move raises the score, a merge never undoes a split at once.
+parameters (and with state-dependent ends the ends' means and the ends). Since every kept move raises the score, a merge never undoes a split at once.
 """
 
 from __future__ import annotations
@@ -55,7 +62,8 @@ import jax
 import jax.numpy as jnp
 
 from npbrs.models.mcmc import select
-from npbrs.models.bphmm import collapsed_feature_log_prob, collapsed_sequence_log_prob
+from npbrs.models.bphmm import (collapsed_end_log_prob, collapsed_feature_log_prob, collapsed_sequence_log_prob,
+                                 collapsed_transition_log_prob, eta_counts, sequence_counts)
 
 from npbrs.domains.precision import float64_all
 
@@ -91,13 +99,25 @@ def merge_score(emission, data, hyper, features, z, init=None, gate=None):
     return jnp.sum(jnp.where(used, log_ev, 0.0)) + _structure_log_prob(hyper, data.mask, z, features, gate)
 
 
-def _structure_log_prob(hyper, mask, z, features, gate=None, gated=None):
+def _structure_log_prob(hyper, mask, z, features, gate=None, gated=None, end_model=None, states=None):
     """log p(z | F) + log p(F), eta and omega integrated out (trajectories without steps,
-    padding, left out); with state-dependent ends, given the ends' ``gate`` (the moves hold
-    the ends fixed; ``gated`` false: the sticky phase's)."""
+    padding, left out); with state-dependent ends, given the ends' ``gate`` (``gated`` false:
+    the sticky phase's), or with ``end_model`` (ends (K, S), their means (K,), concentration)
+    the ends integrated out given their means."""
     valid = jnp.any(mask, axis=1)
-    seq = collapsed_sequence_log_prob(z, mask, features, hyper.kappa, hyper.gamma, gate, gated)
-    return jnp.sum(jnp.where(valid, seq, 0.0)) + collapsed_feature_log_prob(features, hyper.alpha, valid)
+    if end_model is None:
+        seq = collapsed_sequence_log_prob(z, mask, features, hyper.kappa, hyper.gamma, gate, gated)
+        ends = 0.0
+    else:
+        ends_ks, mean, conc = end_model
+        on = True if gated is None else gated
+        K = features.shape[1]
+        _, rest = sequence_counts(z, mask, features)
+        counts = eta_counts(jnp.where(mask, z, -1), mask, K, on)
+        seq = collapsed_transition_log_prob(counts, features, hyper.kappa, hyper.gamma, on) + rest
+        ends = jnp.where(on, jnp.sum(collapsed_end_log_prob(z, mask, states, features, mean, conc,
+                                                            ends_ks.shape[1])), 0.0)
+    return jnp.sum(jnp.where(valid, seq, 0.0)) + ends + collapsed_feature_log_prob(features, hyper.alpha, valid)
 
 
 class _Trial(NamedTuple):
@@ -227,8 +247,13 @@ def _run_trial(trial: _Trial, state: MoveState, emission, data, hyper):
 
     features, z, params, log_lik = state.features, state.z, state.params, state.log_lik
     parts_minus_whole = log_ev[0] + log_ev[1] - log_ev[2]
-    structure = (_structure_log_prob(hyper, data.mask, z_new, f_new, state.gate, state.gated)
-                 - _structure_log_prob(hyper, data.mask, z, features, state.gate, state.gated))
+    end_model, end_new = state.end_model, state.end_model
+    if end_model is not None:  # a split's new skill starts with its parent's mean end probability
+        mean = end_model[1]
+        end_new = (end_model[0], jnp.where(merging, mean, mean.at[trial.k].set(mean[trial.j])), end_model[2])
+    structure = (_structure_log_prob(hyper, data.mask, z_new, f_new, state.gate, state.gated, end_new, data.states)
+                 - _structure_log_prob(hyper, data.mask, z, features, state.gate, state.gated, end_model,
+                                       data.states))
     gain = jnp.where(merging, -parts_minus_whole, parts_minus_whole) + structure
     two = pair(fits, True)  # (the last step's: ``lik`` holds their likelihoods)
     a, b = trial.slots[0], trial.slots[1]
@@ -236,7 +261,7 @@ def _run_trial(trial: _Trial, state: MoveState, emission, data, hyper):
     new_log_lik = log_lik.at[..., a].set(lik[..., 0]).at[..., b].set(lik[..., 1])
     accept = trial.possible & valid & jnp.isfinite(gain) & (gain > 0)
     info = GreedyInfo(trial.j, trial.k, trial.possible, accept, jnp.where(trial.possible, gain, -jnp.inf))
-    new = state._replace(features=f_new, z=z_new, params=new_params, log_lik=new_log_lik)
+    new = state._replace(features=f_new, z=z_new, params=new_params, log_lik=new_log_lik, end_model=end_new)
     return select(accept, new, state), info
 
 

@@ -485,7 +485,10 @@ class BPHMMKernel(MCMCKernel, Pytree):
                     else state.features)
         # the moves' state (``npbrs.inference.sampler.state``): each move maps it to a new one
         # (in the sticky phase they move the sticky BP-HMM, as the sweep does)
-        moved = MoveState.of(state, gate, gated)._replace(features=features)
+        end_model = None
+        if self.termination is not None:  # (the greedy moves score skill sequences with the ends integrated out)
+            end_model = (state.ends, state.end_mean, jnp.float64(self.termination.concentration))
+        moved = MoveState.of(state, gate, gated, end_model)._replace(features=features)
         # the emission as the work that is not an MCMC move uses it: the greedy moves, the tune
         search = self.emission.for_search()
         blocks = min(self.moves["blocks"], N)  # refits of a split's allocation (split-merge, greedy splits)
@@ -560,7 +563,8 @@ class BPHMMKernel(MCMCKernel, Pytree):
         eta, omega = self._sample_eta_omega(k_eta, z, features, hyper, gated)
         ends = {}
         if self.termination is not None:
-            end_mean, new_ends = self._sample_ends(jax.random.fold_in(k_eta, 1), z, features, state.end_mean)
+            mean0 = state.end_mean if moved.end_model is None else moved.end_model[1]
+            end_mean, new_ends = self._sample_ends(jax.random.fold_in(k_eta, 1), z, features, mean0)
             ends = dict(ends=new_ends, end_mean=end_mean)
         weights = skill_weights(z, mask, K)
         # the clock, not the state's step: under vectorised chains a batched flag would make

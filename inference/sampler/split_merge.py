@@ -484,7 +484,7 @@ def propose_split_merge(key, state: MoveState, emission, data, hyper, anchors, n
     li_n, lt_n, act_n = hmm_parameters(new_f, new_eta, gated)
     lm_new, alpha_new = batch_forward_filter(li_n, lt_n, _clamp(new_log_lik, anchors, new_labels), mask, act_n, gate)
     new_z = batch_backward_sample(k_z, lt_n, alpha_new, mask, act_n, gate)
-    proposed = MoveState(new_f, new_eta, new_z, new_params, new_log_lik, gate, state.gated)
+    proposed = MoveState(new_f, new_eta, new_z, new_params, new_log_lik, gate, state.gated, state.end_model)
 
     log_ratio = _log_ratio(state, proposed, emission, data, hyper, anchors, k1, k2, is_split, proposals, lq_fwd,
                            counts_fwd, lm_new)

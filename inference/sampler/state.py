@@ -27,7 +27,9 @@ class MoveState(NamedTuple):
     (every move keeps them equal). gate: the ends' (N, T, K) with state-dependent ends (the
     moves hold it fixed), else None. gated: with a gate, a traced bool, false in the kernel's
     sticky phase (a gate of ones with eta's diagonal: the sticky BP-HMM, whose moves then run
-    too); None: whether a gate is given (:attr:`is_gated`).
+    too); None: whether a gate is given (:attr:`is_gated`). end_model: with state-dependent
+    ends, (ends (K, S), their means (K,), the concentration c), by which the greedy moves score
+    skill sequences with the ends integrated out; None otherwise.
     """
 
     features: jax.Array
@@ -37,6 +39,7 @@ class MoveState(NamedTuple):
     log_lik: jax.Array
     gate: Optional[jax.Array] = None
     gated: Optional[jax.Array] = None
+    end_model: Optional[tuple] = None
 
     @property
     def is_gated(self):
@@ -46,7 +49,7 @@ class MoveState(NamedTuple):
         return True if self.gated is None else self.gated
 
     @classmethod
-    def of(cls, state, gate=None, gated=None) -> "MoveState":
+    def of(cls, state, gate=None, gated=None, end_model=None) -> "MoveState":
         """The moves' part of a state with these fields (e.g. the kernel's ``BPHMMState``), and
-        the ``gate`` and ``gated`` given."""
-        return cls(*(getattr(state, name) for name in cls._fields[:-2]), gate, gated)
+        the ``gate``, ``gated`` and ``end_model`` given."""
+        return cls(*(getattr(state, name) for name in cls._fields[:-3]), gate, gated, end_model)
