@@ -25,7 +25,8 @@ reports per world:
   under switching that does not depend on the state, as the BP-HMM's never does: about the best
   a fit can reach; ``Oracle.sticky_heldout_ll``) and ``single_heldout_ll`` (one reward's);
 - ``rhat_max``: the largest R-hat of the label-invariant scalars (``result.rhat``), with every
-  R-hat and ESS alongside; ``restart``: ``FitResult.restart`` (each chain's score at warmup's
+  R-hat and ESS alongside; ``switching``: ``FitResult.switching`` (the switching model ``fit``
+  chose and the log Bayes factor it chose by); ``restart``: ``FitResult.restart`` (each chain's score at warmup's
   end and the chain whose state it continued from);
 - ``wall_s``: the default fit's wall time, compilation included; ``peak_mb``: the peak resident
   memory of the process that generated the world and ran that fit (each world runs in a process
@@ -163,6 +164,7 @@ def run_world(name: str, seed: int, quick: bool, options: dict = None) -> dict:
         "rhat": {k: _finite(v) for k, v in rhat.items()},
         "ess": {k: _finite(v) for k, v in ess.items()},
         "restart": result.restart,
+        "switching": result.switching,
         "wall_s": wall,
         "peak_mb": peak,
         "predictive_s": predictive_s,
@@ -211,6 +213,12 @@ def markdown(rows: dict, meta: dict) -> str:
             f"{r['single_heldout_ll']:.3f}; "
             f"{r['uniform_ll']:.3f}) | {_fmt(r['rhat_max'], '.3f')} | {r['wall_s']:.0f} | {r['peak_mb']:.0f} |")
     lines += ["", "Per world: when it ran, the load around it, the data and the other timings:", ""]
+    def _switching_text(switching):
+        if not switching:
+            return ""
+        return (f"switching chosen: {switching['chosen']} (log Bayes factor of state ends "
+                f"{switching['log_bayes_factor']:+.1f} nats); ")
+
     def _restart_text(restart):
         if not restart:
             return ""
@@ -228,7 +236,7 @@ def markdown(rows: dict, meta: dict) -> str:
                      f"{r['num_states']} states; held out {r['heldout_trajectories']} trajectories, "
                      f"{r['heldout_steps']} steps; held-out LL standard errors {r['heldout_ll_se']:.4f} (npbrs), "
                      f"{r['single_heldout_ll_se']:.4f} (one reward); R-hat {rhat}; ESS {ess}; "
-                     f"{_restart_text(r.get('restart'))}scoring the "
+                     f"{_restart_text(r.get('restart'))}{_switching_text(r.get('switching'))}scoring the "
                      f"held-out set {r['predictive_s']:.0f} s; labelling the steps "
                      f"{_fmt(r.get('segment_s'), '.0f')} s; the one-reward fit {r['single_wall_s']:.0f} s"
                      + ("; QUICK (tiny sizes, short fits)" if r.get("quick") else "") + ".")

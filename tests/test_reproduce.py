@@ -209,3 +209,23 @@ def test_the_quick_reproduction_runs_the_real_samplers(tmp_path):
         assert result["table"]["wall_time"][method]["mean"] > 0
     assert COLUMNS["lds"] in format_markdown(result)
     assert os.listdir(tmp_path / "plots") == ["highway-40-run0.png"]
+    # the BP-HMM methods' fits chose their switching model ("auto"), and the table says which
+    made = result["per_run"][0]["methods"]["npbrs"]["switching"]
+    assert made["chosen"] in ("sticky", "state") and made["margin"] > 0
+    assert f"NPBRS: {made['chosen']} in 1 of 1 runs" in format_markdown(result)
+
+
+def test_the_table_says_which_switching_model_each_methods_fits_chose():
+    """Runs whose fits chose their switching model ("auto") are counted by choice, with the
+    range of log Bayes factors; runs that fixed the model add no line."""
+    from npbrs.inference.cli.reproduce import _switching_lines
+
+    made = [{"chosen": c, "log_bayes_factor": f, "margin": 10.0, "sticky": 0.0, "state": f}
+            for c, f in (("sticky", -12.5), ("state", 33.0), ("sticky", -4.0))]
+    result = {"methods": ["npbrs", "irl"],
+              "per_run": [{"methods": {"npbrs": {"switching": m}, "irl": {"switching": None}}} for m in made]}
+    lines = _switching_lines(result)
+    assert lines[-1] == ("- NPBRS: sticky in 2, state in 1 of 3 runs (log Bayes factors of state ends over sticky "
+                         "switching -12.5 to +33.0 nats; state needs more than 10)")
+    assert not any("IRL" in line for line in lines)
+    assert _switching_lines({"methods": ["irl"], "per_run": result["per_run"]}) == []

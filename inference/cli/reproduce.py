@@ -201,7 +201,8 @@ def _run(domain, run: int, seed: int, length: int, num_trajectories: int, switch
         seg = run_segmentation(result, domain.mdp, segmentation, emission)
         record["methods"][method] = dict(scores(seg), skills=int(result.num_skills), wall_time=wall,
                                          segment_time=time.perf_counter() - start,
-                                         best_log_joint=float(result.best_log_joint))
+                                         best_log_joint=float(result.best_log_joint),
+                                         switching=getattr(result, "switching", None))
         if segmentation != "best":  # the best draw's segmentation too, for comparison
             best = scores(result.segmentation)
             best.pop("rewards")
@@ -391,6 +392,23 @@ def _best_draw_lines(result: dict, columns) -> list:
     return lines
 
 
+def _switching_lines(result: dict) -> list:
+    """Which switching model ``fit``'s "auto" chose in each method's runs, and the log Bayes
+    factors of state-dependent ends it decided by (nothing for runs that fixed the model)."""
+    lines = []
+    for method in result["methods"]:
+        made = [r["methods"][method]["switching"] for r in result.get("per_run", [])
+                if method in r["methods"] and r["methods"][method].get("switching")]
+        if made:
+            chosen = [m["chosen"] for m in made]
+            factors = [m["log_bayes_factor"] for m in made]
+            counts = ", ".join(f"{c} in {chosen.count(c)}" for c in ("sticky", "state") if c in chosen)
+            lines.append(f"- {COLUMNS[method]}: {counts} of {len(made)} runs (log Bayes factors of state ends over "
+                         f"sticky switching {min(factors):+.1f} to {max(factors):+.1f} nats; state needs more than "
+                         f"{made[0]['margin']:g})")
+    return ["", "Switching model chosen by `fit` (`switching=\"auto\"`, its default):", ""] + lines if lines else []
+
+
 def format_markdown(result: dict) -> str:
     """The result as markdown: the table (mean ± sd over runs), the paper's, the targets, the settings."""
     columns = ["expert"] + list(result["methods"])
@@ -422,6 +440,7 @@ def format_markdown(result: dict) -> str:
         for t in result["targets"]:
             mark = {True: "met", False: "NOT met", None: "not measured"}[t["met"]]
             lines.append(f"- {t['target']}: {mark}" + (f" ({t['value']})" if t["value"] is not None else ""))
+    lines += _switching_lines(result)
     lines += ["", "Settings (per run; chains x (warmup + samples) sweeps):", "",
               "| method | emission | chains | warmup | samples | max skills | other |",
               "|---|---|---:|---:|---:|---:|---|"]

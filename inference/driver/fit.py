@@ -893,7 +893,8 @@ def fit(mdp, demos: Demonstrations, config: Union[ModelConfig, dict, str, os.Pat
             goal is reached, or "auto" (the default): the sticky fit, and when its skill
             sequences favour state-dependent ends by a log Bayes factor above
             :data:`SWITCHING_MARGIN` (:func:`switching_evidence`), a fit with them started from
-            its segmentation (its sticky search phase off); the result is the chosen model's,
+            its segmentation (a quarter of the warmup sweeps, :data:`STATE_WARMUP_DIVISOR`; no
+            sticky search phase; no greedy moves unless ``moves`` asks for them); the result is the chosen model's,
             its ``switching`` recording the evidence and the choice. With checkpoints the second
             fit's is at :func:`state_stage_path`, and ``resume`` repeats (or resumes) the sticky
             fit first: the same seed gives the same fit.
@@ -928,6 +929,10 @@ def fit(mdp, demos: Demonstrations, config: Union[ModelConfig, dict, str, os.Pat
 #: (``benchmarks/NOTES.md``, session 42: the labyrinth's fits +175 to +200, the grid's +733;
 #: rooms' -26 to -48, the highway table's -16 to -44)
 SWITCHING_MARGIN = 10.0
+#: ``switching="auto"``: the fit with state-dependent ends warms up for this fraction (1 / it) of
+#: the run's warmup sweeps: it starts from the sticky fit's skills (session 42: on the grid and
+#: the labyrinth 50 warmup sweeps scored held-out data as 200 did)
+STATE_WARMUP_DIVISOR = 4
 #: kappa's Gamma (shape, rate) in the sticky model's evidence when kappa is fixed in the fit
 EVIDENCE_KAPPA_PRIOR = (1.0, 0.02)
 
@@ -977,10 +982,14 @@ def _fit_auto(args: dict, grow: bool, prior: PriorConfig) -> FitResult:
     choice = dict(switching_evidence(result, args["mdp"], args["demos"], prior), margin=SWITCHING_MARGIN,
                   chosen="sticky")
     if choice["log_bayes_factor"] > SWITCHING_MARGIN:
-        moves = dict(resolve_config(args["config"], moves=args["moves"]).sampler.moves)
-        moves.setdefault("sticky_phase", 0.0)  # (it starts from a sticky fit's skills: no sticky search)
+        given = resolve_config(args["config"], moves=args["moves"], num_warmup=args["num_warmup"]).sampler
+        moves = dict(given.moves)
+        # it refines the sticky fit's skills: no sticky search phase, and no greedy moves unless
+        # asked for (they kept little there; they are half the state sweep's compile)
+        for name in ("sticky_phase", "greedy_merge", "greedy_split"):
+            moves.setdefault(name, 0 if name != "sticky_phase" else 0.0)
         stage = dict(args, switching="state", init_segmentation=result, moves=moves,
-                     max_skills=int(result.config["max_skills"]),
+                     num_warmup=given.warmup // STATE_WARMUP_DIVISOR, max_skills=int(result.config["max_skills"]),
                      checkpoint_path=None if path is None else state_stage_path(path))
         result = _fit_grown(stage, grow)
         choice["chosen"] = "state"
