@@ -25,6 +25,8 @@ Since session 42 the default switching is "auto": the labyrinth's and the grid's
 are refitted with state-dependent ends (their sticky fits' skill sequences favour them), rooms'
 stay sticky; the tests check the choice, and the last one how it was made."""
 
+import os
+
 import numpy as np
 import pytest
 
@@ -105,3 +107,36 @@ def test_auto_switching_refits_from_the_sticky_fit_and_records_why(tmp_path):
     assert "switching chosen: state" in result.summary()
     result.save(tmp_path / "run.nc")
     assert load(tmp_path / "run.nc").equals(result)
+
+
+def test_auto_switching_resumes_its_state_fit_from_its_own_checkpoint(tmp_path, monkeypatch):
+    """With checkpoints, "auto" keeps the state fit's at state_stage_path: a run that stops in
+    the state fit (here a failed checkpoint write) resumes from it, after the sticky fit's
+    finished checkpoint, and ends equal to the uninterrupted run; a new run refuses to overwrite
+    the interrupted one's. (``fit`` keeps a finished run's checkpoints, as it does one's; ``npbrs
+    fit`` removes both once it has saved the run.)"""
+    import npbrs.inference.driver.runs as runs
+    from npbrs.inference.driver.fit import state_stage_path
+
+    world, whole = default_fit("labyrinth")
+    path = tmp_path / "run.checkpoint.npz"
+    stage = state_stage_path(path)
+    assert stage == str(tmp_path / "run.checkpoint.state.npz")
+    write = runs.write_checkpoint
+    written = []
+
+    def failing(p, **kwargs):
+        written.append(os.fspath(p))
+        if os.fspath(p) == stage and written.count(stage) == 2:
+            raise OSError("disk full")
+        write(p, **kwargs)
+
+    monkeypatch.setattr(runs, "write_checkpoint", failing)
+    with pytest.raises(OSError, match="disk full"):
+        fit(world.mdp, world.demos, checkpoint_path=path, checkpoint_every=10, **SETTINGS)
+    assert path.exists() and os.path.exists(stage)  # (the sticky fit's, finished, and the state fit's)
+    with pytest.raises(ValueError, match="interrupted run"):
+        fit(world.mdp, world.demos, checkpoint_path=path, **SETTINGS)
+    monkeypatch.setattr(runs, "write_checkpoint", write)
+    resumed = fit(world.mdp, world.demos, checkpoint_path=path, checkpoint_every=10, resume=True, **SETTINGS)
+    assert resumed.equals(whole) and resumed.switching == whole.switching

@@ -145,8 +145,12 @@ def fit_command(args) -> int:
         print(f"\ninterrupted{where}", file=sys.stderr)
         return 130
     result.save(args.output)
-    if checkpoint and os.path.exists(checkpoint):
-        os.remove(checkpoint)
+    if checkpoint:
+        from ..driver.fit import state_stage_path
+
+        for path in (checkpoint, state_stage_path(checkpoint)):  # (switching="auto"'s state fit's too)
+            if os.path.exists(path):
+                os.remove(path)
     print(result.summary())
     print(f"wrote {args.output}")
     return 0

@@ -896,8 +896,9 @@ def fit(mdp, demos: Demonstrations, config: Union[ModelConfig, dict, str, os.Pat
             its segmentation (a quarter of the warmup sweeps, :data:`STATE_WARMUP_DIVISOR`; no
             sticky search phase; no greedy moves unless ``moves`` asks for them); the result is the chosen model's,
             its ``switching`` recording the evidence and the choice. With checkpoints the second
-            fit's is at :func:`state_stage_path`, and ``resume`` repeats (or resumes) the sticky
-            fit first: the same seed gives the same fit.
+            fit's is at :func:`state_stage_path`, and ``resume`` continues the sticky fit from its
+            own (a finished one: nothing to redo; a missing one: it is repeated, the same seed
+            giving the same fit), then the state fit from its.
     Returns:
         a :class:`~npbrs.inference.driver.results.FitResult`.
     Raises:
@@ -973,7 +974,7 @@ def _fit_auto(args: dict, grow: bool, prior: PriorConfig) -> FitResult:
     """``switching="auto"``: the sticky fit, then, when its skill sequences favour
     state-dependent ends by more than :data:`SWITCHING_MARGIN` nats, a fit with them started
     from its segmentation (with checkpoints: at :func:`state_stage_path`; on ``resume`` the
-    sticky fit is repeated or resumed first: the same seed gives the same fit)."""
+    sticky fit continues from its own first, a finished one with nothing to redo)."""
     path = args["checkpoint_path"]
     if path is not None and not args["resume"] and os.path.exists(state_stage_path(path)):
         raise ValueError(f"{state_stage_path(path)} holds the checkpoint of an earlier, interrupted run; continue "
