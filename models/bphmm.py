@@ -116,16 +116,20 @@ def sample_ends(key, mean, counts, term: Termination):
     return jnp.clip(ga / jnp.maximum(ga + gb, 1e-300), _END_CLIP, 1.0 - _END_CLIP)
 
 
+def _ends_beta_binomial(mean, counts, concentration):
+    """log p(counts_k | mu_k) with the ends beta integrated out, per skill (K,): a Beta-binomial
+    of each state's (ends, stays) under Beta(c mu_k, c (1 - mu_k)); counts: :func:`end_counts`."""
+    ended, stayed = counts
+    x, y = concentration * mean[:, None], concentration * (1.0 - mean[:, None])
+    seen = (ended + stayed) > 0
+    return jnp.sum(jnp.where(seen, betaln(x + ended, y + stayed) - betaln(x, y), 0.0), -1)
+
+
 def _mean_log_target(mean, counts, term: Termination):
     """log p(mu_k) + log p(counts_k | mu_k) with beta integrated out (a Beta-binomial per
     state), per skill (K,)."""
-    ended, stayed = counts
     a, b = term.mean_prior
-    c = term.concentration
-    x, y = c * mean[:, None], c * (1.0 - mean[:, None])
-    seen = (ended + stayed) > 0
-    ll = jnp.sum(jnp.where(seen, betaln(x + ended, y + stayed) - betaln(x, y), 0.0), -1)
-    return ll + dist.Beta(a, b).log_prob(mean)
+    return _ends_beta_binomial(mean, counts, term.concentration) + dist.Beta(a, b).log_prob(mean)
 
 
 def collapsed_end_log_prob(z, mask, states, features, mean, concentration, num_states: int):
@@ -133,10 +137,7 @@ def collapsed_end_log_prob(z, mask, states, features, mean, concentration, num_s
     Beta-binomial of each (skill, state entered)'s :func:`end_counts` under Beta(c mu_k,
     c (1 - mu_k)). What the greedy moves score skill sequences by under state-dependent ends,
     so that a proposed skill is not judged by ends drawn for another's steps."""
-    ended, stayed = end_counts(z, mask, states, features, num_states)
-    x, y = concentration * mean[:, None], concentration * (1.0 - mean[:, None])
-    seen = (ended + stayed) > 0
-    return jnp.sum(jnp.where(seen, betaln(x + ended, y + stayed) - betaln(x, y), 0.0), -1)
+    return _ends_beta_binomial(mean, end_counts(z, mask, states, features, num_states), concentration)
 
 
 #: quadrature nodes of :func:`switching_log_evidence`'s integrals over kappa and each mu_k
@@ -198,8 +199,7 @@ def _switching_terms(z, mask, states, features, kappas, means, concentration, ga
     rest = jnp.sum(jnp.where(valid, rest, 0.0))
     per_kappa = jax.vmap(lambda k: jnp.sum(jnp.where(valid, collapsed_transition_log_prob(
         counts, features, k, gamma), 0.0)))(kappas)
-    switches = eta_counts(z, mask, K, True)
-    state = jnp.sum(jnp.where(valid, collapsed_transition_log_prob(switches, features, 0.0, gamma, True), 0.0)) + rest
+    state = jnp.sum(jnp.where(valid, collapsed_sequence_log_prob(z, mask, features, 0.0, gamma, None, True), 0.0))
     per_mean = jax.vmap(lambda m: collapsed_end_log_prob(z, mask, states, features, jnp.full((K,), m),
                                                          concentration, num_states))(means)  # (G, K)
     return per_kappa, per_mean, rest, state
@@ -452,10 +452,11 @@ def collapsed_sequence_log_prob(z, mask, features, kappa, gamma, gate=None, gate
         z: (N, T) skills (-1 or anything at masked steps); mask: (N, T) bool;
         features: (N, K) 0/1; kappa, gamma: the hyperparameters.
         gated: as :func:`sequence_counts`' (a traced bool, false in the kernel's sticky phase:
-            then the sticky BP-HMM's probability, the gate's part off).
+            then the sticky BP-HMM's probability, the gate's part off; true without a gate:
+            the switches' probability, the ends left out).
     """
     counts, rest = sequence_counts(z, mask, features, gate, gated)
-    on = (gate is not None) if gated is None or gate is None else gated
+    on = (gate is not None) if gated is None else gated
     return collapsed_transition_log_prob(counts, features, kappa, gamma, on) + rest
 
 
@@ -476,13 +477,15 @@ def sequence_counts(z, mask, features, gate=None, gated=None):
     """What :func:`collapsed_sequence_log_prob` needs of z: (transition counts (N, K, K), the
     terms that do not depend on kappa and gamma (N,)): the first skill's uniform probability,
     with ``gate`` the ends' and continuations' log-probabilities, and -inf where a sequence uses
-    an inactive skill or a trajectory with steps has none. With ``gate`` the diagonal counts are
-    left out (only switches inform eta). ``gated``: a traced bool that turns the gate's part
-    off where false (the kernel's sticky phase; default: on)."""
+    an inactive skill or a trajectory with steps has none. With state-dependent ends (``gated``:
+    a bool or a traced one, false in the kernel's sticky phase; default: whether ``gate`` is
+    given) the diagonal counts are left out (only switches inform eta); the ends' terms need
+    ``gate`` (without it, gated: the ends are left to the caller, e.g. integrated out by
+    :func:`collapsed_end_log_prob`)."""
     N, K = features.shape
     active = features > 0
     z = jnp.where(mask, z, -1)
-    on = (gate is not None) and jnp.asarray(True if gated is None else gated, bool)
+    on = (gate is not None) if gated is None else gated
     counts = eta_counts(z, mask, K, on)  # (N, K, K)
     ends = 0.0
     if gate is not None:

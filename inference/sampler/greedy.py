@@ -62,8 +62,7 @@ import jax
 import jax.numpy as jnp
 
 from npbrs.models.mcmc import select
-from npbrs.models.bphmm import (collapsed_end_log_prob, collapsed_feature_log_prob, collapsed_sequence_log_prob,
-                                 collapsed_transition_log_prob, eta_counts, sequence_counts)
+from npbrs.models.bphmm import collapsed_end_log_prob, collapsed_feature_log_prob, collapsed_sequence_log_prob
 
 from npbrs.domains.precision import float64_all
 
@@ -105,18 +104,13 @@ def _structure_log_prob(hyper, mask, z, features, gate=None, gated=None, end_mod
     the sticky phase's), or with ``end_model`` (ends (K, S), their means (K,), concentration)
     the ends integrated out given their means."""
     valid = jnp.any(mask, axis=1)
-    if end_model is None:
-        seq = collapsed_sequence_log_prob(z, mask, features, hyper.kappa, hyper.gamma, gate, gated)
-        ends = 0.0
-    else:
+    ends = 0.0
+    if end_model is not None:  # (the switches' probability without a gate; the ends integrated out)
         ends_ks, mean, conc = end_model
-        on = True if gated is None else gated
-        K = features.shape[1]
-        _, rest = sequence_counts(z, mask, features)
-        counts = eta_counts(jnp.where(mask, z, -1), mask, K, on)
-        seq = collapsed_transition_log_prob(counts, features, hyper.kappa, hyper.gamma, on) + rest
-        ends = jnp.where(on, jnp.sum(collapsed_end_log_prob(z, mask, states, features, mean, conc,
-                                                            ends_ks.shape[1])), 0.0)
+        gate, gated = None, (True if gated is None else gated)
+        ends = jnp.where(gated, jnp.sum(collapsed_end_log_prob(z, mask, states, features, mean, conc,
+                                                               ends_ks.shape[1])), 0.0)
+    seq = collapsed_sequence_log_prob(z, mask, features, hyper.kappa, hyper.gamma, gate, gated)
     return jnp.sum(jnp.where(valid, seq, 0.0)) + ends + collapsed_feature_log_prob(features, hyper.alpha, valid)
 
 

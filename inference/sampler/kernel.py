@@ -162,7 +162,7 @@ class BPHMMKernel(MCMCKernel, Pytree):
             kappa; no effect when kappa is sampled), "sticky_phase": with state-dependent ends,
             the fraction of warmup, in [0, 1), whose sweeps search under the sticky BP-HMM (each
             trajectory's own stays, eta's diagonal, instead of the ends; the trans-dimensional
-            moves wait for its end). The state model's search from a random start mixes the
+            and greedy moves move that sticky model there too). The state model's search from a random start mixes the
             skills' goals where the sticky one does not (``benchmarks/NOTES.md``, session 41);
             the ends are drawn from the skill sequences in every sweep, so they are ready when
             it ends. Not an MCMC move: the sampling sweeps and the log joint are the model's}; the
