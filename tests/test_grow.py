@@ -29,6 +29,7 @@ def test_a_saturated_truncation_grows_and_the_refit_is_a_fit_with_more_slots(pro
     direct = fit(mdp, demos, max_skills=4, init_segmentation=small.segmentation, **KW)
     assert grown.truncation["max_skills"] == [2, 4] and grown.truncation["skills"][0] == 2
     assert grown.truncation["saturated"][0] == 1.0 and grown.truncation["saturated"][1] <= 0.5
+    assert grown.truncation["switching"] == ["sticky", "sticky"] and grown.switching["chosen"] == "sticky"
     assert grown.config["max_skills"] == 4 and grown.num_skills == 3
     for a, b in zip(grown.segmentation, direct.segmentation):
         np.testing.assert_array_equal(a, b)
@@ -43,3 +44,25 @@ def test_a_saturated_truncation_grows_and_the_refit_is_a_fit_with_more_slots(pro
         assert fit(mdp, demos, max_skills=4, grow=True, **KW).truncation is None
     with pytest.raises(ValueError, match="grow"):
         fit(mdp, demos, max_skills=2, grow=True, checkpoint_path=tmp_path / "c.nc", **KW)
+
+
+def test_under_auto_the_state_fit_starts_from_the_grown_sticky_fit_and_the_record_keeps_both(problem, monkeypatch):
+    """``switching="auto"`` with ``grow``: when state-dependent ends are chosen after the sticky
+    fit grew, the state fit starts from the grown fit's segmentation with its slots, and
+    ``truncation`` records every fit in turn, the sticky ones first. (The margin is lowered so
+    that this small problem chooses state. Checked to fail: the record not carried into the
+    state fit, whose result then said nothing of the growth.)"""
+    import npbrs.inference.driver.fit as fitting
+
+    mdp, demos = problem
+    monkeypatch.setattr(fitting, "SWITCHING_MARGIN", -1e9)
+    sticky = fit(mdp, demos, max_skills=2, grow=True, switching="sticky", **KW)
+    result = fit(mdp, demos, max_skills=2, grow=True, **KW)
+    assert result.switching["chosen"] == "state" and result.config["prior"]["switching"] == "state"
+    assert result.config["max_skills"] == 4
+    for a, b in zip(result.init_segmentation, sticky.segmentation):
+        np.testing.assert_array_equal(a, b)
+    t = result.truncation
+    assert t["max_skills"] == [2, 4, 4] and t["switching"] == ["sticky", "sticky", "state"]
+    assert t["skills"][:2] == sticky.truncation["skills"] and t["saturated"][0] == 1.0
+    assert "4 slots (state): 3 skills" in result.summary()

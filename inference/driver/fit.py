@@ -12,6 +12,7 @@ the sampled hyperparameters.
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 import hashlib
 import json
@@ -885,8 +886,9 @@ def fit(mdp, demos: Demonstrations, config: Union[ModelConfig, dict, str, os.Pat
             truncation ``max_skills`` may be hiding skills), fit again with twice the slots,
             starting from the run's best segmentation, until it is not so or ``GROW_LIMIT``
             (64) slots; the result is the last fit's, with ``truncation`` recording each fit's
-            slots, skills and saturation. Without it such a run warns (``UserWarning``) and says
-            how to refit. Not with ``checkpoint_path``.
+            slots, skills, saturation and switching model (under "auto", the sticky fits and
+            then the state fits, which start from the grown sticky fit). Without it such a run
+            warns (``UserWarning``) and says how to refit. Not with ``checkpoint_path``.
         switching: "sticky" (the paper's BP-HMM), "state": skills end with a probability that
             depends on the state entered (options with a termination function, sampled; see
             :class:`~npbrs.inference.driver.config.PriorConfig`), as when a skill ends once its
@@ -979,7 +981,8 @@ def _fit_auto(args: dict, grow: bool, prior: PriorConfig) -> FitResult:
     if path is not None and not args["resume"] and os.path.exists(state_stage_path(path)):
         raise ValueError(f"{state_stage_path(path)} holds the checkpoint of an earlier, interrupted run; continue "
                          "it with resume=True (npbrs fit --resume), or move it away, or write the new run elsewhere")
-    result = _fit_grown(dict(args, switching="sticky"), grow)
+    record = _growth_record()  # (every fit in turn, the sticky fits' and then the state fits')
+    result = _fit_grown(dict(args, switching="sticky"), grow, record)
     choice = dict(switching_evidence(result, args["mdp"], args["demos"], prior), margin=SWITCHING_MARGIN,
                   chosen="sticky")
     if choice["log_bayes_factor"] > SWITCHING_MARGIN:
@@ -995,21 +998,28 @@ def _fit_auto(args: dict, grow: bool, prior: PriorConfig) -> FitResult:
                      # its init and sweep compile one after the other: side by side the labyrinth's
                      # fit (2 chains) peaked at 2.76 GB, one after the other at 2.20 GB (1 s more)
                      compile_beside=False)
-        result = _fit_grown(stage, grow)
+        result = _fit_grown(stage, grow, record)
         choice["chosen"] = "state"
     return dataclasses.replace(result, switching=choice)
 
 
-def _fit_grown(args: dict, grow: bool) -> FitResult:
+def _growth_record() -> dict:
+    """``FitResult.truncation``'s lists, empty: one entry a fit."""
+    return {"max_skills": [], "skills": [], "saturated": [], "switching": []}
+
+
+def _fit_grown(args: dict, grow: bool, record: Optional[dict] = None) -> FitResult:
     """One fit (:func:`_fit`), refitted with more skill slots while they are all in use when
-    ``grow``."""
+    ``grow``. Each fit is added to ``record`` (:func:`_growth_record`; under "auto" one record
+    holds both models' fits), which the result keeps as ``truncation`` once the slots grew."""
+    record = _growth_record() if record is None else record
     result = _fit(**args)
-    record = {"max_skills": [], "skills": [], "saturated": []}
     while True:
         K, share = saturation(result)
         record["max_skills"].append(K)
         record["skills"].append(int(result.num_skills))
         record["saturated"].append(share)
+        record["switching"].append(args["switching"])
         if K < 2 or share <= SATURATED:
             break
         if not grow or 2 * K > GROW_LIMIT:
@@ -1020,8 +1030,8 @@ def _fit_grown(args: dict, grow: bool) -> FitResult:
             break
         args.update(max_skills=2 * K, init_segmentation=result)
         result = _fit(**args)
-    if len(record["max_skills"]) > 1:
-        result = dataclasses.replace(result, truncation=record)
+    if max(record["max_skills"]) > record["max_skills"][0]:
+        result = dataclasses.replace(result, truncation=copy.deepcopy(record))
     return result
 
 

@@ -180,8 +180,10 @@ class FitResult:
             "time_budget") and the settings ("target_rhat", "max_samples", "time_budget");
             None for a run of fixed length.
         truncation: for a run whose skill slots grew (``fit(..., grow=True)``): the slots of
-            each fit in turn ("max_skills", e.g. [8, 16]), the skills each found ("skills") and
-            the share of its sampling draws that used every slot ("saturated"); None otherwise.
+            each fit in turn ("max_skills", e.g. [8, 16]), the skills each found ("skills"),
+            the share of its sampling draws that used every slot ("saturated") and its switching
+            model ("switching"; under "auto" the sticky fits come first, then any with
+            state-dependent ends); None otherwise.
         switching: for a run whose switching model ``fit`` chose (``switching="auto"``, the
             default): the log evidence of the sticky fit's skill sequences under each model
             ("sticky", "state"; :func:`~npbrs.models.bphmm.switching_log_evidence`), their
@@ -604,8 +606,10 @@ class FitResult:
                          f"{r['margin']:g})")
         if self.truncation is not None:
             t = self.truncation
-            steps = "; ".join(f"{k} slots: {n} skills, every slot in use in {p:.0%} of the draws"
-                              for k, n, p in zip(t["max_skills"], t["skills"], t["saturated"]))
+            models = t.get("switching") or [None] * len(t["max_skills"])  # (a run saved before it was kept)
+            both = len(set(models)) > 1
+            steps = "; ".join(f"{k} slots{f' ({m})' if both else ''}: {n} skills, every slot in use in {p:.0%} of "
+                              "the draws" for k, n, p, m in zip(t["max_skills"], t["skills"], t["saturated"], models))
             lines.append(f"skill slots grew ({steps})")
         if self.switching is not None:
             c = self.switching
