@@ -17,7 +17,10 @@ An optional fourth argument, fit seeds such as ``0,1,2,3``, fits once per seed (
 each) and ends with a line of their means and standard deviations: one fit seed's score moves a
 lot on these worlds (rooms' best draw 0.72-0.89 over fit seeds 0-3, ``benchmarks/NOTES.md``,
 session 39), so judge a change over several. "hungarian" is the best draw's one-to-one accuracy,
-"hungarian_sampler" that of the labels counted over the sampler's draws (``skill_probabilities``).
+"hungarian_sampler" that of the labels counted over the sampler's draws (``skill_probabilities``),
+"chain_hungarian" each chain's own counted labels' and "chain_log_joint" each chain's mean log
+joint over its sampling sweeps (chains that end in different regions pool into worse labels than
+their best: ``benchmarks/NOTES.md``, session 43).
 
     python benchmarks/probe_worlds.py rooms 4 '{}' 0,1,2,3
 """
@@ -52,6 +55,9 @@ def main(argv=None):
         wall = time.perf_counter() - start
         fit_peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024  # the fit's, before the scoring
         held = result.log_predictive(world.mdp, world.heldout, num_samples=20)
+        counts = np.asarray(result.step_skill_counts)  # each chain's own counted labels, in its own slots
+        chain_labels = [[counts[c, i, :len(t)].argmax(-1) for i, t in enumerate(world.demos.skills)]
+                        for c in range(counts.shape[0])]
         row = dict(
             world=name, chains=chains, overrides=json.loads(argv[2]), seed=seed, skills=int(result.num_skills),
             true_skills=int(world.model.num_skills),
@@ -62,6 +68,8 @@ def main(argv=None):
             heldout_ll=round(float(held.per_step), 4), oracle_heldout_ll=round(oracle.heldout_ll, 4),
             sticky_heldout_ll=round(oracle.sticky_heldout_ll, 4),
             rhat={k: round(float(v), 3) for k, v in result.rhat.items()}, wall_s=round(wall),
+            chain_hungarian=[round(hungarian_accuracy(world.demos.skills, z), 3) for z in chain_labels],
+            chain_log_joint=[round(float(v)) for v in np.mean(result.stats["log_joint"], axis=1)],
             fit_peak_mb=round(fit_peak), peak_mb=round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024))
         rows.append(row)
         print(json.dumps(row), flush=True)
