@@ -12,7 +12,6 @@ the sampled hyperparameters.
 
 from __future__ import annotations
 
-import copy
 import dataclasses
 import hashlib
 import json
@@ -996,7 +995,8 @@ def _fit_auto(args: dict, grow: bool, prior: PriorConfig) -> FitResult:
                      num_warmup=given.warmup // STATE_WARMUP_DIVISOR, max_skills=int(result.config["max_skills"]),
                      checkpoint_path=None if path is None else state_stage_path(path),
                      # its init and sweep compile one after the other: side by side the labyrinth's
-                     # fit (2 chains) peaked at 2.76 GB, one after the other at 2.20 GB (1 s more)
+                     # fit (2 chains) peaked at 2.76 GB, one after the other at 1.90-1.92 GB (1 s more;
+                     # the fit's own peak, benchmarks/NOTES.md session 43)
                      compile_beside=False)
         result = _fit_grown(stage, grow, record)
         choice["chosen"] = "state"
@@ -1031,7 +1031,7 @@ def _fit_grown(args: dict, grow: bool, record: Optional[dict] = None) -> FitResu
         args.update(max_skills=2 * K, init_segmentation=result)
         result = _fit(**args)
     if max(record["max_skills"]) > record["max_skills"][0]:
-        result = dataclasses.replace(result, truncation=copy.deepcopy(record))
+        result = dataclasses.replace(result, truncation={k: list(v) for k, v in record.items()})  # (a copy: "auto" adds on)
     return result
 
 
