@@ -449,8 +449,9 @@ def test_the_sticky_phase_is_a_sticky_sweep_and_ends_after_it():
     """moves["sticky_phase"] = 0.5 with 10 warmup sweeps: sweeps 0-4 of the state-ends kernel
     are sweeps of the sticky BP-HMM's kernel from the same state (the same features, skill
     sequences, eta, omega and parameters, with a greedy split move on: it moves the sticky model
-    too), while the ends are drawn from the skill sequences as in every sweep; sweep 5 on is the model's own sweep (it differs from the sticky kernel's),
-    and the log joint is always the model's. (Checked to fail: the diagonal left out of eta's
+    too), while the ends are drawn from the skill sequences as in every sweep; sweep 5 on is the
+    model's own sweep (it differs from the sticky kernel's), and the log joint is always the
+    model's. (Checked to fail: the diagonal left out of eta's
     counts in the phase; the gate not replaced by ones in the phase; the moves given the
     model's gate in the phase.) Every move reads its gate from one MoveState, so one move shows
     which gate they see: the greedy split, accepted often enough in these 7 sweeps to show it
