@@ -47,7 +47,8 @@ from npbrs.domains.precision import float64_all
 
 __all__ = ["PRIOR_SCALE", "count_table", "log_policy", "step_log_likelihoods", "count_log_likelihood",
            "count_log_likelihood_and_values",
-           "count_log_likelihood_and_grad", "fisher_information", "log_prior", "log_posterior", "Posterior", "irl_fit",
+           "count_log_likelihood_and_grad", "fisher_information", "log_prior", "prior_grad", "prior_curvature",
+           "log_posterior", "Posterior", "irl_fit",
            "fit_reward", "IRLFit", "as_solver"]
 
 PRIOR_SCALE = 10.0
@@ -207,11 +208,40 @@ def count_log_likelihood(solver: SoftSolver, theta, counts, v0=None) -> jax.Arra
     return jnp.sum(jnp.asarray(counts, jnp.float64) * log_pi, axis=(-2, -1))
 
 
-def log_prior(theta, prior_scale=PRIOR_SCALE) -> jax.Array:
-    """log Normal(theta; 0, prior_scale^2 I) summed over features, () or (K,)."""
+def log_prior(theta, prior_scale=PRIOR_SCALE, prior_df=None) -> jax.Array:
+    """log Normal(theta; 0, prior_scale^2 I) summed over features, () or (K,); with ``prior_df``
+    nu (a Python float), each weight's prior is instead a Student t of nu degrees of freedom and
+    scale ``prior_scale`` (the Gaussian's scale mixture over sigma^2 ~ InvGamma(nu/2, nu s^2/2)):
+    a heavy-tailed, sparsity-favouring prior, for one weight per state."""
     import numpyro.distributions as dist
 
-    return jnp.sum(dist.Normal(0.0, prior_scale).log_prob(jnp.asarray(theta, jnp.float64)), axis=-1)
+    theta = jnp.asarray(theta, jnp.float64)
+    if prior_df is None:
+        return jnp.sum(dist.Normal(0.0, prior_scale).log_prob(theta), axis=-1)
+    return jnp.sum(dist.StudentT(float(prior_df), 0.0, prior_scale).log_prob(theta), axis=-1)
+
+
+def prior_grad(theta, prior_scale=PRIOR_SCALE, prior_df=None) -> jax.Array:
+    """The gradient of :func:`log_prior` in theta (the shape of theta; ``prior_scale`` broadcast
+    against it)."""
+    if prior_df is None:
+        return -theta / prior_scale ** 2
+    nu = float(prior_df)
+    return -(nu + 1.0) * theta / (nu * prior_scale ** 2 + theta ** 2)
+
+
+def prior_curvature(theta, prior_scale=PRIOR_SCALE, prior_df=None) -> jax.Array:
+    """Minus the second derivative of :func:`log_prior` per weight (the shape of theta), the
+    prior's part of a Laplace precision and of the MALA preconditioner: 1 / sigma^2 for the
+    Gaussian; for the Student t, (nu + 1)(nu s^2 - theta^2) / (nu s^2 + theta^2)^2, negative in
+    its tails, floored at a hundredth of its value at 0 (a stand-in that keeps the precision
+    positive; the moves themselves stay exact)."""
+    theta = jnp.asarray(theta, jnp.float64)
+    if prior_df is None:
+        return jnp.broadcast_to(1.0 / jnp.asarray(prior_scale, jnp.float64) ** 2, theta.shape)
+    nu, s2 = float(prior_df), jnp.asarray(prior_scale, jnp.float64) ** 2
+    peak = (nu + 1.0) / (nu * s2)
+    return jnp.maximum((nu + 1.0) * (nu * s2 - theta ** 2) / (nu * s2 + theta ** 2) ** 2, 0.01 * peak)
 
 
 def noisy_log_policy(log_pi, epsilon: float = 0.0):
@@ -280,7 +310,8 @@ class Posterior(NamedTuple):
     log_lik: jax.Array
 
 
-def log_posterior(solver, theta, counts, v0, prior_scale=PRIOR_SCALE, temperature=1.0, epsilon=0.0) -> Posterior:
+def log_posterior(solver, theta, counts, v0, prior_scale=PRIOR_SCALE, temperature=1.0, epsilon=0.0,
+                  prior_df=None) -> Posterior:
     """The conditional log-posterior of K skills' reward weights given their steps' count
     tables, up to a constant: sum_{s,a} C_k[s, a] log pi_k(a | s) + log N(theta_k; 0, sigma_k^2 I),
     with pi_k the policy of the rewards tau * phi . theta_k (:func:`log_policy`). The one
@@ -289,13 +320,14 @@ def log_posterior(solver, theta, counts, v0, prior_scale=PRIOR_SCALE, temperatur
     Args:
         solver: a SoftSolver; theta: (K, D); counts: (K, S, A); v0: (K, S) warm start.
         prior_scale: sigma, scalar or (K,); temperature: tau; epsilon: the noisy expert's rate.
+        prior_df: None (a Gaussian prior) or a Student t's degrees of freedom (:func:`log_prior`).
     Returns:
         A :class:`Posterior`.
     """
     scale = jnp.broadcast_to(jnp.asarray(prior_scale, jnp.float64), theta.shape[:1])[:, None]
     ll, g, V, converged = _ll_grad_residual(solver, theta, counts, v0, epsilon, temperature)
-    lp = ll + log_prior(theta, scale)
-    grad = g - theta / scale ** 2
+    lp = ll + log_prior(theta, scale, prior_df)
+    grad = g + prior_grad(theta, scale, prior_df)
     ok = converged & jnp.isfinite(lp) & jnp.all(jnp.isfinite(grad), axis=-1)
     return Posterior(lp, grad, V, ok, ll)
 
@@ -392,7 +424,8 @@ def _two_loop(g, S_hist, Y_hist, rho, count, newest, history):
 
 
 def fit_reward(solver: SoftSolver, counts, theta0, v0, prior_scale=PRIOR_SCALE, num_steps: int = 30,
-               history: int = 10, max_backtracks: int = 10, epsilon: float = 0.0, temperature: float = 1.0):
+               history: int = 10, max_backtracks: int = 10, epsilon: float = 0.0, temperature: float = 1.0,
+               prior_df=None):
     """The jit-able core of :func:`irl_fit` for K skills: static shapes, no input checks.
 
     L-BFGS with a backtracking (Armijo) line search on the negative :func:`log_posterior` of
@@ -410,6 +443,7 @@ def fit_reward(solver: SoftSolver, counts, theta0, v0, prior_scale=PRIOR_SCALE, 
         num_steps: L-BFGS steps; history: L-BFGS memory; max_backtracks: halvings per line search.
         epsilon: the noisy expert's random-action probability (:func:`noisy_log_policy`).
         temperature: the demonstrator's inverse temperature tau (:func:`log_policy`).
+        prior_df: None, or the Student t prior's degrees of freedom (:func:`log_prior`).
     Returns:
         (theta (K, D), log_lik (K,), V (K, S), norm of the log-posterior's gradient (K,),
         number of value-and-gradient evaluations (K,)).
@@ -417,9 +451,10 @@ def fit_reward(solver: SoftSolver, counts, theta0, v0, prior_scale=PRIOR_SCALE, 
     K, D = theta0.shape
     scale = jnp.broadcast_to(jnp.asarray(prior_scale, jnp.float64), (K,))
     noise = max(10.0 * solver.tol, 1e-13)  # relative accuracy of the objective
+    step_scale = scale if prior_df is None else scale * np.sqrt(float(prior_df) / (float(prior_df) + 1.0))
 
     def objective(theta, v):
-        post = log_posterior(solver, theta, counts, v, scale, temperature, epsilon)
+        post = log_posterior(solver, theta, counts, v, scale, temperature, epsilon, prior_df)
         return -post.log_density, -post.grad, post.log_lik, post.V
 
     def direction(g, Sh, Yh, rho, count, newest):
@@ -427,8 +462,8 @@ def fit_reward(solver: SoftSolver, counts, theta0, v0, prior_scale=PRIOR_SCALE, 
         gnorm = jnp.linalg.norm(g, axis=-1, keepdims=True)
         # before any curvature pair, or if the quasi-Newton direction is not a descent
         # direction: the Newton step of the prior alone (sigma^2 g; the likelihood only adds
-        # curvature), at most one prior scale long
-        fallback = -g * jnp.minimum(scale[:, None] ** 2, scale[:, None] / jnp.where(gnorm > 0, gnorm, 1.0))
+        # curvature), at most one prior scale long (a Student t's: its curvature's at 0)
+        fallback = -g * jnp.minimum(step_scale[:, None] ** 2, step_scale[:, None] / jnp.where(gnorm > 0, gnorm, 1.0))
         ok = (count > 0) & (jnp.sum(g * d, -1) < 0)
         return jnp.where(ok[:, None], d, fallback)
 
@@ -497,8 +532,9 @@ def fit_reward(solver: SoftSolver, counts, theta0, v0, prior_scale=PRIOR_SCALE, 
 
 
 def irl_fit(solver, counts, theta0=None, *, prior_scale=PRIOR_SCALE, num_steps: int = 30, v0=None,
-            history: int = 10, temperature: float = 1.0, epsilon: float = 0.0) -> IRLFit:
-    """Maximum a posteriori maximum-entropy IRL: argmax_theta sum C log pi_theta + log N(theta; 0, sigma^2 I).
+            history: int = 10, temperature: float = 1.0, epsilon: float = 0.0, prior_df=None) -> IRLFit:
+    """Maximum a posteriori maximum-entropy IRL: argmax_theta sum C log pi_theta + log N(theta; 0, sigma^2 I)
+    (or a Student t prior per weight, ``prior_df``).
 
     A fixed number of L-BFGS steps with a backtracking line search, every soft solve
     warm-started from the previous one; pure and jit-able with static shapes (``fit_reward``
@@ -515,6 +551,8 @@ def irl_fit(solver, counts, theta0=None, *, prior_scale=PRIOR_SCALE, num_steps: 
         history: L-BFGS memory.
         temperature: the demonstrator's inverse temperature tau (policies of tau * phi . theta).
         epsilon: the noisy expert's random-action probability (:func:`noisy_log_policy`).
+        prior_df: None (the Gaussian prior), or the degrees of freedom of a Student t prior of
+            scale ``prior_scale`` on each weight (:func:`log_prior`).
     Returns:
         IRLFit(theta (D,) or (K, D), log_lik () or (K,)).
     """
@@ -543,17 +581,19 @@ def irl_fit(solver, counts, theta0=None, *, prior_scale=PRIOR_SCALE, num_steps: 
         if not np.isfinite(value) or value < 0 or (name == "temperature" and value == 0) or \
                 (name == "epsilon" and value >= 1):
             raise ValueError(f"{name} must be {'positive' if name == 'temperature' else 'in [0, 1)'}, got {value!r}")
+    if prior_df is not None and not (np.ndim(prior_df) == 0 and np.isfinite(prior_df) and prior_df > 0):
+        raise ValueError(f"prior_df must be None (a Gaussian prior) or a positive number, got {prior_df!r}")
     theta, ll, *_ = _fit_jit(solver, C, theta0, v0, prior_scale, int(num_steps), int(history), float(epsilon),
-                             float(temperature))
+                             float(temperature), None if prior_df is None else float(prior_df))
     return IRLFit(theta[0], ll[0]) if single else IRLFit(theta, ll)
 
 
-def _fit_jit(solver, counts, theta0, v0, prior_scale, num_steps, history, epsilon=0.0, temperature=1.0):
+def _fit_jit(solver, counts, theta0, v0, prior_scale, num_steps, history, epsilon=0.0, temperature=1.0, prior_df=None):
     return _FIT_JIT(solver, counts, theta0, v0, jnp.asarray(prior_scale, jnp.float64), num_steps, history, 10,
-                    epsilon, temperature)
+                    epsilon, temperature, prior_df)
 
 
-_FIT_JIT = jit(fit_reward, static_argnums=(5, 6, 7, 8))  # temperature is traced
+_FIT_JIT = jit(fit_reward, static_argnums=(5, 6, 7, 8, 10))  # temperature is traced
 
 
 float64_all(globals())  # npbrs.domains.precision: float64 inside, the user's setting outside

@@ -66,7 +66,7 @@ class RewardMALAInfo(NamedTuple):
     solver_failed: jax.Array
 
 
-_POSTERIOR = jit(log_posterior, static_argnums=6)  # epsilon static (0 skips the mixture)
+_POSTERIOR = jit(log_posterior, static_argnums=(6, 7))  # epsilon (0 skips the mixture) and prior_df static
 
 # Skills solved together when only some are active: a batched solve costs about its batch size
 # times one skill's once a skill's policy has this many (state, action) entries (measured on the
@@ -84,7 +84,7 @@ def chunk_size(solver, K: int) -> int:
     return K if c >= K else 1 << (c.bit_length() - 1)
 
 
-def _posterior(solver, theta, counts, v0, prior_scale, temperature, epsilon, active, fallback):
+def _posterior(solver, theta, counts, v0, prior_scale, temperature, epsilon, active, fallback, prior_df=None):
     """:func:`log_posterior` of the ``active`` skills (K,) bool, solved ``chunk_size`` at a time
     in a loop that runs as many times as the active skills need (under ``vmap`` over chains: as
     the chain with the most needs); an inactive skill is not solved and gets ``fallback``'s
@@ -93,7 +93,7 @@ def _posterior(solver, theta, counts, v0, prior_scale, temperature, epsilon, act
     K = theta.shape[0]
     c = chunk_size(solver, K)
     if active is None or c >= K:
-        return _POSTERIOR(solver, theta, counts, v0, prior_scale, temperature, epsilon)
+        return _POSTERIOR(solver, theta, counts, v0, prior_scale, temperature, epsilon, prior_df)
     scale = jnp.broadcast_to(jnp.asarray(prior_scale, jnp.float64), (K,))
     order = jnp.argsort(~active, stable=True)  # the active skills first, in slot order
     order = jnp.concatenate([order, jnp.full((-K) % c, K, order.dtype)])  # pad to whole chunks
@@ -104,7 +104,7 @@ def _posterior(solver, theta, counts, v0, prior_scale, temperature, epsilon, act
     def body(j, out):
         idx = jax.lax.dynamic_slice(order, (j * c,), (c,))
         take = lambda x: jnp.take(x, idx, axis=0, mode="clip")  # noqa: E731  (index K: slot K - 1 again)
-        new = _POSTERIOR(solver, take(theta), take(counts), take(v0), take(scale), temperature, epsilon)
+        new = _POSTERIOR(solver, take(theta), take(counts), take(v0), take(scale), temperature, epsilon, prior_df)
         # a chunk's tail may hold inactive skills or index K: solved, and not written back
         keep = take(active) & (idx < K)
         return jax.tree.map(lambda o, n: o.at[jnp.where(keep, idx, K)].set(n, mode="drop"), out, new)
@@ -112,13 +112,15 @@ def _posterior(solver, theta, counts, v0, prior_scale, temperature, epsilon, act
     return jax.lax.fori_loop(0, num_chunks, body, init)
 
 
-def _check_options(prior_scale, temperature, epsilon):
+def _check_options(prior_scale, temperature, epsilon, prior_df=None):
     if not isinstance(prior_scale, jax.core.Tracer) and not np.all(np.isfinite(prior_scale) & (np.asarray(prior_scale) > 0)):
         raise ValueError(f"prior_scale must be positive and finite, got {prior_scale!r}")
     if not (np.isfinite(temperature) and temperature > 0):
         raise ValueError(f"temperature must be a positive number, got {temperature!r}")
     if not (np.isfinite(epsilon) and 0 <= epsilon < 1):
         raise ValueError(f"epsilon must lie in [0, 1), got {epsilon!r}")
+    if prior_df is not None and not (np.ndim(prior_df) == 0 and np.isfinite(prior_df) and prior_df > 0):
+        raise ValueError(f"prior_df must be None (a Gaussian prior) or a positive number, got {prior_df!r}")
     return float(temperature), float(epsilon)
 
 
@@ -128,7 +130,7 @@ def _check_counts(solver, counts, K):
 
 
 def init(solver, theta, counts, prior_scale=PRIOR_SCALE, v0=None, *, temperature: float = 1.0,
-         epsilon: float = 0.0, active=None) -> RewardMALAState:
+         epsilon: float = 0.0, active=None, prior_df=None) -> RewardMALAState:
     """The chain's state at theta (K, D) for counts (K, S, A).
 
     Args:
@@ -136,12 +138,14 @@ def init(solver, theta, counts, prior_scale=PRIOR_SCALE, v0=None, *, temperature
         theta: (K, D) starting weights; counts: (K, S, A) count tables.
         prior_scale: sigma of the Gaussian prior, scalar or (K,).
         v0: optional (K, S) warm start of the first solve.
+        prior_df: None, or the degrees of freedom of a Student t prior of scale ``prior_scale``
+            on each weight (:func:`npbrs.models.reward.log_prior`).
         temperature, epsilon: the demonstrator's inverse temperature and random-action rate.
         active: optional (K,) bool, the skills to solve (see :func:`build_kernel`); the others
             get log_density 0 and gradient 0, and keep v0.
     """
     solver = as_solver(solver)
-    temperature, epsilon = _check_options(prior_scale, temperature, epsilon)
+    temperature, epsilon = _check_options(prior_scale, temperature, epsilon, prior_df)
     theta = jnp.asarray(theta, jnp.float64)
     counts = jnp.asarray(counts, jnp.float64)
     if theta.ndim != 2 or theta.shape[1] != solver.num_features:
@@ -149,7 +153,7 @@ def init(solver, theta, counts, prior_scale=PRIOR_SCALE, v0=None, *, temperature
     K = theta.shape[0]
     _check_counts(solver, counts, K)
     v0 = jnp.zeros((K, solver.num_states)) if v0 is None else jnp.asarray(v0, jnp.float64)
-    kernel = build_kernel(solver, prior_scale, temperature=temperature, epsilon=epsilon)
+    kernel = build_kernel(solver, prior_scale, temperature=temperature, epsilon=epsilon, prior_df=prior_df)
     return kernel(jax.random.PRNGKey(0), unevaluated(theta, v0), counts, 1.0, active=active, evaluate=True)[0]
 
 
@@ -160,13 +164,15 @@ def unevaluated(theta, v0) -> RewardMALAState:
     return RewardMALAState(theta, jnp.zeros(theta.shape[0]), jnp.zeros_like(theta), v0)
 
 
-def build_kernel(solver, prior_scale=PRIOR_SCALE, *, temperature: float = 1.0, epsilon: float = 0.0) -> Callable:
+def build_kernel(solver, prior_scale=PRIOR_SCALE, *, temperature: float = 1.0, epsilon: float = 0.0,
+                 prior_df=None) -> Callable:
     """A MALA kernel for K skills' reward weights.
 
     Args:
         solver: a SoftSolver or a TabularMDP (its tolerance sets the density's accuracy).
         prior_scale: sigma of the Gaussian prior, scalar or (K,) (an array may be traced).
         temperature, epsilon: the demonstrator's inverse temperature and random-action rate.
+        prior_df: None, or a Student t prior's degrees of freedom (see :func:`init`).
     Returns:
         ``kernel(rng_key, state, counts, step_size, inverse_mass=None, active=None,
         evaluate=False) -> (state, info)`` with counts (K, S, A), step_size scalar or (K,),
@@ -181,7 +187,8 @@ def build_kernel(solver, prior_scale=PRIOR_SCALE, *, temperature: float = 1.0, e
         solve in a loop (inactive skills keep the state's; the info's rate is 0).
     """
     solver = as_solver(solver)
-    temperature, epsilon = _check_options(prior_scale, temperature, epsilon)
+    temperature, epsilon = _check_options(prior_scale, temperature, epsilon, prior_df)
+    prior_df = None if prior_df is None else float(prior_df)
 
     def kernel(rng_key, state: RewardMALAState, counts, step_size, inverse_mass=None, active=None, evaluate=False):
         K, D = state.theta.shape
@@ -196,7 +203,7 @@ def build_kernel(solver, prior_scale=PRIOR_SCALE, *, temperature: float = 1.0, e
         prop = mean_fwd + eps * jnp.sqrt(minv) * jax.random.normal(k_prop, theta.shape)
         prop = jnp.where(evaluate, theta, prop)
         # the (active) skills' proposals solved together, warm-started from the current values
-        new = _posterior(solver, prop, counts, V, prior_scale, temperature, epsilon, active, (lp, grad, V))
+        new = _posterior(solver, prop, counts, V, prior_scale, temperature, epsilon, active, (lp, grad, V), prior_df)
         mean_bwd = prop + 0.5 * eps ** 2 * minv * new.grad
         log_q_fwd = -0.5 * jnp.sum((prop - mean_fwd) ** 2 / minv / eps ** 2, -1)
         log_q_bwd = -0.5 * jnp.sum((theta - mean_bwd) ** 2 / minv / eps ** 2, -1)

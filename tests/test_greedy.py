@@ -162,11 +162,13 @@ def test_policy_evidence_is_the_prior_expectation_of_the_likelihood():
     np.testing.assert_allclose(np.asarray(log_ev), mc, atol=0.03)
 
 
-@pytest.mark.parametrize("scale_prior", [False, (2.0, 4.0)])
-def test_reward_laplace_evidence_is_close_to_importance_sampling(scale_prior):
+@pytest.mark.parametrize("scale_prior, prior_df", [(False, None), ((2.0, 4.0), None), (False, 2.0)])
+def test_reward_laplace_evidence_is_close_to_importance_sampling(scale_prior, prior_df):
     """The reward emission's Laplace evidence against an importance-sampling estimate of
     log E_prior[p(steps | theta)] (proposal: a wide Gaussian around the fit), on a gridworld;
-    with a sampled prior variance the prior is theta's marginal, a multivariate Student t."""
+    with a sampled prior variance the prior is theta's marginal, a multivariate Student t; with
+    ``prior_df`` a Student t per weight (scale 1: the Laplace precision holds the t's curvature
+    at the fit)."""
     from gridworld import gridworld
     from jax.scipy.special import gammaln
 
@@ -177,7 +179,8 @@ def test_reward_laplace_evidence_is_close_to_importance_sampling(scale_prior):
     dom = gridworld(size=3)
     demos = generate_demonstrations(dom, num_trajectories=2, length=30, switch_prob=0.05, seed=1)
     data = HMMData.from_demonstrations(demos)
-    em = make_emission("reward", dom.mdp, prior_scale=3.0, scale_prior=scale_prior)
+    em = make_emission("reward", dom.mdp, prior_scale=3.0 if prior_df is None else 1.0, scale_prior=scale_prior,
+                       prior_df=prior_df)
     z = np.zeros(data.mask.shape, int)
     for i, s in enumerate(demos.skills):
         z[i, :len(s)] = s

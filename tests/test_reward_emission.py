@@ -56,33 +56,76 @@ def test_reward_emission_follows_the_protocol():
 
 
 def test_the_default_prior_scale_is_10_for_a_few_features_and_narrows_with_one_weight_per_state():
+    from scipy import stats
+
     from npbrs.domains.highway import FEATURE_NAMES as HIGHWAY_FEATURES
     from npbrs.domains.quadcopter import FEATURE_NAMES as QUADCOPTER_FEATURES
     from npbrs.domains.worlds import labyrinth_mdp, rooms_mdp
-    from npbrs.models.reward_emission import auto_prior_scale
+    from npbrs.models.reward_emission import auto_prior_df, auto_prior_scale
 
-    # the paper's domains (4 and 3 features) keep sigma 10, so their tables' draws are unchanged
+    # the paper's domains (4 and 3 features) keep a Gaussian of sigma 10, so their tables' draws are unchanged
     assert len(HIGHWAY_FEATURES) == 4 and len(QUADCOPTER_FEATURES) == 3
     assert auto_prior_scale(3) == auto_prior_scale(4) == 10.0
-    assert RewardEmission(gridworld(size=3).mdp).prior_scale == 10.0
-    # one weight per state: sigma^2 D held at 400 (the four rooms' 104 cells: 1.96)
+    assert auto_prior_df(3) is None and auto_prior_df(16) is None and auto_prior_df(17) == 2.0
+    small = RewardEmission(gridworld(size=3).mdp)
+    assert small.prior_scale == 10.0 and small.prior_df is None and small.describe()["prior_df"] is False
+    # one weight per state: a Student t of 2 degrees of freedom and scale 0.5 per weight; with
+    # prior_df None the Gaussian's sigma^2 D held at 400 (the four rooms' 104 cells: 1.96)
     for mdp in (rooms_mdp(), labyrinth_mdp()):
         D = mdp.num_features
         assert D == mdp.num_states > 100
         em = RewardEmission(mdp)
-        np.testing.assert_allclose(em.prior_scale, 20.0 / np.sqrt(D), rtol=1e-12)
-        assert RewardEmission(mdp, prior_scale="auto").prior_scale == em.prior_scale
-        assert em.describe()["prior_scale"] == em.prior_scale  # the run records the number used
+        assert (em.prior_df, em.prior_scale) == (2.0, 0.5)
+        assert em.describe()["prior_df"] == 2.0 and em.describe()["prior_scale"] == 0.5  # the run records them
+        again = RewardEmission(mdp, **{k: v for k, v in em.describe().items() if k != "name"})
+        assert again.describe() == em.describe()  # (a saved run's emission is rebuilt from its record)
+        gauss = RewardEmission(mdp, prior_df=None)
+        np.testing.assert_allclose(gauss.prior_scale, 20.0 / np.sqrt(D), rtol=1e-12)
+        for off in (False, "off"):
+            assert RewardEmission(mdp, prior_df=off).prior_df is None
         assert RewardEmission(mdp, prior_scale=10.0).prior_scale == 10.0  # a number is kept as given
-        # the prior the sampler uses is that sigma
-        theta = jnp.ones((2, D))
-        np.testing.assert_allclose(float(jnp.sum(em.log_prior({"theta": theta}))),
-                                   2 * D * (-0.5 * np.log(2 * np.pi) - np.log(em.prior_scale))
-                                   - 0.5 * 2 * D / em.prior_scale ** 2, rtol=1e-10)
+        assert RewardEmission(mdp, prior_df=5).prior_df == 5.0
+        # a sampled scale per skill is its own heavy-tailed prior: no t under "auto", an error when both are asked
+        assert RewardEmission(mdp, scale_prior=(3.0, 3.0)).prior_df is None
+        with pytest.raises(ValueError, match="cannot be combined"):
+            RewardEmission(mdp, scale_prior=(3.0, 3.0), prior_df=2.0)
+        # the prior the sampler uses is that density, and the model's (numpyro) prior the same
+        theta = jnp.linspace(-3.0, 6.0, 2 * D).reshape(2, D)
+        np.testing.assert_allclose(np.asarray(em.log_prior({"theta": theta})),
+                                   stats.t(2.0, scale=0.5).logpdf(np.asarray(theta)).sum(1), rtol=1e-10)
+        np.testing.assert_allclose(np.asarray(gauss.log_prior({"theta": theta})),
+                                   stats.norm(scale=gauss.prior_scale).logpdf(np.asarray(theta)).sum(1), rtol=1e-10)
+        from numpyro import handlers
+
+        traced = handlers.trace(handlers.seed(lambda: em.sample_params(2), 0)).get_trace()
+        np.testing.assert_allclose(float(traced["theta"]["fn"].log_prob(theta)),
+                                   float(jnp.sum(em.log_prior({"theta": theta}))), rtol=1e-10)
     np.testing.assert_allclose(auto_prior_scale(104), 1.9612, atol=1e-4)
     for bad in ("wide", 0.0, -1.0):
         with pytest.raises(ValueError, match="prior_scale"):
             RewardEmission(rooms_mdp(), prior_scale=bad)
+    for bad in ("t", 0.0, -2.0, True, float("nan")):
+        with pytest.raises(ValueError, match="prior_df"):
+            RewardEmission(rooms_mdp(), prior_df=bad)
+
+
+def test_the_student_t_priors_gradient_and_curvature_are_its_log_densitys_derivatives():
+    """prior_grad and prior_curvature against central differences of log_prior (the curvature
+    where the t's is above its floor, and the floor in its tails), for both priors."""
+    from npbrs.models.reward import log_prior, prior_curvature, prior_grad
+
+    theta = jnp.array([[-4.0, -0.7, -0.1, 0.0, 0.3, 0.9, 2.5]])
+    h = 1e-4
+    for scale, df in ((0.5, 2.0), (1.3, 5.0), (2.0, None)):
+        lp = lambda t: float(log_prior(jnp.asarray([[t]]), scale, df)[0])  # noqa: E731
+        for t in np.asarray(theta[0]):
+            d1 = (lp(t + h) - lp(t - h)) / (2 * h)
+            d2 = -(lp(t + h) - 2 * lp(t) + lp(t - h)) / h ** 2
+            np.testing.assert_allclose(float(prior_grad(jnp.asarray(t), scale, df)), d1, rtol=1e-6, atol=1e-8)
+            c = float(prior_curvature(jnp.asarray(t), scale, df))
+            floor = 0.0 if df is None else 0.01 * (df + 1) / (df * scale ** 2)
+            np.testing.assert_allclose(c, max(d2, floor), rtol=1e-4, atol=1e-6)
+        assert prior_grad(theta, scale, df).shape == prior_curvature(theta, scale, df).shape == theta.shape
 
 
 def one_state_mdp():

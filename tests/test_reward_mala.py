@@ -19,32 +19,37 @@ def logistic_mdp(gamma=0.9):
                       features=np.array([[[0.0], [1.0]]]), discount=gamma)
 
 
-def exact_posterior(counts, sigma, tau=1.0, eps=0.0):
+def exact_posterior(counts, sigma, tau=1.0, eps=0.0, df=None):
     """Mean and variance of theta given counts (n0, n1) by quadrature on a fine grid, for the
-    policy pi(1) = (1 - eps) sigmoid(tau theta) + eps / 2."""
+    policy pi(1) = (1 - eps) sigmoid(tau theta) + eps / 2 and a Normal(0, sigma^2) prior (or
+    scipy's Student t of ``df`` degrees of freedom and scale sigma)."""
+    from scipy import stats
+
     grid = np.linspace(-30, 30, 600001)
     n0, n1 = counts
     p1 = (1 - eps) * expit(tau * grid) + eps / 2
-    logp = n1 * np.log(p1) + n0 * np.log1p(-p1) - 0.5 * grid ** 2 / sigma ** 2
+    prior = stats.norm(scale=sigma) if df is None else stats.t(df, scale=sigma)
+    logp = n1 * np.log(p1) + n0 * np.log1p(-p1) + prior.logpdf(grid)
     w = np.exp(logp - logp.max())
     w /= w.sum()
     mean = (w * grid).sum()
     return mean, (w * (grid - mean) ** 2).sum()
 
 
-@pytest.mark.parametrize("tau, eps", [(1.0, 0.0), (2.0, 0.1)])
-def test_mala_samples_the_exact_posterior_of_a_logistic_conditional(tau, eps):
+@pytest.mark.parametrize("tau, eps, df", [(1.0, 0.0, None), (2.0, 0.1, None), (1.0, 0.0, 2.0)])
+def test_mala_samples_the_exact_posterior_of_a_logistic_conditional(tau, eps, df):
     """Two skills at once, each with its own counts: chain means and variances agree with
     quadrature within Monte Carlo standard errors, at temperature 1 and at temperature 2 with a
-    noisy expert (epsilon 0.1)."""
-    sigma = 2.0
+    noisy expert (epsilon 0.1), and under a Student t prior of 2 degrees of freedom and scale
+    0.5 (the default for one weight per state)."""
+    sigma = 2.0 if df is None else 0.5
     counts = np.array([[3.0, 7.0], [10.0, 2.0]])
-    truth = [exact_posterior(c, sigma, tau, eps) for c in counts]
+    truth = [exact_posterior(c, sigma, tau, eps, df) for c in counts]
     solver = make_soft_solver(logistic_mdp(), tol=1e-12)
     C = jnp.asarray(counts[:, None, :])  # (K, S=1, A=2)
-    kernel = build_kernel(solver, prior_scale=sigma, temperature=tau, epsilon=eps)
+    kernel = build_kernel(solver, prior_scale=sigma, temperature=tau, epsilon=eps, prior_df=df)
     step = jnp.asarray([1.1 * np.sqrt(v) for _, v in truth])
-    state = init(solver, jnp.zeros((2, 1)), C, prior_scale=sigma, temperature=tau, epsilon=eps)
+    state = init(solver, jnp.zeros((2, 1)), C, prior_scale=sigma, temperature=tau, epsilon=eps, prior_df=df)
     assert isinstance(state, RewardMALAState)
 
     @jax.jit
@@ -70,7 +75,7 @@ def test_mala_samples_the_exact_posterior_of_a_logistic_conditional(tau, eps):
         ess_var = float(effective_sample_size(dev[None]))
         assert abs(dev.mean() - var) < 4 * dev.std() / np.sqrt(ess_var), (k, dev.mean(), var, ess_var)
     # the state carried along the chain is the density and gradient at its theta
-    fresh = init(solver, last.theta, C, prior_scale=sigma, v0=last.V, temperature=tau, epsilon=eps)
+    fresh = init(solver, last.theta, C, prior_scale=sigma, v0=last.V, temperature=tau, epsilon=eps, prior_df=df)
     np.testing.assert_allclose(last.log_density, fresh.log_density, rtol=1e-10)
     np.testing.assert_allclose(last.grad, fresh.grad, rtol=1e-8, atol=1e-10)
 
@@ -87,6 +92,13 @@ def test_the_irl_fit_finds_the_analytic_mode_at_any_temperature(tau):
     np.testing.assert_allclose(float(fit.theta[0]), mode, atol=1e-5)
     if tau == 2.0:
         assert abs(mode - 0.4187) < 1e-4
+    # under a Student t prior (3 degrees of freedom, scale 0.3): the root of
+    # 70 tau - 100 tau sigmoid(tau theta) - 4 theta / (3 * 0.09 + theta^2)
+    mode_t = brentq(lambda t: 70 * tau - 100 * tau * expit(tau * t) - 4 * t / (0.27 + t ** 2), -10, 10)
+    fit_t = irl_fit(make_soft_solver(logistic_mdp(), tol=1e-12), np.array([[30.0, 70.0]]), prior_scale=0.3,
+                    num_steps=40, temperature=tau, prior_df=3.0)
+    np.testing.assert_allclose(float(fit_t.theta[0]), mode_t, atol=1e-5)
+    assert abs(mode_t - mode) > 0.02  # (a different prior: a different mode)
 
 
 def test_a_proposal_whose_solve_failed_is_rejected():
