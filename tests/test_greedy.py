@@ -180,7 +180,7 @@ def test_reward_laplace_evidence_is_close_to_importance_sampling(scale_prior, pr
     demos = generate_demonstrations(dom, num_trajectories=2, length=30, switch_prob=0.05, seed=1)
     data = HMMData.from_demonstrations(demos)
     em = make_emission("reward", dom.mdp, prior_scale=3.0 if prior_df is None else 1.0, scale_prior=scale_prior,
-                       prior_df=prior_df)
+                       prior_df=prior_df, t_evidence="calibrated")
     z = np.zeros(data.mask.shape, int)
     for i, s in enumerate(demos.skills):
         z[i, :len(s)] = s
@@ -211,6 +211,13 @@ def test_reward_laplace_evidence_is_close_to_importance_sampling(scale_prior, pr
 
     estimates = [float(estimate(jax.random.PRNGKey(m), fits["theta"][m], weights[..., m])) for m in range(3)]
     np.testing.assert_allclose(np.asarray(log_ev), estimates, atol=0.3)
+    if prior_df is not None:  # the default "laplace" evidence: the same fits, 0.6-0.9 nats low here
+        plain = make_emission("reward", dom.mdp, prior_scale=1.0, prior_df=prior_df)
+        assert plain.t_evidence == "laplace"
+        plain_fits, plain_ev = jax.jit(plain.fit_evidence)(data, weights)
+        np.testing.assert_allclose(np.asarray(plain_fits["theta"]), np.asarray(fits["theta"]), rtol=1e-12)
+        low = np.asarray(estimates) - np.asarray(plain_ev)
+        assert np.all((low > 0.4) & (low < 1.2)), low
     # a traced ``with_evidence`` (the greedy split's allocation fits by the same call): the same
     # fits either way, the evidences where it is true, NaN where it is false
     flagged = jax.jit(lambda flag: em.fit_evidence(data, weights, None, with_evidence=flag))

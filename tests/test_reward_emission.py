@@ -107,6 +107,8 @@ def test_the_default_prior_scale_is_10_for_a_few_features_and_narrows_with_one_w
     for bad in ("t", 0.0, -2.0, True, float("nan")):
         with pytest.raises(ValueError, match="prior_df"):
             RewardEmission(rooms_mdp(), prior_df=bad)
+    with pytest.raises(ValueError, match="t_evidence"):
+        RewardEmission(rooms_mdp(), t_evidence="exact")
 
 
 def test_the_student_t_priors_gradient_and_curvature_are_its_log_densitys_derivatives():
