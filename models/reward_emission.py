@@ -92,10 +92,10 @@ def auto_prior_df(num_features: int):
     goal's weight those weights wander by +-2 nats, and steps near another skill's bump switch to
     it; a t prior of scale 0.5 holds them near 0 and still lets the goal's weight reach 5. On the
     four-room world, started from the true segmentation, the sampler's labels then score 0.938
-    (Gaussian: 0.906; the true model's Viterbi 0.953), and its held-out log-likelihood from
-    ``fit``'s start is -1.195 nats per step against the Gaussian's -1.216 (the oracle -1.169),
-    at the same cost; the labyrinth and the grid score as before (``benchmarks/NOTES.md``,
-    session 44)."""
+    (Gaussian: 0.906; the true model's Viterbi 0.953); from ``fit``'s start (4 chains, fit
+    seeds 0-3) 0.863 against 0.790, and held-out -1.198 nats per step against the Gaussian's
+    -1.216 (the oracle -1.169), at the same cost; the grid scores as before and the labyrinth's
+    held-out within 0.005 of before (``benchmarks/NOTES.md``, session 44)."""
     D = int(num_features)
     if D < 1:
         raise ValueError(f"num_features must be at least 1, got {num_features!r}")
@@ -136,10 +136,11 @@ class RewardEmission(Emission):
             (:meth:`_t_laplace_correction`; close to importance sampling where "laplace" is
             about 0.3 nats a weight low). The greedy moves are a search aid of warmup, not MCMC
             moves: the choice changes which regions the chains reach, not what they sample.
-            "calibrated" labelled the four rooms better (4 chains, fit seeds 0-3: 0.860 against
-            0.781) but found worse regions on the labyrinth (held-out -0.920 against -0.899 on
-            fit seed 1): "laplace"'s Occam penalty of about 0.3 nats per weight left to the
-            prior helped there (``benchmarks/NOTES.md``, session 44).
+            "calibrated" labelled the four rooms as well (4 chains, fit seeds 0-3: 0.860 against
+            0.863) but found worse regions on the labyrinth (held-out -0.920 against -0.899 on
+            fit seed 1, its chains' log joint 400-500 nats lower): "laplace"'s Occam penalty of
+            about 0.3 nats per weight left to the prior helped there (``benchmarks/NOTES.md``,
+            session 44).
         temperature: inverse temperature tau of the Boltzmann policy, pi ~ exp(tau Q); the
             rewards are tau * phi . theta (tau = 1: folded into theta).
         discount: the discount of the skills' soft value iteration (default: the MDP's).
