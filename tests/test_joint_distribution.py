@@ -104,6 +104,25 @@ REWARD = Case(make=reward_emission, draw=lambda rng, m: {"theta": rng.normal(0.0
               coordinate=lambda params, k: params["theta"][k, 0],
               coordinate_prior=lambda rng, m: rng.normal(0.0, SCALE, m))
 
+DF = 2.0  # the Student t prior per weight (the default for more than 16 weights)
+
+
+def reward_t_emission(P):
+    """The reward emission of :func:`reward_emission` with a Student t prior of DF degrees of
+    freedom and scale SCALE per weight."""
+    from npbrs.domains import TabularMDP
+    from npbrs.models.reward_emission import RewardEmission
+
+    phi = np.random.default_rng(1).normal(size=(S, A, D))
+    return RewardEmission(TabularMDP.from_dense(P, features=phi, discount=0.8), prior_scale=SCALE, prior_df=DF)
+
+
+# (the t's variance is infinite at 2 degrees of freedom: the statistics are of arctan(theta / SCALE),
+# bounded, whose mean and mean square the chains' and the direct draws' t-tests can compare)
+REWARD_T = Case(make=reward_t_emission, draw=lambda rng, m: {"theta": SCALE * rng.standard_t(DF, (m, K, D))},
+                coordinate=lambda params, k: jnp.arctan(params["theta"][k, 0] / SCALE),
+                coordinate_prior=lambda rng, m: np.arctan(rng.standard_t(DF, m)))
+
 
 # ---------------------------------------------------------------------- direct prior draws
 def prior_parameters(rng, m, N, case):
@@ -317,6 +336,15 @@ def test_sweeps_alternated_with_simulated_data_sample_the_prior_with_rewards():
     IRL-fitted birth and split proposals): the moves are the ones above, the emission's own move
     is checked alone in test_reward_mala.py. (Slow: 100 s, 70 of them compiling.)"""
     results, threshold = joint_distribution_test(REWARD)
+    assert min(pv for *_, pv in results.values()) > threshold, report(results)
+
+
+@pytest.mark.slow
+def test_sweeps_alternated_with_simulated_data_sample_the_prior_with_student_t_rewards():
+    """The same with the reward emission's Student t prior per weight (``prior_df``; session 44):
+    its density and gradient in the MALA move, its draws for unused skills, and the proposals'
+    ratios to it in the birth-death and split-merge moves. (Slow, as the Gaussian case.)"""
+    results, threshold = joint_distribution_test(REWARD_T)
     assert min(pv for *_, pv in results.values()) > threshold, report(results)
 
 
