@@ -47,7 +47,7 @@ from npbrs.domains.precision import float64_all
 
 __all__ = ["PRIOR_SCALE", "count_table", "log_policy", "step_log_likelihoods", "count_log_likelihood",
            "count_log_likelihood_and_values",
-           "count_log_likelihood_and_grad", "fisher_information", "log_prior", "prior_grad", "prior_curvature",
+           "count_log_likelihood_and_grad", "fisher_information", "log_prior", "prior_grad", "prior_curvature", "check_prior_df",
            "log_posterior", "Posterior", "irl_fit",
            "fit_reward", "IRLFit", "as_solver"]
 
@@ -219,6 +219,16 @@ def log_prior(theta, prior_scale=PRIOR_SCALE, prior_df=None) -> jax.Array:
     if prior_df is None:
         return jnp.sum(dist.Normal(0.0, prior_scale).log_prob(theta), axis=-1)
     return jnp.sum(dist.StudentT(float(prior_df), 0.0, prior_scale).log_prob(theta), axis=-1)
+
+
+def check_prior_df(prior_df):
+    """``prior_df`` as :func:`log_prior` takes it: None (the Gaussian) or a positive float; a
+    ValueError naming it otherwise."""
+    if prior_df is None:
+        return None
+    if isinstance(prior_df, (bool, str)) or not (np.ndim(prior_df) == 0 and np.isfinite(prior_df) and prior_df > 0):
+        raise ValueError(f"prior_df must be None (a Gaussian prior) or a positive number, got {prior_df!r}")
+    return float(prior_df)
 
 
 def prior_grad(theta, prior_scale=PRIOR_SCALE, prior_df=None) -> jax.Array:
@@ -451,7 +461,8 @@ def fit_reward(solver: SoftSolver, counts, theta0, v0, prior_scale=PRIOR_SCALE, 
     K, D = theta0.shape
     scale = jnp.broadcast_to(jnp.asarray(prior_scale, jnp.float64), (K,))
     noise = max(10.0 * solver.tol, 1e-13)  # relative accuracy of the objective
-    step_scale = scale if prior_df is None else scale * np.sqrt(float(prior_df) / (float(prior_df) + 1.0))
+    # (a Student t's: one over the square root of its curvature at 0)
+    step_scale = scale if prior_df is None else 1.0 / jnp.sqrt(prior_curvature(jnp.zeros(K), scale, prior_df))
 
     def objective(theta, v):
         post = log_posterior(solver, theta, counts, v, scale, temperature, epsilon, prior_df)
@@ -581,10 +592,8 @@ def irl_fit(solver, counts, theta0=None, *, prior_scale=PRIOR_SCALE, num_steps: 
         if not np.isfinite(value) or value < 0 or (name == "temperature" and value == 0) or \
                 (name == "epsilon" and value >= 1):
             raise ValueError(f"{name} must be {'positive' if name == 'temperature' else 'in [0, 1)'}, got {value!r}")
-    if prior_df is not None and not (np.ndim(prior_df) == 0 and np.isfinite(prior_df) and prior_df > 0):
-        raise ValueError(f"prior_df must be None (a Gaussian prior) or a positive number, got {prior_df!r}")
     theta, ll, *_ = _fit_jit(solver, C, theta0, v0, prior_scale, int(num_steps), int(history), float(epsilon),
-                             float(temperature), None if prior_df is None else float(prior_df))
+                             float(temperature), check_prior_df(prior_df))
     return IRLFit(theta[0], ll[0]) if single else IRLFit(theta, ll)
 
 

@@ -56,8 +56,8 @@ from ..domains.solvers import make_soft_solver
 from .emissions import Emission, EmissionInfo, register_emission
 from . import reward_mala
 from .mcmc import metropolis_accept, select
-from .reward import (count_log_likelihood_and_values, count_table, fisher_information, fit_reward, log_policy, log_prior,
-                     prior_curvature, step_log_likelihoods)
+from .reward import (check_prior_df, count_log_likelihood_and_values, count_table, fisher_information, fit_reward,
+                     log_policy, log_prior, prior_curvature, step_log_likelihoods)
 from npbrs.domains.precision import float64_all
 
 __all__ = ["RewardEmission", "SingleRewardEmission", "auto_prior_scale", "auto_prior_df"]
@@ -195,22 +195,23 @@ class RewardEmission(Emission):
         if t_evidence not in _T_EVIDENCE:
             raise ValueError(f"unknown t_evidence {t_evidence!r}; expected one of {_T_EVIDENCE}")
         self.t_evidence = t_evidence
-        explicit_df = not (isinstance(prior_df, str) and prior_df == "auto")
-        if isinstance(prior_df, str) and prior_df not in ("auto", "off"):
-            raise ValueError(f"prior_df must be 'auto', a positive number, or None/False/'off' (a Gaussian prior), "
-                             f"got {prior_df!r}")
-        if prior_df is False or prior_df is None or prior_df == "off":
-            prior_df = None
-        elif prior_df == "auto":  # (a sampled scale is its own heavy-tailed prior: the t is not added to it)
-            prior_df = None if scale_prior not in (False, None, "off") else auto_prior_df(mdp.num_features)
-        elif isinstance(prior_df, bool) or not (np.ndim(prior_df) == 0 and np.isfinite(prior_df) and prior_df > 0):
-            raise ValueError(f"prior_df must be 'auto', a positive number, or None/False/'off' (a Gaussian prior), "
-                             f"got {prior_df!r}")
+        if scale_prior is False or scale_prior is None or (isinstance(scale_prior, str) and scale_prior == "off"):
+            scale_prior = None
         else:
-            prior_df = float(prior_df)
-        if explicit_df and prior_df is not None and scale_prior not in (False, None, "off"):
-            raise ValueError("prior_df (a Student t prior per weight) and scale_prior (a sampled scale per skill) "
-                             "cannot be combined: give one of them")
+            if np.ndim(scale_prior) != 1 or len(scale_prior) != 2 or not all(
+                    np.isfinite(v) and v > 0 for v in scale_prior):
+                raise ValueError(f"scale_prior must be (a, b), two positive numbers (sigma^2 ~ InvGamma(a, b)), or "
+                                 f"False/None/'off' (a fixed prior_scale), got {scale_prior!r}")
+            scale_prior = (float(scale_prior[0]), float(scale_prior[1]))
+        if isinstance(prior_df, str) and prior_df == "auto":
+            # (a sampled scale is its own heavy-tailed prior: the t is not added to it)
+            prior_df = None if scale_prior else auto_prior_df(mdp.num_features)
+        else:
+            off = prior_df is False or (isinstance(prior_df, str) and prior_df == "off")
+            prior_df = None if off else check_prior_df(prior_df)
+            if prior_df is not None and scale_prior:
+                raise ValueError("prior_df (a Student t prior per weight) and scale_prior (a sampled scale per "
+                                 "skill) cannot be combined: give one of them")
         self.prior_df = prior_df
         if isinstance(prior_scale, str):
             if prior_scale != "auto":
@@ -231,14 +232,6 @@ class RewardEmission(Emission):
                             ("refit_steps", refit_steps)]:
             if not isinstance(value, (int, np.integer)) or value < 1:
                 raise ValueError(f"{name} must be an integer >= 1, got {value!r}")
-        if scale_prior is False or scale_prior is None or (isinstance(scale_prior, str) and scale_prior == "off"):
-            scale_prior = None
-        else:
-            if np.ndim(scale_prior) != 1 or len(scale_prior) != 2 or not all(
-                    np.isfinite(v) and v > 0 for v in scale_prior):
-                raise ValueError(f"scale_prior must be (a, b), two positive numbers (sigma^2 ~ InvGamma(a, b)), or "
-                                 f"False/None/'off' (a fixed prior_scale), got {scale_prior!r}")
-            scale_prior = (float(scale_prior[0]), float(scale_prior[1]))
         self.scale_prior = scale_prior
         if discount is not None:
             mdp = mdp.with_discount(discount)
@@ -552,13 +545,11 @@ class RewardEmission(Emission):
         without data."""
         if self.prior_df is None:
             return jnp.zeros(theta.shape[0])
-        nu = self.prior_df
-        s2 = jnp.asarray(scale, jnp.float64)[:, None] ** 2
-        h0 = (nu + 1.0) / (nu * s2)
-        # log t(0) + 1/2 log(2 pi / h0), scale-free
-        c = -(math.lgamma((nu + 1) / 2) - math.lgamma(nu / 2) - 0.5 * math.log(nu * math.pi)
-              + 0.5 * math.log(2 * math.pi * nu / (nu + 1)))
-        F_diag = jnp.diagonal(precision, axis1=-2, axis2=-1) - prior_curvature(theta, jnp.sqrt(s2), nu)
+        nu, s = self.prior_df, jnp.asarray(scale, jnp.float64)[:, None]
+        zero = jnp.zeros((1, 1))
+        h0 = prior_curvature(zero, s, nu)  # (M, 1)
+        c = -(log_prior(zero, 1.0, nu) + 0.5 * jnp.log(2 * jnp.pi / prior_curvature(zero, 1.0, nu)))[0, 0]  # scale-free
+        F_diag = jnp.diagonal(precision, axis1=-2, axis2=-1) - prior_curvature(theta, s, nu)
         return c * jnp.sum(h0 / (jnp.maximum(F_diag, 0.0) + h0), -1)
 
     # the coarse grid of log sigma^2 that finds the peak of the evidence's integrand

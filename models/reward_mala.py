@@ -32,7 +32,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .mcmc import metropolis_accept, select
-from .reward import PRIOR_SCALE, Posterior, as_solver, log_posterior
+from .reward import PRIOR_SCALE, Posterior, as_solver, check_prior_df, log_posterior
 from npbrs.domains.compiling import jit
 from npbrs.domains.precision import float64_all
 
@@ -119,8 +119,7 @@ def _check_options(prior_scale, temperature, epsilon, prior_df=None):
         raise ValueError(f"temperature must be a positive number, got {temperature!r}")
     if not (np.isfinite(epsilon) and 0 <= epsilon < 1):
         raise ValueError(f"epsilon must lie in [0, 1), got {epsilon!r}")
-    if prior_df is not None and not (np.ndim(prior_df) == 0 and np.isfinite(prior_df) and prior_df > 0):
-        raise ValueError(f"prior_df must be None (a Gaussian prior) or a positive number, got {prior_df!r}")
+    check_prior_df(prior_df)
     return float(temperature), float(epsilon)
 
 
@@ -188,7 +187,7 @@ def build_kernel(solver, prior_scale=PRIOR_SCALE, *, temperature: float = 1.0, e
     """
     solver = as_solver(solver)
     temperature, epsilon = _check_options(prior_scale, temperature, epsilon, prior_df)
-    prior_df = None if prior_df is None else float(prior_df)
+    prior_df = check_prior_df(prior_df)
 
     def kernel(rng_key, state: RewardMALAState, counts, step_size, inverse_mass=None, active=None, evaluate=False):
         K, D = state.theta.shape
