@@ -383,6 +383,15 @@ class RewardEmission(Emission):
     # solves: on the highway they took half of a sweep when redrawn every sweep)
     redraw_unused = 5
 
+    def initial_skills(self, max_skills: int):
+        """``fit``'s number of skills in the initial segmentation: every slot (``max_skills``)
+        for rewards of more than ``START_FIT_FEATURES`` (16) weights, None (the kernel's half of
+        the slots) otherwise. With one weight per state, a start with fewer skills than the data
+        hold lumps goals into one skill, and the lump is a mode of its own that no split leaves
+        (rooms, fit seeds 0-7: one-to-one 0.907 from every slot against 0.843 from half;
+        ``benchmarks/NOTES.md``, session 45); the greedy merges remove the extra skills."""
+        return int(max_skills) if self.num_features > START_FIT_FEATURES else None
+
     @property
     def init_window(self):
         """``fit``'s window length for the initial segmentation: ``SHORT_INIT_WINDOW`` (5) steps

@@ -100,6 +100,37 @@ def test_the_initial_windows_are_the_emissions_unless_the_configuration_sets_the
         SamplerConfig(init_window=0)
 
 
+def test_the_initial_skills_are_every_slot_for_one_weight_per_state_unless_the_configuration_sets_them():
+    """``init_skills`` left open: every slot for rewards of more than 16 weights (a start with
+    fewer skills than the data lumps goals into one: ``benchmarks/NOTES.md``, session 45), else
+    half of them, as the kernel takes it too; ``fit`` records it; a given value wins, and one
+    above ``max_skills`` is refused by name."""
+    from gridworld import gridworld
+
+    from npbrs.inference import make_emission
+    from npbrs.inference.driver.fit import default_moves
+    from npbrs.inference.sampler.kernel import BPHMMKernel, initial_skills
+    from npbrs.models.emissions import HMMData
+
+    dom = gridworld(size=5)  # 25 states
+    onehot = TabularMDP.from_dense(dom.mdp.dense_transitions(), features=np.eye(25))
+    assert SamplerConfig().init_skills is None and "init_skills" not in ModelConfig().to_toml()
+    for mdp, emission, K, skills in ((onehot, "reward", 6, 6), (onehot, "reward", 5, 5), (dom.mdp, "reward", 6, 3),
+                                     (dom.mdp, "reward", 5, 3), (onehot, "policy", 6, 3)):
+        em = make_emission(emission, mdp)
+        cfg = default_moves(ModelConfig(emission=emission, max_skills=K), em)
+        assert cfg.sampler.init_skills == skills, (emission, mdp.num_features, K)
+        assert initial_skills(em, K) == skills and initial_skills(em, K, 2) == 2
+        given = ModelConfig(emission=emission, max_skills=K, sampler=SamplerConfig(init_skills=2))
+        assert default_moves(given, em).sampler.init_skills == 2
+        assert ModelConfig.from_toml_string(cfg.to_toml()) == cfg  # the resolved value round-trips
+    states = np.zeros((2, 4), np.int64)
+    data = HMMData(states=states, actions=states, mask=np.ones((2, 4), bool))
+    assert BPHMMKernel(make_emission("reward", onehot), data, max_skills=6).init_skills == 6
+    assert BPHMMKernel(make_emission("reward", dom.mdp), data, max_skills=6).init_skills == 3
+    assert BPHMMKernel(make_emission("reward", onehot), data, max_skills=6, init_skills=2).init_skills == 2
+
+
 @pytest.mark.parametrize("text, message", [
     ('[prior]\nkappa = "abc"', "prior.kappa: expected a number, got 'abc'"),
     ("[sampler]\nchainz = 3", "sampler.chainz: unknown key"),
@@ -183,10 +214,10 @@ def test_a_registered_toy_emission_fits_through_the_config_by_name(tmp_path):
     TOY.to_toml(path)
     result = fit(mdp, demos, path, progress_bar=False)
     assert result.emission == {"name": "toy_policy", "concentration": 0.3, "note": "mine"}
-    # the run records the configuration it ran, with fit's default greedy merges filled in
-    # (and the switching model that "auto", the default, chose)
+    # the run records the configuration it ran, with fit's default greedy merges and initial
+    # skills (half of the 3 slots) filled in (and the switching model that "auto", the default, chose)
     ran = TOY.replace(sampler=dataclasses.replace(TOY.sampler, moves={"greedy_merge": 1, "greedy_split": 1,
-                                                                   "greedy_from": 0.75}),
+                                                                   "greedy_from": 0.75}, init_skills=2),
                       prior=dataclasses.replace(TOY.prior, switching="sticky"))
     assert result.model_config == ran
     assert result.samples["policy"].shape == (1, 4, 3, 4, 3)

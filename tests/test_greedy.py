@@ -334,8 +334,9 @@ def test_fit_runs_greedy_merges_by_default_where_the_emission_supports_them():
 
     # (a split's allocation fits by fit_evidence too: splits need no fit_point)
     assert moves(ModelConfig(), NoPoint(9, 5)) == {"greedy_merge": 1, "greedy_split": 1, "greedy_from": 0.75}
-    # (an emission without fit_evidence: no greedy moves; the windows are the only default left open)
-    cfg = ModelConfig.from_dict({"sampler": {"init_window": 25}})
+    # (an emission without fit_evidence: no greedy moves; the windows and the starting skills are
+    # the only defaults left open)
+    cfg = ModelConfig.from_dict({"sampler": {"init_window": 25, "init_skills": 4}})
     assert fit_module.default_moves(cfg, AutoregressiveEmission.__new__(AutoregressiveEmission)) is cfg
 
 

@@ -165,9 +165,11 @@ def test_a_saved_run_holds_the_draws_segmentation_skills_and_description(workdir
     assert idata.posterior["log_joint"].shape == (2, 8)
     assert idata.posterior["policy"].dims == ("chain", "draw", "skill", "policy_dim_0", "policy_dim_1")
     attrs = idata.constant_data.attrs
-    given = ModelConfig.from_toml(workdir / "model.toml")  # with fit's default greedy merges filled in
+    given = ModelConfig.from_toml(workdir / "model.toml")  # with fit's default greedy merges filled in,
+    # and the starting skills (the policy emission's: half of the slots)
     ran = given.replace(sampler=dataclasses.replace(given.sampler, moves={**given.sampler.moves, "greedy_merge": 1,
-                                                                            "greedy_split": 1, "greedy_from": 0.75}),
+                                                                            "greedy_split": 1, "greedy_from": 0.75},
+                                                    init_skills=(given.max_skills + 1) // 2),
                         prior=dataclasses.replace(given.prior, switching="sticky"))  # (the model "auto" chose)
     assert whole_run.switching["chosen"] == "sticky"
     assert ModelConfig.from_dict(json.loads(attrs["config"])) == ran

@@ -35,7 +35,8 @@ A TOML variant (every key optional; these are the defaults)::
     chain_method = "auto"         # threads on a CPU (as many as safe), else vectorized; or "vectorized",
                                   # "sequential", "threads", "parallel" (chains over the local devices)
     # init_window = 25           # default: the emission's (rewards of one weight per state: 5), else 25
-    # init_skills = 4             # default: (max_skills + 1) // 2
+    # init_skills = 4             # default: the emission's (rewards of one weight per state: every slot),
+                                  # else (max_skills + 1) // 2
 
     [sampler.moves]            # the kernel's trans-dimensional moves (BPHMMKernel's ``moves``), e.g.
     # birth_death = 2          # birth/death trials per sweep
@@ -323,9 +324,10 @@ class SamplerConfig:
     draws as "sequential") or "parallel"
     (the vectorized sweep with the chains spread over the local devices, ``jax.sharding``; see
     ``fit``'s ``mesh``);
-    init_skills, init_window: the initial segmentation (skills used, default (max_skills + 1)
-    // 2; window length, default the emission's ``init_window`` where it has one, else 25: ``fit``
-    records the value it used);
+    init_skills, init_window: the initial segmentation (skills used, default the emission's
+    ``initial_skills(max_skills)`` where it gives one (rewards of one weight per state: every
+    slot), else (max_skills + 1) // 2; window length, default the emission's ``init_window`` where
+    it has one, else 25: ``fit`` records the values it used);
     moves: options of the kernel's trans-dimensional moves, passed to ``BPHMMKernel(moves=...)``
     and checked against :mod:`npbrs.inference.sampler.options`, the table the kernel reads
     (defaults: ``MOVE_DEFAULTS`` there, every move off).

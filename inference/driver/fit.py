@@ -40,7 +40,7 @@ from npbrs.models.emissions import Emission, HMMData, get_emission_class
 from npbrs.domains.compiling import jit
 from npbrs.domains.precision import float64_all
 
-from ..sampler.kernel import BPHMMKernel, initial_window
+from ..sampler.kernel import BPHMMKernel, initial_skills, initial_window
 from ..sampler.options import MOVE_DEFAULTS
 from .config import EmissionConfig, ModelConfig, PriorConfig
 from .threads import cores, on_threads, threads_for
@@ -530,11 +530,15 @@ def default_moves(cfg: ModelConfig, emission: Emission) -> ModelConfig:
     ``MOVE_DEFAULTS["greedy_from"]`` x warmup on (unless ``greedy_from`` is set; see
     ``npbrs.inference.sampler.greedy``), the emission's ``redraw_unused`` (sweeps between
     prior redraws of unused skills' parameters) where it is above the kernel's 1, and the
-    initial segmentation's window length where the configuration leaves it open (the kernel's
-    :func:`~npbrs.inference.sampler.kernel.initial_window`), and with state-dependent ends a sticky
+    initial segmentation's window length and skills where the configuration leaves them open (the
+    kernel's :func:`~npbrs.inference.sampler.kernel.initial_window` and
+    :func:`~npbrs.inference.sampler.kernel.initial_skills`), and with state-dependent ends a sticky
     first ``DEFAULT_STICKY_PHASE`` of warmup. The run's configuration records them."""
     if cfg.sampler.init_window is None:
         cfg = cfg.replace(sampler=dataclasses.replace(cfg.sampler, init_window=initial_window(emission)))
+    if cfg.sampler.init_skills is None:
+        cfg = cfg.replace(sampler=dataclasses.replace(cfg.sampler,
+                                                      init_skills=initial_skills(emission, cfg.max_skills)))
     moves = dict(cfg.sampler.moves)
     if int(getattr(emission, "redraw_unused", 1)) > 1:
         moves.setdefault("redraw_unused", int(emission.redraw_unused))

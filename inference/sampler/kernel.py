@@ -62,7 +62,19 @@ def initial_window(emission: Emission, init_window: Optional[int] = None) -> int
     return int(getattr(emission, "init_window", None) or DEFAULT_INIT_WINDOW)
 
 
-__all__ = ["BPHMMState", "BPHMMKernel", "skill_weights", "initial_window", "DEFAULT_INIT_WINDOW"]
+def initial_skills(emission: Emission, max_skills: int, init_skills: Optional[int] = None) -> int:
+    """The skills of the initial segmentation: ``init_skills`` when given, else the emission's
+    ``initial_skills(max_skills)`` where it has one and gives a number (rewards of one weight
+    per state: every slot), else half the slots, (max_skills + 1) // 2. The kernel and ``fit``
+    (which records it) both use this."""
+    if init_skills is not None:
+        return int(init_skills)
+    own = getattr(emission, "initial_skills", None)
+    chosen = own(int(max_skills)) if callable(own) else None
+    return int(chosen) if chosen is not None else max(1, (int(max_skills) + 1) // 2)
+
+
+__all__ = ["BPHMMState", "BPHMMKernel", "skill_weights", "initial_window", "initial_skills", "DEFAULT_INIT_WINDOW"]
 
 
 class BPHMMState(NamedTuple):
@@ -136,7 +148,7 @@ class BPHMMKernel(MCMCKernel, Pytree):
         hyperpriors: optional {"alpha" | "kappa" | "gamma": (shape, rate)}: sample those.
         init_skills: skills used by the initial state (data-driven: trajectories cut into
             windows of ``init_window`` steps assigned to skills at random, each skill's
-            parameters proposed from its windows).
+            parameters proposed from its windows; None: :func:`initial_skills`'s).
         init_window: window length of the initial segmentation (None: :func:`initial_window`'s).
         sample_features: Gibbs on the features (off only for tests of the other steps).
         moves: trans-dimensional moves, {"birth_death": trials per sweep (0: off),
@@ -186,7 +198,7 @@ class BPHMMKernel(MCMCKernel, Pytree):
         self.max_skills = int(max_skills)
         self.hyper0 = Hyper(jnp.float64(alpha), jnp.float64(kappa), jnp.float64(gamma))
         self.hyperpriors = dict(hyperpriors or {})
-        self.init_skills = int(init_skills if init_skills is not None else max(1, (self.max_skills + 1) // 2))
+        self.init_skills = initial_skills(emission, self.max_skills, init_skills)
         self.init_window = initial_window(emission, init_window)
         self.sample_features = bool(sample_features)
         self.moves = check_moves(moves)
