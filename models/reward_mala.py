@@ -119,8 +119,7 @@ def _check_options(prior_scale, temperature, epsilon, prior_df=None):
         raise ValueError(f"temperature must be a positive number, got {temperature!r}")
     if not (np.isfinite(epsilon) and 0 <= epsilon < 1):
         raise ValueError(f"epsilon must lie in [0, 1), got {epsilon!r}")
-    check_prior_df(prior_df)
-    return float(temperature), float(epsilon)
+    return float(temperature), float(epsilon), check_prior_df(prior_df)
 
 
 def _check_counts(solver, counts, K):
@@ -144,7 +143,7 @@ def init(solver, theta, counts, prior_scale=PRIOR_SCALE, v0=None, *, temperature
             get log_density 0 and gradient 0, and keep v0.
     """
     solver = as_solver(solver)
-    temperature, epsilon = _check_options(prior_scale, temperature, epsilon, prior_df)
+    temperature, epsilon, prior_df = _check_options(prior_scale, temperature, epsilon, prior_df)
     theta = jnp.asarray(theta, jnp.float64)
     counts = jnp.asarray(counts, jnp.float64)
     if theta.ndim != 2 or theta.shape[1] != solver.num_features:
@@ -186,8 +185,7 @@ def build_kernel(solver, prior_scale=PRIOR_SCALE, *, temperature: float = 1.0, e
         solve in a loop (inactive skills keep the state's; the info's rate is 0).
     """
     solver = as_solver(solver)
-    temperature, epsilon = _check_options(prior_scale, temperature, epsilon, prior_df)
-    prior_df = check_prior_df(prior_df)
+    temperature, epsilon, prior_df = _check_options(prior_scale, temperature, epsilon, prior_df)
 
     def kernel(rng_key, state: RewardMALAState, counts, step_size, inverse_mass=None, active=None, evaluate=False):
         K, D = state.theta.shape
