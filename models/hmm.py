@@ -85,8 +85,10 @@ def _gated_trans(log_trans, log_end, log_stay):
     """The step's (K, K) log transition matrix log[(1 - g) I + g pi] from log pi and the
     gate's log g, log (1 - g) (K,)."""
     K = log_trans.shape[-1]
-    stay = jnp.where(jnp.eye(K, dtype=bool), log_stay[:, None], -jnp.inf)
-    return jnp.logaddexp(log_end[:, None] + log_trans, stay)
+    ended = log_end[:, None] + log_trans
+    # (the diagonal's two terms summed alone: logaddexp with -inf elsewhere gives ``ended``, to the bit)
+    diagonal = jnp.logaddexp(jnp.diagonal(ended), log_stay)
+    return jnp.where(jnp.eye(K, dtype=bool), diagonal[:, None], ended)
 
 
 def _prepare_lik(log_lik, active):
@@ -227,8 +229,12 @@ def backward_sample(key, log_trans, log_alpha, mask=None, active=None, gate=None
         zn = jnp.maximum(z_next, 0)
         into = log_trans[:, zn]
         if gate is not None:  # the column z_next of the next step's gated matrix
+            # log[g_i pi_i,zn + (1 - g_i) [i == zn]]: a sum of two terms only at i == zn (one
+            # logaddexp a step, not K: the rest is log g_i + log pi_i,zn, as logaddexp with
+            # -inf gives, to the bit)
             log_end, log_stay = gate_t
-            into = jnp.logaddexp(log_end + into, jnp.where(jnp.arange(K) == zn, log_stay, -jnp.inf))
+            into = log_end + into
+            into = into.at[zn].set(jnp.logaddexp(into[zn], log_stay[zn]))
         to_next = jnp.where(z_next >= 0, into, 0.0)
         z = jnp.argmax(noise + (filt + to_next)).astype(jnp.int32)
         z = jnp.where(real, z, jnp.int32(-1))

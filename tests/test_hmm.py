@@ -335,9 +335,12 @@ def gated_path_table(log_init, log_trans, log_lik, gate, active=None):
 GATED = [(seed, K, T) for seed, (K, T) in enumerate([(2, 1), (2, 5), (3, 4), (3, 5)], start=40)]
 
 
+@pytest.mark.parametrize("zero_diagonal", [True, False], ids=["switches", "with_redraws"])
 @pytest.mark.parametrize("seed, K, T", GATED)
-def test_gated_filter_smoother_viterbi_and_path_probability_equal_enumeration(seed, K, T):
-    log_init, log_trans, log_lik, gate = gated_hmm(seed, K, T)
+def test_gated_filter_smoother_viterbi_and_path_probability_equal_enumeration(seed, K, T, zero_diagonal):
+    # (with weight on the switch matrix's diagonal, a step's stay and "ends, then draws itself
+    # again" add up: the case where the gated matrix's diagonal has two terms)
+    log_init, log_trans, log_lik, gate = gated_hmm(seed, K, T, zero_diagonal=zero_diagonal)
     paths, logp = gated_path_table(log_init, log_trans, log_lik, gate)
     total = logsumexp(logp)
     log_marginal, log_alpha = jax.jit(forward_filter)(log_init, log_trans, log_lik, gate=gate)
