@@ -56,7 +56,8 @@ def test_under_auto_the_state_fit_starts_from_the_grown_sticky_fit_and_the_recor
 
     mdp, demos = problem
     monkeypatch.setattr(fitting, "SWITCHING_MARGIN", -1e9)
-    sticky = fit(mdp, demos, max_skills=2, grow=True, switching="sticky", **KW)
+    # (the sticky fits stop at the decision, after a quarter of their sampling sweeps)
+    sticky = fit(mdp, demos, max_skills=2, grow=True, switching="sticky", **dict(KW, num_samples=KW["num_samples"] // 4))
     result = fit(mdp, demos, max_skills=2, grow=True, **KW)
     assert result.switching["chosen"] == "state" and result.config["prior"]["switching"] == "state"
     assert result.config["max_skills"] == 4

@@ -25,6 +25,7 @@ Since session 42 the default switching is "auto": the labyrinth's and the grid's
 are refitted with state-dependent ends (their sticky fits' skill sequences favour them), rooms'
 stay sticky; the tests check the choice, and the last one how it was made."""
 
+import dataclasses
 import os
 
 import numpy as np
@@ -84,15 +85,17 @@ def test_a_default_fit_recovers_the_planted_skills_of_each_world_kind(name):
 
 def test_auto_switching_refits_from_the_sticky_fit_and_records_why(tmp_path):
     """The labyrinth's default fit ("auto") is a fit with state-dependent ends started from the
-    segmentation of the sticky fit that fit(switching="sticky") gives with the same seed, its
-    record the evidence of that fit's skill sequences (its log Bayes factor past the margin);
-    the record is in the summary and survives saving. (Checked to fail: the margin's comparison
-    turned round; the state fit started from its own random windows.)"""
+    segmentation of the sticky fit that fit(switching="sticky") gives with the same seed and a
+    quarter of the sampling sweeps (the sticky fit stops at the decision), its record the
+    evidence of that fit's skill sequences (its log Bayes factor past the margin); the record
+    is in the summary and survives saving. (Checked to fail: the margin's comparison turned
+    round; the state fit started from its own random windows; the decision after all the
+    sampling sweeps.)"""
     from npbrs.inference import load
     from npbrs.inference.driver.fit import SWITCHING_MARGIN, switching_evidence
 
     world, result = default_fit("labyrinth")
-    sticky = fit(world.mdp, world.demos, switching="sticky", **SETTINGS)
+    sticky = fit(world.mdp, world.demos, switching="sticky", **dict(SETTINGS, num_samples=SETTINGS["num_samples"] // 4))
     assert sticky.switching is None and sticky.config["prior"]["switching"] == "sticky"
     evidence = switching_evidence(sticky, world.mdp, world.demos, sticky.model_config.prior)
     assert evidence["log_bayes_factor"] > SWITCHING_MARGIN
@@ -107,6 +110,17 @@ def test_auto_switching_refits_from_the_sticky_fit_and_records_why(tmp_path):
     assert "switching chosen: state" in result.summary()
     result.save(tmp_path / "run.nc")
     assert load(tmp_path / "run.nc").equals(result)
+
+
+def test_auto_switching_that_stays_sticky_draws_what_the_sticky_fit_draws():
+    """Rooms' default fit ("auto") decides after a quarter of its sampling sweeps, stays
+    sticky, and goes on: its draws are the sticky fit's, bit for bit. (Checked to fail: a
+    sweep drawn and dropped at the decision.)"""
+    world, result = default_fit("rooms")
+    assert result.switching["chosen"] == "sticky"
+    sticky = fit(world.mdp, world.demos, switching="sticky", **SETTINGS)
+    assert sticky.switching is None
+    assert result.equals(dataclasses.replace(sticky, switching=result.switching))
 
 
 def test_auto_switching_resumes_its_state_fit_from_its_own_checkpoint(tmp_path, monkeypatch):

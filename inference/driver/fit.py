@@ -896,14 +896,17 @@ def fit(mdp, demos: Demonstrations, config: Union[ModelConfig, dict, str, os.Pat
             depends on the state entered (options with a termination function, sampled; see
             :class:`~npbrs.inference.driver.config.PriorConfig`), as when a skill ends once its
             goal is reached, or "auto" (the default): the sticky fit, and when its skill
-            sequences favour state-dependent ends by a log Bayes factor above
-            :data:`SWITCHING_MARGIN` (:func:`switching_evidence`), a fit with them started from
-            its segmentation (a quarter of the warmup sweeps, :data:`STATE_WARMUP_DIVISOR`; no
-            sticky search phase; no greedy moves unless ``moves`` asks for them); the result is the chosen model's,
-            its ``switching`` recording the evidence and the choice. With checkpoints the second
-            fit's is at :func:`state_stage_path`, and ``resume`` continues the sticky fit from its
-            own (a finished one: nothing to redo; a missing one: it is repeated, the same seed
-            giving the same fit), then the state fit from its.
+            sequences (its best draw among the first quarter of its sampling sweeps,
+            :data:`DECISION_DIVISOR`) favour state-dependent ends by a log Bayes factor above
+            :data:`SWITCHING_MARGIN` (:func:`switching_evidence`), the sticky fit stops there
+            and a fit with them starts from that segmentation (a quarter of the warmup sweeps,
+            :data:`STATE_WARMUP_DIVISOR`; no sticky search phase; no greedy moves unless
+            ``moves`` asks for them); a sticky fit kept draws the rest of its sweeps, the same
+            draws as without the pause. The result is the chosen model's, its ``switching``
+            recording the evidence and the choice. With checkpoints the second fit's is at
+            :func:`state_stage_path`, and ``resume`` continues the sticky fit from its own (a
+            finished or stopped one: nothing to redo; a missing one: it is repeated, the same
+            seed giving the same fit), then the state fit from its.
     Returns:
         a :class:`~npbrs.inference.driver.results.FitResult`.
     Raises:
@@ -941,6 +944,11 @@ SWITCHING_MARGIN = 10.0
 STATE_WARMUP_DIVISOR = 4
 #: kappa's Gamma (shape, rate) in the sticky model's evidence when kappa is fixed in the fit
 EVIDENCE_KAPPA_PRIOR = (1.0, 0.02)
+#: ``switching="auto"`` decides after this fraction (1 / it) of the sticky fit's sampling sweeps,
+#: on their best draw: a fit that then switches to state-dependent ends does not draw the rest of
+#: the sticky samples it would discard (a quarter of the grid's fit time; ``benchmarks/NOTES.md``,
+#: session 46); one that stays sticky draws them, the same draws as without the pause
+DECISION_DIVISOR = 4
 
 
 def state_stage_path(checkpoint_path) -> str:
@@ -976,19 +984,30 @@ def switching_evidence(result: FitResult, mdp, demos: Demonstrations, prior: Pri
 
 
 def _fit_auto(args: dict, grow: bool, prior: PriorConfig) -> FitResult:
-    """``switching="auto"``: the sticky fit, then, when its skill sequences favour
+    """``switching="auto"``: the sticky fit, then, when its skill sequences (decided after its
+    first sampling sweeps, :data:`DECISION_DIVISOR`; the sticky fit stops there) favour
     state-dependent ends by more than :data:`SWITCHING_MARGIN` nats, a fit with them started
     from its segmentation (with checkpoints: at :func:`state_stage_path`; on ``resume`` the
-    sticky fit continues from its own first, a finished one with nothing to redo)."""
+    sticky fit continues from its own first, a finished or stopped one with nothing to redo)."""
     path = args["checkpoint_path"]
     if path is not None and not args["resume"] and os.path.exists(state_stage_path(path)):
         raise ValueError(f"{state_stage_path(path)} holds the checkpoint of an earlier, interrupted run; continue "
                          "it with resume=True (npbrs fit --resume), or move it away, or write the new run elsewhere")
     record = _growth_record()  # (every fit in turn, the sticky fits' and then the state fits')
-    result = _fit_grown(dict(args, switching="sticky"), grow, record)
-    choice = dict(switching_evidence(result, args["mdp"], args["demos"], prior), margin=SWITCHING_MARGIN,
-                  chosen="sticky")
-    if choice["log_bayes_factor"] > SWITCHING_MARGIN:
+
+    def decide(partial: FitResult):
+        """(whether to leave the sticky fit, the choice's record) from its first sampling sweeps."""
+        choice = dict(switching_evidence(partial, args["mdp"], args["demos"], prior), margin=SWITCHING_MARGIN,
+                      chosen="sticky")
+        if choice["log_bayes_factor"] > SWITCHING_MARGIN:
+            choice["chosen"] = "state"
+        return choice["chosen"] == "state", choice
+
+    result = _fit_grown(dict(args, switching="sticky", decide=decide), grow, record)
+    if result.switching is None:  # (a run of one sampling sweep, or resumed from a checkpoint without the record)
+        result = dataclasses.replace(result, switching=decide(result)[1])
+    choice = dict(result.switching)
+    if choice["chosen"] == "state":  # (``result``: the sticky fit, stopped at the decision)
         given = resolve_config(args["config"], moves=args["moves"], num_warmup=args["num_warmup"]).sampler
         moves = dict(given.moves)
         # it refines the sticky fit's skills: no sticky search phase, and no greedy moves unless
@@ -1003,7 +1022,6 @@ def _fit_auto(args: dict, grow: bool, prior: PriorConfig) -> FitResult:
                      # the fit's own peak, benchmarks/NOTES.md session 43)
                      compile_beside=False)
         result = _fit_grown(stage, grow, record)
-        choice["chosen"] = "state"
     return dataclasses.replace(result, switching=choice)
 
 
@@ -1058,7 +1076,12 @@ def saturation(result: FitResult):
 def _fit(mdp, demos, config, *, emission, emission_options, num_chains, num_samples, num_warmup, max_skills, seed,
          chain_method, alpha, kappa, gamma, hyperpriors, init_skills, init_window, moves, bucket, max_samples,
          target_rhat, time_budget, restart_margin, init_segmentation, progress_bar, checkpoint_path, checkpoint_every,
-         resume, mesh, devices, switching, compile_beside=True) -> FitResult:
+         resume, mesh, devices, switching, compile_beside=True, decide=None) -> FitResult:
+    """One fit (``fit``'s arguments). ``decide``: partial result -> (stop, record), called once
+    the first ``max(samples // DECISION_DIVISOR, 1)`` sampling sweeps are drawn (when fewer than
+    ``samples``): ``stop`` ends the run there (its result holds those draws), else it goes on as
+    without the call; the result's ``switching`` is ``record``, which checkpoints keep (a
+    resumed run past the decision does not decide again; one stopped there stops again)."""
     use_compilation_cache()
     cfg = resolve_config(config, emission=emission, emission_options=emission_options, num_chains=num_chains,
                          num_samples=num_samples, num_warmup=num_warmup, max_skills=max_skills, seed=seed,
@@ -1130,6 +1153,11 @@ def _fit(mdp, demos, config, *, emission, emission_options, num_chains, num_samp
     # warmup's end: chains far behind the best continue from its state (SamplerConfig.restart_margin)
     restarting = C > 1 and W > 0 and sampler.restart_margin > 0
     num_real = demos.num_trajectories
+    # a decision after the first sampling sweeps (``decide``; switching="auto"): the sweep count
+    # at which it is made, the record it returned, and whether it stopped the run there
+    first = max(S // DECISION_DIVISOR, 1)
+    decide_at = W + first if decide is not None and first < S else None
+    decision, stopped = None, False
     if resume and os.path.exists(checkpoint_path):
         leaves, draws, saved = _read_checkpoint(checkpoint_path, meta)
         # (a checkpoint written before the per-step counts were kept resumes without them)
@@ -1146,6 +1174,8 @@ def _fit(mdp, demos, config, *, emission, emission_options, num_chains, num_samp
         state = restore_state(leaves, like, checkpoint_path)
         done, wall = int(saved["sweeps_done"]), float(saved["wall_time"])
         restart = saved.get("restart")
+        # (past the decision its record holds; a run stopped by it decides again, as before)
+        decision = None if saved.get("stopped") else saved.get("decision")
 
     start = time.perf_counter()
     bar = _Progress(total * (C if method == "sequential" else 1), done * (C if method == "sequential" else 1),
@@ -1179,12 +1209,25 @@ def _fit(mdp, demos, config, *, emission, emission_options, num_chains, num_samp
 
     def checkpoint(done_now):
         flush()
-        write = dict(meta, sweeps_done=done_now, wall_time=wall + time.perf_counter() - start, restart=restart)
+        write = dict(meta, sweeps_done=done_now, wall_time=wall + time.perf_counter() - start, restart=restart,
+                     decision=decision, stopped=stopped)
         from .runs import write_checkpoint
 
         host_state = chains.state()  # (on several hosts every process takes part in the gather)
         if jax.process_index() == 0:  # one writer of the file
             write_checkpoint(checkpoint_path, state=host_state, draws=draws, meta=write)
+
+    def finish(copy=False):
+        """The run's result from the draws so far (``copy``: of copies, the run going on)."""
+        kept = {k: np.array(v) if copy else v for k, v in draws.items()}
+        warmup = {k[len("warmup_"):]: kept.pop(k) for k in list(kept) if k.startswith("warmup_")}
+        result = FitResult.from_states(
+            chains.state(), kept, demos, config=cfg.to_dict(), emission=em.describe(),
+            feature_names=tuple(getattr(mdp, "feature_names", ())), wall_time=wall + time.perf_counter() - start,
+            sample_names=compiled.hyper_names, init_segmentation=z0,
+            mdp_fingerprint=mdp.fingerprint() if hasattr(mdp, "fingerprint") else "", warmup_stats=warmup or None,
+            run_length=run_length, restart=restart)
+        return result if decision is None else dataclasses.replace(result, switching=dict(decision))
 
     if done > total:  # resumed after the planned sweeps: the extension's next point
         total = min(cap, total + -(-(done - total) // block) * block)
@@ -1194,6 +1237,13 @@ def _fit(mdp, demos, config, *, emission, emission_options, num_chains, num_samp
         with _Interrupt() as interrupt:
             while True:
                 while done < total:
+                    if done == decide_at and decision is None:
+                        flush()
+                        stopped, decision = decide(finish(copy=True))
+                        if stopped:
+                            if checkpoint_path is not None:
+                                checkpoint(done)
+                            break
                     bar.set_phase("warmup" if done < W else "sample")
                     records = chains.advance()
                     if progress_bar:  # dispatch is asynchronous: time the sweep, not its dispatch
@@ -1220,7 +1270,7 @@ def _fit(mdp, demos, config, *, emission, emission_options, num_chains, num_samp
                         raise KeyboardInterrupt(f"stopped after {done} of {total} sweeps"
                                                 + (f"; resume from {checkpoint_path}" if checkpoint_path else ""))
                 flush()
-                if not extend:
+                if not extend or stopped:
                     break
                 elapsed = wall + time.perf_counter() - start
                 run_length = _run_length(draws, sampler, done - W, cap - W, elapsed)
@@ -1233,13 +1283,7 @@ def _fit(mdp, demos, config, *, emission, emission_options, num_chains, num_samp
                 bar.set_postfix(rhat_text)
     finally:
         bar.close(f"done: {done} sweeps in {time.perf_counter() - start:.1f} s")
-    wall += time.perf_counter() - start
-    warmup = {k[len("warmup_"):]: draws.pop(k) for k in list(draws) if k.startswith("warmup_")}
-    return FitResult.from_states(chains.state(), draws, demos, config=cfg.to_dict(), emission=em.describe(),
-                                 feature_names=tuple(getattr(mdp, "feature_names", ())), wall_time=wall,
-                                 sample_names=compiled.hyper_names, init_segmentation=z0,
-                                 mdp_fingerprint=mdp.fingerprint() if hasattr(mdp, "fingerprint") else "",
-                                 warmup_stats=warmup or None, run_length=run_length, restart=restart)
+    return finish()
 
 
 def _count_skills(counts: np.ndarray, z: np.ndarray) -> None:
