@@ -148,9 +148,39 @@ def test_auto_switching_resumes_its_state_fit_from_its_own_checkpoint(tmp_path, 
     monkeypatch.setattr(runs, "write_checkpoint", failing)
     with pytest.raises(OSError, match="disk full"):
         fit(world.mdp, world.demos, checkpoint_path=path, checkpoint_every=10, **SETTINGS)
-    assert path.exists() and os.path.exists(stage)  # (the sticky fit's, finished, and the state fit's)
+    assert path.exists() and os.path.exists(stage)  # (the sticky fit's, stopped at the decision, and the state fit's)
     with pytest.raises(ValueError, match="interrupted run"):
         fit(world.mdp, world.demos, checkpoint_path=path, **SETTINGS)
     monkeypatch.setattr(runs, "write_checkpoint", write)
     resumed = fit(world.mdp, world.demos, checkpoint_path=path, checkpoint_every=10, resume=True, **SETTINGS)
+    assert resumed.equals(whole) and resumed.switching == whole.switching
+
+
+def test_a_sticky_auto_fit_resumed_after_its_decision_keeps_it(tmp_path, monkeypatch):
+    """Rooms' auto fit stays sticky after a quarter of its sampling sweeps; stopped later (a
+    failed checkpoint write) and resumed, it does not decide again on more draws (no evidence
+    is computed): it ends equal to the uninterrupted run, its switching record included.
+    (Checked to fail: the decision not read back from the checkpoint.)"""
+    import npbrs.inference.driver.fit as fitting
+    import npbrs.inference.driver.runs as runs
+
+    world, whole = default_fit("rooms")
+    path = tmp_path / "run.checkpoint.npz"
+    write = runs.write_checkpoint
+    written = []
+
+    def failing(p, **kwargs):
+        written.append(os.fspath(p))
+        if len(written) == 5:  # (sweep 50 of 60: past the decision, at 30 + 7)
+            raise OSError("disk full")
+        write(p, **kwargs)
+
+    monkeypatch.setattr(runs, "write_checkpoint", failing)
+    with pytest.raises(OSError, match="disk full"):
+        fit(world.mdp, world.demos, checkpoint_path=path, checkpoint_every=10, **SETTINGS)
+    monkeypatch.setattr(runs, "write_checkpoint", write)
+    evidence, scored = fitting.switching_evidence, []
+    monkeypatch.setattr(fitting, "switching_evidence", lambda *a: scored.append(1) or evidence(*a))
+    resumed = fit(world.mdp, world.demos, checkpoint_path=path, checkpoint_every=10, resume=True, **SETTINGS)
+    assert not scored and resumed.switching["chosen"] == "sticky"
     assert resumed.equals(whole) and resumed.switching == whole.switching
