@@ -1217,9 +1217,11 @@ def _fit(mdp, demos, config, *, emission, emission_options, num_chains, num_samp
         if jax.process_index() == 0:  # one writer of the file
             write_checkpoint(checkpoint_path, state=host_state, draws=draws, meta=write)
 
-    def finish(copy=False):
-        """The run's result from the draws so far (``copy``: of copies, the run going on)."""
-        kept = {k: np.array(v) if copy else v for k, v in draws.items()}
+    def finish():
+        """The run's result from the draws so far (at the decision the run may go on: the result
+        reads the draws, the run only appends to them and adds to the step counts after the
+        decision has used and dropped it)."""
+        kept = dict(draws)
         warmup = {k[len("warmup_"):]: kept.pop(k) for k in list(kept) if k.startswith("warmup_")}
         result = FitResult.from_states(
             chains.state(), kept, demos, config=cfg.to_dict(), emission=em.describe(),
@@ -1239,7 +1241,7 @@ def _fit(mdp, demos, config, *, emission, emission_options, num_chains, num_samp
                 while done < total:
                     if done == decide_at and decision is None:
                         flush()
-                        stopped, decision = decide(finish(copy=True))
+                        stopped, decision = decide(finish())
                         if stopped:
                             if checkpoint_path is not None:
                                 checkpoint(done)
