@@ -29,6 +29,13 @@ An emission model supplies everything that depends on what a skill *is*:
   redraws of unused skills' parameters that ``fit`` asks the sampler for
   (``moves["redraw_unused"]``: in between they are kept, also an exact move); more than 1 where a
   new draw's likelihoods are expensive (a soft Bellman solve from a cold start).
+- optionally ``init_window`` (an integer or None) and ``initial_skills(max_skills)`` (an integer
+  or None): the initial segmentation's window length and number of skills where the user gives
+  none (None: the kernel's defaults), and ``fixed_max_skills`` (an integer or None): a number of
+  skill slots the emission needs (unsegmented IRL: 1), which ``fit`` then uses.
+
+Every optional hook has its "absent" value on :class:`Emission`, so the sampler and ``fit`` read
+them as attributes.
 
 A new emission model implements this protocol and registers itself with
 :func:`register_emission`; the sampler needs no change.
@@ -43,7 +50,7 @@ program. An attribute holding a closure or jitted function over its arrays must 
 
 from __future__ import annotations
 
-from typing import Any, Callable, Dict, NamedTuple
+from typing import Any, Callable, Dict, NamedTuple, Optional
 
 import jax
 import jax.numpy as jnp
@@ -104,6 +111,19 @@ class Emission(Pytree):
     name: str = "emission"
     #: the sweeps between prior redraws of unused skills' parameters that ``fit`` asks for
     redraw_unused: int = 1
+    #: the initial segmentation's window length (None: the kernel's ``DEFAULT_INIT_WINDOW``)
+    init_window: Optional[int] = None
+    #: the skill slots the emission needs, if a fixed number (None: ``fit``'s ``max_skills``)
+    fixed_max_skills: Optional[int] = None
+    #: warmup-only tuning of the move, ``tune(params, cache, data, weights) -> cache``, run every
+    #: ``tune_every`` warmup sweeps (None: none)
+    tune: Optional[Callable] = None
+    tune_every: int = 1
+
+    def initial_skills(self, max_skills: int) -> Optional[int]:
+        """The initial segmentation's number of skills for ``max_skills`` slots (None: the
+        kernel's half of the slots)."""
+        return None
 
     def sample_params(self, K: int) -> Dict[str, jax.Array]:
         raise NotImplementedError

@@ -540,7 +540,7 @@ def default_moves(cfg: ModelConfig, emission: Emission) -> ModelConfig:
         cfg = cfg.replace(sampler=dataclasses.replace(cfg.sampler,
                                                       init_skills=initial_skills(emission, cfg.max_skills)))
     moves = dict(cfg.sampler.moves)
-    if int(getattr(emission, "redraw_unused", 1)) > 1:
+    if int(emission.redraw_unused) > 1:
         moves.setdefault("redraw_unused", int(emission.redraw_unused))
     if cfg.max_skills >= 2 and emission.supports_greedy_merge():
         moves.setdefault("greedy_merge", DEFAULT_GREEDY_TRIALS["greedy_merge"])
@@ -1111,7 +1111,7 @@ def _fit(mdp, demos, config, *, emission, emission_options, num_chains, num_samp
         em = make_emission(cfg.emission.name, mdp, **cfg.emission.options)
         em_key = json.dumps([cfg.emission.to_dict(), type(em).__module__ + "." + type(em).__qualname__, _mdp_key(mdp)],
                             sort_keys=True)
-    fixed = getattr(em, "fixed_max_skills", None)
+    fixed = em.fixed_max_skills
     if fixed is not None and cfg.max_skills != fixed:
         # e.g. unsegmented IRL ("single"): one skill slot for every step
         cfg = cfg.replace(max_skills=int(fixed), sampler=dataclasses.replace(cfg.sampler, init_skills=None))

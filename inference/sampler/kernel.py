@@ -59,7 +59,7 @@ def initial_window(emission: Emission, init_window: Optional[int] = None) -> int
     ``DEFAULT_INIT_WINDOW``. The kernel and ``fit`` (which records it) both use this."""
     if init_window is not None:
         return int(init_window)
-    return int(getattr(emission, "init_window", None) or DEFAULT_INIT_WINDOW)
+    return int(emission.init_window or DEFAULT_INIT_WINDOW)
 
 
 def initial_skills(emission: Emission, max_skills: int, init_skills: Optional[int] = None) -> int:
@@ -69,8 +69,7 @@ def initial_skills(emission: Emission, max_skills: int, init_skills: Optional[in
     (which records it) both use this."""
     if init_skills is not None:
         return int(init_skills)
-    own = getattr(emission, "initial_skills", None)
-    chosen = own(int(max_skills)) if callable(own) else None
+    chosen = emission.initial_skills(int(max_skills))
     return int(chosen) if chosen is not None else max(1, (int(max_skills) + 1) // 2)
 
 
@@ -583,9 +582,9 @@ class BPHMMKernel(MCMCKernel, Pytree):
         # the emission's warmup-only work (e.g. the reward's Fisher preconditioner) run always
         cache = state.cache
         # (a preconditioner: any fixed one leaves the posterior invariant; the search's accuracy)
-        tune = getattr(search, "tune", None)
+        tune = search.tune
         if tune is not None:
-            every = int(getattr(self.emission, "tune_every", 1))
+            every = int(self.emission.tune_every)
             cache = jax.lax.cond((step < num_warmup) & (step % every == 0),
                                  lambda c: tune(params, c, self.data, weights), lambda c: c, cache)
         params, cache, info = self.emission.update(k_em, params, cache, self.data, weights, step < num_warmup)
