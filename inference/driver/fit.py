@@ -1218,9 +1218,9 @@ def _fit(mdp, demos, config, *, emission, emission_options, num_chains, num_samp
             write_checkpoint(checkpoint_path, state=host_state, draws=draws, meta=write)
 
     def finish():
-        """The run's result from the draws so far (at the decision the run may go on: the result
-        reads the draws, the run only appends to them and adds to the step counts after the
-        decision has used and dropped it)."""
+        """The run's result from the draws so far. Called at the decision too, where the run may
+        go on: the result shares the draws' arrays, which is safe because the decision drops it
+        before the run adds to them."""
         kept = dict(draws)
         warmup = {k[len("warmup_"):]: kept.pop(k) for k in list(kept) if k.startswith("warmup_")}
         result = FitResult.from_states(

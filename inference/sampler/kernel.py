@@ -55,7 +55,7 @@ DEFAULT_INIT_WINDOW = 25
 
 def initial_window(emission: Emission, init_window: Optional[int] = None) -> int:
     """The initial segmentation's window length: ``init_window`` when given, else the
-    emission's ``init_window`` where it has one (rewards of one weight per state: 5), else
+    emission's ``init_window`` when it is not None (rewards of one weight per state: 5), else
     ``DEFAULT_INIT_WINDOW``. The kernel and ``fit`` (which records it) both use this."""
     if init_window is not None:
         return int(init_window)
@@ -64,8 +64,8 @@ def initial_window(emission: Emission, init_window: Optional[int] = None) -> int
 
 def initial_skills(emission: Emission, max_skills: int, init_skills: Optional[int] = None) -> int:
     """The skills of the initial segmentation: ``init_skills`` when given, else the emission's
-    ``initial_skills(max_skills)`` where it has one and gives a number (rewards of one weight
-    per state: every slot), else half the slots, (max_skills + 1) // 2. The kernel and ``fit``
+    ``initial_skills(max_skills)`` when it gives a number (rewards of one weight per state:
+    every slot), else half the slots, (max_skills + 1) // 2. The kernel and ``fit``
     (which records it) both use this."""
     if init_skills is not None:
         return int(init_skills)
