@@ -184,7 +184,9 @@ def forward_filter(log_init, log_trans, log_lik, mask=None, active=None, gate=No
         p, total = carry
         lik_t, top_t, real, before, *gate_t = inputs
         joint = _predict(p, trans, unshift, active, tuple(gate_t)) * lik_t
-        c = jnp.sum(joint)
+        # (1 at a step not taken: before and at the first real step the gate's prediction is 0,
+        # floored at exp(-700), and dividing by that sum would overflow the gradient's zeros)
+        c = jnp.where(real, jnp.sum(joint), 1.0)
         p = jnp.where(real, joint / c, p)
         return (p, total + jnp.where(real, jnp.log(c) + top_t, 0.0)), jnp.where(before, p_init, p)
 
