@@ -659,6 +659,22 @@ class _Chains:
         return _to_host(self.states)
 
 
+def _user_stacklevel() -> int:
+    """``warnings.warn``'s stacklevel, called where the warning is raised, that names the first
+    frame outside npbrs: the user's own call of ``fit`` (however many of npbrs's functions and
+    wrappers lie between), not a line of npbrs's."""
+    import npbrs.domains
+    import npbrs.inference
+    import npbrs.models
+
+    roots = tuple(os.path.dirname(os.path.abspath(m.__file__)) + os.sep
+                  for m in (npbrs.domains, npbrs.models, npbrs.inference))
+    frame, level = sys._getframe(1), 1
+    while frame is not None and os.path.abspath(frame.f_code.co_filename).startswith(roots):
+        frame, level = frame.f_back, level + 1
+    return level
+
+
 def _chain_method(method: str, num_chains: int, mesh, devices):
     """(chain method, mesh or None, threads) of a run: "parallel" is the vectorized sweep with
     the chains over the local devices (``jax.sharding``; it was ``jax.pmap`` before), the
@@ -689,7 +705,8 @@ def _chain_method(method: str, num_chains: int, mesh, devices):
             used = math.gcd(num_chains, len(local))
             if used == 1 and num_chains > 1:
                 warnings.warn(f"chain_method='parallel': {num_chains} chains on {len(local)} device"
-                              f"{'s' if len(local) > 1 else ''}; running them vectorized on one", stacklevel=3)
+                              f"{'s' if len(local) > 1 else ''}; running them vectorized on one",
+                              stacklevel=_user_stacklevel())
             mesh = Mesh(np.array(local[:used], dtype=object).reshape(used, 1), (CHAINS, TRAJECTORIES))
     if num_chains == 1:  # unbatched (a batch of one traces every batching rule: 1.5-2.5 s more per fit)
         method = "sequential"
@@ -1048,7 +1065,7 @@ def _fit_grown(args: dict, grow: bool, record: Optional[dict] = None) -> FitResu
             warnings.warn(f"npbrs.fit: all {K} skill slots were in use in {share:.0%} of the sampling draws, "
                           "so the truncation may be hiding skills; "
                           + (f"refit with max_skills={2 * K} or with grow=True" if not grow else
-                             f"grow=True stops at {GROW_LIMIT} slots"), UserWarning, stacklevel=3)
+                             f"grow=True stops at {GROW_LIMIT} slots"), UserWarning, stacklevel=_user_stacklevel())
             break
         args.update(max_skills=2 * K, init_segmentation=result)
         result = _fit(**args)
