@@ -81,14 +81,18 @@ def _gate_logs(gate, T, K, dtype):
     return jnp.log(nxt), jnp.log1p(-nxt)
 
 
+def _gated_column(log_trans, log_end, log_stay, j):
+    """Column j (K,) of the step's gated log transition matrix, log[g_i pi_ij + (1 - g_i) [i == j]],
+    from log pi (K, K) and the gate's log g, log (1 - g) (K,). Only i == j sums two terms: the
+    rest is log g_i + log pi_ij, as a logaddexp with -inf gives, to the bit (one logaddexp, not K)."""
+    col = log_end + log_trans[:, j]
+    return col.at[j].set(jnp.logaddexp(col[j], log_stay[j]))
+
+
 def _gated_trans(log_trans, log_end, log_stay):
-    """The step's (K, K) log transition matrix log[(1 - g) I + g pi] from log pi and the
-    gate's log g, log (1 - g) (K,)."""
+    """The step's (K, K) gated log transition matrix log[(1 - g) I + g pi] (:func:`_gated_column`'s columns)."""
     K = log_trans.shape[-1]
-    ended = log_end[:, None] + log_trans
-    # (the diagonal's two terms summed alone: logaddexp with -inf elsewhere gives ``ended``, to the bit)
-    diagonal = jnp.logaddexp(jnp.diagonal(ended), log_stay)
-    return jnp.where(jnp.eye(K, dtype=bool), diagonal[:, None], ended)
+    return jax.vmap(lambda j: _gated_column(log_trans, log_end, log_stay, j), out_axes=1)(jnp.arange(K))
 
 
 def _prepare_lik(log_lik, active):
@@ -229,14 +233,8 @@ def backward_sample(key, log_trans, log_alpha, mask=None, active=None, gate=None
         noise, filt, real, *gate_t = inputs
         # z_next == -1 until the last real step has been drawn
         zn = jnp.maximum(z_next, 0)
-        into = log_trans[:, zn]
-        if gate is not None:  # the column z_next of the next step's gated matrix
-            # log[g_i pi_i,zn + (1 - g_i) [i == zn]]: a sum of two terms only at i == zn (one
-            # logaddexp a step, not K: the rest is log g_i + log pi_i,zn, as logaddexp with
-            # -inf gives, to the bit)
-            log_end, log_stay = gate_t
-            into = log_end + into
-            into = into.at[zn].set(jnp.logaddexp(into[zn], log_stay[zn]))
+        # the column z_next of the next step's (gated) transition matrix
+        into = log_trans[:, zn] if gate is None else _gated_column(log_trans, *gate_t, zn)
         to_next = jnp.where(z_next >= 0, into, 0.0)
         z = jnp.argmax(noise + (filt + to_next)).astype(jnp.int32)
         z = jnp.where(real, z, jnp.int32(-1))
@@ -328,10 +326,7 @@ def path_log_prob(log_init, log_trans, log_lik, z, mask=None, active=None, gate=
         zt, e, real, *gate_t = inputs
         first = prev < 0
         pv = jnp.maximum(prev, 0)
-        move = log_trans[pv, zt]
-        if gate is not None:
-            log_end, log_stay = gate_t
-            move = jnp.logaddexp(log_end[pv] + move, jnp.where(pv == zt, log_stay[pv], -jnp.inf))
+        move = log_trans[pv, zt] if gate is None else _gated_column(log_trans, *gate_t, zt)[pv]
         lp = jnp.where(first, log_init[zt], move) + e
         return jnp.where(real, zt, prev), jnp.where(real, lp, 0.0)
 
