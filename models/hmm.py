@@ -204,8 +204,9 @@ def forward_filter(log_init, log_trans, log_lik, mask=None, active=None, gate=No
 def backward_sample(key, log_trans, log_alpha, mask=None, active=None, gate=None) -> jax.Array:
     """Draw a skill sequence from p(z_{1:T} | x_{1:T}) given the filter's output.
 
-    Step t uses the key ``jax.random.fold_in(key, t)``, so a padded trajectory draws the same
-    sequence as the unpadded one from the same key.
+    Step t draws its skill by inverse transform from one uniform of the key
+    ``jax.random.fold_in(key, t)``, so a padded trajectory draws the same sequence as the
+    unpadded one from the same key.
 
     Args:
         key: a PRNG key.
@@ -222,26 +223,37 @@ def backward_sample(key, log_trans, log_alpha, mask=None, active=None, gate=None
     mask = jnp.ones(T, dtype=bool) if mask is None else jnp.asarray(mask, dtype=bool)
     _, log_trans = _prepare(None, jnp.asarray(log_trans), active)
 
-    # every step's Gumbel noise at once, outside the scan (the random bits are the bulk of a
-    # step's work): jax.random.categorical(k, logits) is argmax(gumbel(k, (K,)) + logits), so
-    # these are the same draws as categorical with key fold_in(key, t) at step t
-    gumbels = jax.vmap(lambda t: jax.random.gumbel(jax.random.fold_in(key, t), (K,), log_alpha.dtype))(jnp.arange(T))
+    # every step's uniform at once, outside the scan: one per step, by inverse transform (the
+    # Gumbel-max trick needs K random numbers a step, and generating them was two thirds of the
+    # pass: benchmarks/NOTES.md, session 49)
+    uniforms = jax.vmap(lambda t: jax.random.uniform(jax.random.fold_in(key, t), (), log_alpha.dtype))(jnp.arange(T))
 
     ends = _gate_logs(gate, T, K, log_alpha.dtype) if gate is not None else ()
 
     def step(z_next, inputs):
-        noise, filt, real, *gate_t = inputs
+        u, filt, real, *gate_t = inputs
         # z_next == -1 until the last real step has been drawn
         zn = jnp.maximum(z_next, 0)
         # the column z_next of the next step's (gated) transition matrix
         into = log_trans[:, zn] if gate is None else _gated_column(log_trans, *gate_t, zn)
         to_next = jnp.where(z_next >= 0, into, 0.0)
-        z = jnp.argmax(noise + (filt + to_next)).astype(jnp.int32)
+        z = _inverse_transform(filt + to_next, u)
         z = jnp.where(real, z, jnp.int32(-1))
         return jnp.where(real, z, z_next), z
 
-    _, z = jax.lax.scan(step, jnp.int32(-1), (gumbels, log_alpha, mask) + tuple(ends), reverse=True)
+    _, z = jax.lax.scan(step, jnp.int32(-1), (uniforms, log_alpha, mask) + tuple(ends), reverse=True)
     return z
+
+
+def _inverse_transform(logits, u):
+    """The index (int32) drawn with probabilities proportional to exp(logits) (K,), by inverse
+    transform from one uniform u in [0, 1): the first index whose cumulative weight exceeds u
+    times the total (an index of zero weight never is). Where rounding leaves none above (u
+    within 2^-52 of 1), the heaviest index."""
+    w = jnp.exp(logits - jnp.max(logits))
+    c = jnp.cumsum(w)
+    above = c > u * c[-1]
+    return jnp.where(jnp.any(above), jnp.argmax(above), jnp.argmax(w)).astype(jnp.int32)
 
 
 def smooth(log_trans, log_alpha, mask=None, active=None, gate=None) -> jax.Array:
