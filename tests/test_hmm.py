@@ -449,6 +449,7 @@ def test_the_backward_samplers_inverse_transform_gives_each_index_its_probabilit
     draws = np.asarray(jax.vmap(_inverse_transform, in_axes=(None, 0))(logits, u))
     share = np.bincount(draws, minlength=6) / n
     np.testing.assert_allclose(share, [0, 0.2, 0, 0.5, 0.3, 0], atol=1.5 / n)
-    for edge in (0.0, 1.0 - 2.0 ** -53):
-        assert int(_inverse_transform(logits, edge)) in (1, 4)  # the first and the last index with weight
+    # the first and the last index with weight at the ends of [0, 1); past them (rounding) the heaviest
     assert int(_inverse_transform(logits, 0.0)) == 1
+    assert int(_inverse_transform(logits, 1.0 - 2.0 ** -53)) == 4
+    assert int(_inverse_transform(logits, 1.0)) == 3
