@@ -1,5 +1,4 @@
-"""How npbrs compiles its own programs: ``jax.jit`` with LLVM's optimisation level 1 on the CPU,
-and XLA's older CPU fusion emitters where the installed XLA has them.
+"""How npbrs compiles its own programs: ``jax.jit`` with LLVM's optimisation level 1 on the CPU.
 
 XLA compiles a CPU program's kernels with LLVM at optimisation level 2 by default. npbrs's
 programs (a sampler sweep, an IRL fit, the predictive's draws) are large and are run a few
@@ -9,16 +8,11 @@ with 4 chains, 20 + 20 sweeps: 55 s against 64 s, 27 s of compiling against 32 s
 were no slower). Results agree with level 2's to rounding, not bit for bit (a log joint by about
 1e-8 after 20 sweeps; the paper's tables' 40 fits found the same best draws).
 
-The older fusion emitters (``xla_cpu_use_fusion_emitters=False``) compile npbrs's programs about a
-fifth faster again, and run them no slower (``benchmarks/NOTES.md``, session 50: a default
-labyrinth fit, 2 chains, 149 s against 165 s over two pairs, 91 s of compiling against 115 s).
-A jaxlib without the option (it is asked once, by compiling a tiny program) compiles without it.
+The level is a per-program compile option (``jax.jit(..., compiler_options=...)``), so it
+changes only npbrs's programs and leaves the user's process alone. It is not set
 
-Both are per-program compile options (``jax.jit(..., compiler_options=...)``), so they
-change only npbrs's programs and leave the user's process alone. Neither is set
-
-- where ``XLA_FLAGS`` names the option (the user's choice wins; the test suite sets level 0 and
-  the older emitters itself);
+- where ``XLA_FLAGS`` sets ``--xla_backend_optimization_level`` (the user's choice wins; the
+  test suite sets 0);
 - on other backends than the CPU (GPU code generation has its own trade-offs).
 """
 
@@ -29,43 +23,22 @@ import os
 
 import jax
 
-__all__ = ["jit", "compiler_options", "OPTIMIZATION_LEVEL", "CPU_OPTIONS"]
+__all__ = ["jit", "compiler_options", "OPTIMIZATION_LEVEL"]
 
 OPTIMIZATION_LEVEL = 1
 _FLAG = "xla_backend_optimization_level"
-#: the per-program options npbrs compiles its programs with on the CPU: LLVM's level 1, and XLA's
-#: older CPU fusion emitters (a default labyrinth fit, 2 chains: 21% less compiling and 10% less
-#: wall time; the grid's sweeps ran no slower; results differ from the newer emitters' in
-#: rounding only; ``benchmarks/NOTES.md``, session 50)
-CPU_OPTIONS = {_FLAG: OPTIMIZATION_LEVEL, "xla_cpu_use_fusion_emitters": False}
-# whether this process's XLA takes each optional option (a name it does not know is an error at
-# compile time, and a newer jaxlib may drop a flag): asked once, by compiling a tiny program
-_ACCEPTED: dict = {}
-
-
-def _accepted(name: str, value) -> bool:
-    if (name, value) not in _ACCEPTED:
-        import numpy as np
-
-        try:
-            x = jax.device_put(np.float32(0), jax.devices("cpu")[0])
-            jax.jit(lambda x: x + 1, compiler_options={name: value}).lower(x).compile()
-            _ACCEPTED[name, value] = True
-        except Exception:  # (JaxRuntimeError "No such compile option", or a refused value)
-            _ACCEPTED[name, value] = False
-    return _ACCEPTED[name, value]
 
 
 def compiler_options(backend: str | None = None, environ=None) -> dict:
     """The compile options npbrs gives its programs on ``backend`` (default: JAX's default
-    backend): on the CPU, each of :data:`CPU_OPTIONS` that ``XLA_FLAGS`` does not set (the
-    user's choice wins) and the installed XLA accepts (the level always); otherwise none."""
+    backend): ``{"xla_backend_optimization_level": 1}`` on the CPU, unless ``XLA_FLAGS`` sets
+    that level; otherwise none."""
     environ = os.environ if environ is None else environ
+    if _FLAG in environ.get("XLA_FLAGS", ""):
+        return {}
     if (backend or jax.default_backend()) != "cpu":
         return {}
-    flags = environ.get("XLA_FLAGS", "")
-    return {name: value for name, value in CPU_OPTIONS.items()
-            if name not in flags and (name == _FLAG or _accepted(name, value))}
+    return {_FLAG: OPTIMIZATION_LEVEL}
 
 
 class _Jit:
