@@ -8,11 +8,17 @@ with 4 chains, 20 + 20 sweeps: 55 s against 64 s, 27 s of compiling against 32 s
 were no slower). Results agree with level 2's to rounding, not bit for bit (a log joint by about
 1e-8 after 20 sweeps; the paper's tables' 40 fits found the same best draws).
 
-The level is a per-program compile option (``jax.jit(..., compiler_options=...)``), so it
-changes only npbrs's programs and leaves the user's process alone. It is not set
+The programs a fit runs once (its initial state: ``jit(..., once=True)``) also take XLA's older
+CPU fusion emitters (:data:`ONCE_OPTIONS`, where the installed XLA has them), which compile them
+faster (a default labyrinth fit, 2 chains: 5-9 s less of about 90); the sweeps keep the newer
+emitters, under which the filters' loops run up to a third faster (``benchmarks/NOTES.md``,
+session 50).
 
-- where ``XLA_FLAGS`` sets ``--xla_backend_optimization_level`` (the user's choice wins; the
-  test suite sets 0);
+These are per-program compile options (``jax.jit(..., compiler_options=...)``), so they change
+only npbrs's programs and leave the user's process alone. None is set
+
+- where ``XLA_FLAGS`` names it (the user's choice wins; the test suite sets level 0 and the
+  older emitters for every program);
 - on other backends than the CPU (GPU code generation has its own trade-offs).
 """
 
@@ -23,22 +29,47 @@ import os
 
 import jax
 
-__all__ = ["jit", "compiler_options", "OPTIMIZATION_LEVEL"]
+__all__ = ["jit", "compiler_options", "OPTIMIZATION_LEVEL", "ONCE_OPTIONS"]
 
 OPTIMIZATION_LEVEL = 1
 _FLAG = "xla_backend_optimization_level"
+#: the CPU options of the programs a fit runs once (its initial state; ``jit(..., once=True)``):
+#: XLA's older fusion emitters compile them faster. The programs run many times (the sweeps)
+#: keep the newer ones, whose filter loops run up to a third faster (``benchmarks/NOTES.md``,
+#: session 50).
+ONCE_OPTIONS = {"xla_cpu_use_fusion_emitters": False}
+# whether this process's XLA takes each of ONCE_OPTIONS (a name it does not know is an error at
+# compile time, and a newer jaxlib may drop one): asked once, by compiling a tiny program
+_ACCEPTED: dict = {}
 
 
-def compiler_options(backend: str | None = None, environ=None) -> dict:
+def _accepted(name: str, value) -> bool:
+    if (name, value) not in _ACCEPTED:
+        import numpy as np
+
+        try:
+            x = jax.device_put(np.float32(0), jax.devices("cpu")[0])
+            jax.jit(lambda x: x + 1, compiler_options={name: value}).lower(x).compile()
+            _ACCEPTED[name, value] = True
+        except Exception:  # (JaxRuntimeError "No such compile option", or a refused value)
+            _ACCEPTED[name, value] = False
+    return _ACCEPTED[name, value]
+
+
+def compiler_options(backend: str | None = None, environ=None, once: bool = False) -> dict:
     """The compile options npbrs gives its programs on ``backend`` (default: JAX's default
-    backend): ``{"xla_backend_optimization_level": 1}`` on the CPU, unless ``XLA_FLAGS`` sets
-    that level; otherwise none."""
+    backend): on the CPU ``{"xla_backend_optimization_level": 1}``, and for a program run once
+    (``once``) each of :data:`ONCE_OPTIONS` that the installed XLA accepts, each unless
+    ``XLA_FLAGS`` names it (the user's choice wins); on other backends none."""
     environ = os.environ if environ is None else environ
-    if _FLAG in environ.get("XLA_FLAGS", ""):
-        return {}
     if (backend or jax.default_backend()) != "cpu":
         return {}
-    return {_FLAG: OPTIMIZATION_LEVEL}
+    flags = environ.get("XLA_FLAGS", "")
+    options = {} if _FLAG in flags else {_FLAG: OPTIMIZATION_LEVEL}
+    if once:
+        options.update({name: value for name, value in ONCE_OPTIONS.items()
+                        if name not in flags and _accepted(name, value)})
+    return options
 
 
 class _Jit:
@@ -50,13 +81,13 @@ class _Jit:
     the options follow ``XLA_FLAGS`` as it is at the call); other attributes (``lower``,
     ``trace``, ...) are the top-level jitted function's."""
 
-    def __init__(self, fn, options):
+    def __init__(self, fn, options, once=False):
         functools.update_wrapper(self, fn)
-        self._fn, self._options, self._tops, self._nested = fn, options, {}, None
+        self._fn, self._options, self._once, self._tops, self._nested = fn, options, once, {}, None
 
     def _get(self):
         # one top-level jit per set of options, read at each call (``XLA_FLAGS`` may change)
-        options = compiler_options()
+        options = compiler_options(once=True) if self._once else compiler_options()
         key = tuple(sorted(options.items()))
         top = self._tops.get(key)
         if top is None:
@@ -80,10 +111,10 @@ class _Jit:
         return getattr(self._get(), name)
 
 
-def jit(fn=None, **options):
+def jit(fn=None, *, once: bool = False, **options):
     """``jax.jit`` for npbrs's programs: the same arguments (``static_argnums``, ...), compiled
-    with :func:`compiler_options`. Use as ``jit(fn, ...)``, ``@jit`` or
-    ``@functools.partial(jit, static_argnums=...)``."""
+    with :func:`compiler_options` (``once``: a program a fit runs once, such as its initial
+    state). Use as ``jit(fn, ...)``, ``@jit`` or ``@functools.partial(jit, static_argnums=...)``."""
     if fn is None:
-        return functools.partial(jit, **options)
-    return _Jit(fn, options)
+        return functools.partial(jit, once=once, **options)
+    return _Jit(fn, options, once)

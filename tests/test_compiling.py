@@ -1,5 +1,6 @@
-"""npbrs compiles its own programs with LLVM's optimisation level 1 on the CPU
-(:mod:`npbrs.domains.compiling`), as a per-program compile option: the user's ``XLA_FLAGS``
+"""npbrs compiles its own programs with LLVM's optimisation level 1 on the CPU, those a fit runs
+once with XLA's older fusion emitters too (:mod:`npbrs.domains.compiling`), as per-program
+compile options: the user's ``XLA_FLAGS``
 win, other backends are left alone, and the wrapped functions work where ``jax.jit`` does,
 inside other traces too (JAX refuses compile options on a nested jit)."""
 
@@ -33,6 +34,27 @@ def test_the_level_is_set_on_the_cpu_unless_xla_flags_choose_one():
         {"xla_backend_optimization_level": 1}
     assert compiler_options("cpu", {"XLA_FLAGS": "--xla_backend_optimization_level=3"}) == {}
     assert compiler_options("gpu", {}) == {} and compiler_options("tpu", {}) == {}
+    assert compiler_options("gpu", {}, once=True) == {}
+
+
+def test_a_program_run_once_also_gets_the_older_emitters_where_xla_takes_them(monkeypatch):
+    """The initial state compiles with XLA's older fusion emitters (it compiles faster), where
+    the installed XLA accepts the option (asked once, by compiling a tiny program) and
+    ``XLA_FLAGS`` does not name it; an option XLA does not know is left out, not an error."""
+    takes = compiling._accepted("xla_cpu_use_fusion_emitters", False)
+    emitters = {"xla_cpu_use_fusion_emitters": False} if takes else {}
+    assert compiler_options("cpu", {}, once=True) == {"xla_backend_optimization_level": 1, **emitters}
+    assert compiler_options("cpu", {"XLA_FLAGS": "--xla_backend_optimization_level=0"}, once=True) == emitters
+    assert compiler_options("cpu", {"XLA_FLAGS": "--xla_cpu_use_fusion_emitters=true"}, once=True) == \
+        {"xla_backend_optimization_level": 1}
+    monkeypatch.setattr(compiling, "ONCE_OPTIONS", {**compiling.ONCE_OPTIONS, "xla_cpu_no_such_option": True})
+    monkeypatch.setattr(compiling, "_ACCEPTED", {})
+    options = compiler_options("cpu", {}, once=True)
+    assert "xla_cpu_no_such_option" not in options and compiling._ACCEPTED[("xla_cpu_no_such_option", True)] is False
+    # the options kept compile and run a program, with the same numbers to rounding
+    x = jnp.linspace(0.0, 3.0, 50)
+    f = lambda x: jnp.cumsum(jnp.exp(jnp.sin(x) * 2.0)) / jnp.sum(x ** 2)  # noqa: E731
+    np.testing.assert_allclose(jax.jit(f, compiler_options=options)(x), jax.jit(f)(x), rtol=1e-12)
 
 
 def test_a_wrapped_function_gets_the_options_at_the_top_and_none_when_nested(monkeypatch):
@@ -67,6 +89,9 @@ def test_fit_and_the_solvers_compile_through_it():
     for fn in (fit._sweep_batched, fit._sweep_one, fit._init_chains, kernel._init_state, solvers._solve_batch,
                predictive._one_draw, predictive._one_draw_marginals, reward._FIT_JIT, reward._LL_AND_GRAD):
         assert isinstance(fn, compiling._Jit), fn
+    # the initial state is the fit's program run once; the sweeps are run hundreds of times
+    assert fit._init_chains._once and kernel._init_state._once
+    assert not (fit._sweep_one._once or fit._sweep_batched._once or solvers._solve_batch._once)
 
 
 def test_the_options_follow_xla_flags_at_each_call_and_each_set_compiles_once(monkeypatch):
@@ -84,6 +109,14 @@ def test_the_options_follow_xla_flags_at_each_call_and_each_set_compiles_once(mo
     monkeypatch.setenv("XLA_FLAGS", "--xla_backend_optimization_level=0")
     np.testing.assert_allclose(g(x), 1.0)
     assert made == [None, {"xla_backend_optimization_level": 1}]
+    # a program run once: with the older emitters too, unless XLA_FLAGS names them (the suite's do)
+    h = jit(lambda x: x * 2.0, once=True)
+    monkeypatch.setenv("XLA_FLAGS", "")
+    np.testing.assert_allclose(h(x), 0.0)
+    assert made[2:] == [compiler_options("cpu", {}, once=True)]
+    monkeypatch.setenv("XLA_FLAGS", "--xla_backend_optimization_level=0 --xla_cpu_use_fusion_emitters=false")
+    h(x)
+    assert made[3:] == [None]
 
 
 @pytest.mark.library_level

@@ -284,7 +284,7 @@ def _record(kernel: BPHMMKernel, hyper_names, state) -> dict:
     return out
 
 
-@partial(jit, static_argnums=4)
+@partial(jit, static_argnums=4, once=True)
 def _init_chains(kernel, keys, z0, num_warmup, mesh=None):
     # keys (C, 2): the chains' states, batched; one key (2,): one chain's (the kernel's init tells)
     state = _strong(kernel.init(keys, num_warmup, None if z0 is None else {"z": z0}, (), {}))

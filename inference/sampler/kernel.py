@@ -655,7 +655,7 @@ class BPHMMKernel(MCMCKernel, Pytree):
         return hyper
 
 
-@partial(jit, static_argnums=4)
+@partial(jit, static_argnums=4, once=True)
 def _init_state(kernel: BPHMMKernel, rng_key, z0, num_warmup, batched: bool):
     """The initial state(s), compiled per kernel structure and shapes (the kernel's data and
     emission are arguments, so a new dataset of the same shapes reuses the program)."""
