@@ -87,7 +87,7 @@ class _Jit:
 
     def _get(self):
         # one top-level jit per set of options, read at each call (``XLA_FLAGS`` may change)
-        options = compiler_options(once=True) if self._once else compiler_options()
+        options = compiler_options(once=self._once)
         key = tuple(sorted(options.items()))
         top = self._tops.get(key)
         if top is None:

@@ -1,8 +1,8 @@
 """npbrs compiles its own programs with LLVM's optimisation level 1 on the CPU, those a fit runs
 once with XLA's older fusion emitters too (:mod:`npbrs.domains.compiling`), as per-program
-compile options: the user's ``XLA_FLAGS``
-win, other backends are left alone, and the wrapped functions work where ``jax.jit`` does,
-inside other traces too (JAX refuses compile options on a nested jit)."""
+compile options: the user's ``XLA_FLAGS`` win, other backends are left alone, and the wrapped
+functions work where ``jax.jit`` does, inside other traces too (JAX refuses compile options on a
+nested jit)."""
 
 import os
 
@@ -59,7 +59,7 @@ def test_a_program_run_once_also_gets_the_older_emitters_where_xla_takes_them(mo
 
 def test_a_wrapped_function_gets_the_options_at_the_top_and_none_when_nested(monkeypatch):
     made, real = _record_jits(monkeypatch)
-    monkeypatch.setattr(compiling, "compiler_options", lambda: {"xla_backend_optimization_level": 1})
+    monkeypatch.setattr(compiling, "compiler_options", lambda once=False: {"xla_backend_optimization_level": 1})
 
     def f(x, n):
         return jnp.sin(x) * n
