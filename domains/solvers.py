@@ -704,13 +704,13 @@ class SoftSolver(Pytree):
         self._op = _Columns(mdp, operator)
         self.operator = self._op.kind
         self.features = jnp.asarray(mdp.features)
-        self._fixed_point = self._make_fixed_point()
+        self._fixed_point, self._at_values = self._make_fixed_point()
 
-    # (a closure over the operator's arrays: rebuilt when the solver is unflattened under jit)
-    _pytree_derived = ("_fixed_point",)
+    # (closures over the operator's arrays: rebuilt when the solver is unflattened under jit)
+    _pytree_derived = ("_fixed_point", "_at_values")
 
     def _pytree_rebuild(self):
-        self._fixed_point = self._make_fixed_point()
+        self._fixed_point, self._at_values = self._make_fixed_point()
 
     def __repr__(self):
         return (f"SoftSolver(mdp={self.mdp.name!r}, method={self.method!r}, operator={self.operator!r}, "
@@ -729,22 +729,16 @@ class SoftSolver(Pytree):
         # the operator's arrays are an argument (not closed over): under jit they are traced,
         # and a custom derivative may not close over traced values; only the static options are
         # taken from self. Derivatives are with respect to the rewards (the operator's tangent
-        # is ignored: the dynamics are data, not parameters).
+        # is ignored: the dynamics are data, not parameters). Two functions share the derivative
+        # rule: the fixed point from a warm start (a solve), and the fixed point at values
+        # already solved for (one backup: :meth:`at_values`).
         gamma, A = self.discount, self.num_actions
         dim, cycles, gtol, degree = self.krylov_dim, self.max_restarts, self.grad_tol, self.precondition_degree
         precision, core = self.krylov_precision, fold_vmap(self._core)
 
-        @jax.custom_jvp
-        def fixed_point(op, r, v0):
-            Q, V, it, res, nmv = core(op, r, v0)
-            # V = logsumexp(Q) exactly (same Q columns), so Q - V is a normalised log-policy
-            return V, jnp.stack(Q, -1), it, res, nmv
-
-        @fixed_point.defjvp
-        def fixed_point_jvp(primals, tangents):
-            op, r, v0 = primals
-            _, dr, _ = tangents
-            V, Q, it, res, nmv = fixed_point(op, r, v0)
+        def tangent(op, V, Q, dr):
+            """(dV, dQ) of the fixed point (V, Q) along reward tangents dr: (I - gamma P_pi) dV
+            = sum_a pi_a dr_a, by the linear solves (or their transposes, reverse mode)."""
             pi = tuple(jnp.exp(Q[..., a] - V) for a in range(A))
             rhs = sum(p * dr[..., a] for a, p in enumerate(pi))
 
@@ -767,11 +761,35 @@ class SoftSolver(Pytree):
             dV = jax.lax.custom_linear_solve(
                 operator, rhs,
                 solve=lambda _, b: solve(b, False), transpose_solve=lambda _, b: solve(b, True))
-            dQ = dr + gamma * jnp.stack(op.apply(dV), -1)
-            zero_int = np.zeros(it.shape, dtype=jax.dtypes.float0)
-            return (V, Q, it, res, nmv), (dV, dQ, zero_int, jnp.zeros_like(res), zero_int)
+            return dV, dr + gamma * jnp.stack(op.apply(dV), -1)
 
-        return fixed_point
+        def with_tangent(fn):
+            def jvp(primals, tangents):
+                op, r, v = primals
+                V, Q, it, res, nmv = out = fn(op, r, v)
+                dV, dQ = tangent(op, V, Q, tangents[1])
+                zero_int = np.zeros(it.shape, dtype=jax.dtypes.float0)
+                return out, (dV, dQ, zero_int, jnp.zeros_like(res), zero_int)
+
+            fn.defjvp(jvp)
+            return fn
+
+        @with_tangent
+        @jax.custom_jvp
+        def fixed_point(op, r, v0):
+            Q, V, it, res, nmv = core(op, r, v0)
+            # V = logsumexp(Q) exactly (same Q columns), so Q - V is a normalised log-policy
+            return V, jnp.stack(Q, -1), it, res, nmv
+
+        @with_tangent
+        @jax.custom_jvp
+        def at_values(op, r, V):
+            r_cols = tuple(r[..., a] for a in range(A))
+            Q, TV, _ = _soft_backup(r_cols, op.apply(V), gamma)
+            zeros = jnp.zeros(V.shape[:1], jnp.int32)
+            return TV, jnp.stack(Q, -1), zeros, _relative(TV - V, TV), zeros
+
+        return fixed_point, at_values
 
     def with_tolerance(self, tol: float, grad_tol: Optional[float] = None) -> "SoftSolver":
         """This solver with another relative tolerance (and that of its derivative's linear
@@ -785,7 +803,7 @@ class SoftSolver(Pytree):
             raise ValueError(f"grad_tol must be positive, got {grad_tol}")
         new = copy.copy(self)
         new.tol, new.grad_tol = max(self.tol, tol), max(self.grad_tol, grad_tol)
-        new._fixed_point = new._make_fixed_point()
+        new._fixed_point, new._at_values = new._make_fixed_point()
         return new
 
     def _solve_batch(self, r, v0):
@@ -807,6 +825,27 @@ class SoftSolver(Pytree):
         rewards = jnp.asarray(rewards, jnp.float64)
         v0 = None if v0 is None else jnp.asarray(v0, jnp.float64)
         return _call_flat(self, rewards, v0, S, A)
+
+    def at_values(self, rewards, V) -> SolveResult:
+        """The :class:`SolveResult` of reward tables (..., S, A) whose soft values V (..., S)
+        are already known (a solve's or an IRL fit's, e.g. :func:`npbrs.models.fit_reward`'s):
+        one soft backup from V, no solve (``num_iter`` 0; ``residual`` says how far V is from
+        the fixed point). Differentiable like a call, by the same implicit derivative (only the
+        tangent or adjoint linear solves), which is the fixed point's to the accuracy of V: a
+        program that needs a policy or a Fisher information where the values are at hand holds
+        no copy of the nonlinear solve."""
+        S, A = self.num_states, self.num_actions
+        shape = jnp.shape(rewards)
+        if len(shape) < 2 or tuple(shape[-2:]) != (S, A):
+            raise ValueError(f"rewards must have shape (..., {S}, {A}) = (..., states, actions), got {shape}")
+        if tuple(jnp.shape(V)) != tuple(shape[:-2]) + (S,):
+            raise ValueError(f"V must have shape {tuple(shape[:-2]) + (S,)} to match the rewards, got {jnp.shape(V)}")
+        if _is_concrete(rewards):
+            check_rewards(self.mdp, rewards)
+        if _is_concrete(V) and not np.all(np.isfinite(np.asarray(V))):
+            raise ValueError("V (the known soft values) has non-finite values")
+        return _flattened(partial(self._at_values, self._op), jnp.asarray(rewards, jnp.float64),
+                          jnp.asarray(V, jnp.float64), S, A)
 
     def rewards(self, theta) -> jax.Array:
         """Reward tables r = phi . theta, (..., S, A) for theta (..., D)."""

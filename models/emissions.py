@@ -24,7 +24,10 @@ An emission model supplies everything that depends on what a skill *is*:
 - optionally ``tune(params, cache, data, weights) -> cache`` with an integer attribute
   ``tune_every``: expensive warmup-only tuning of the move (e.g. a preconditioner), which the
   sampler runs before ``update`` in the first warmup sweep and every ``tune_every`` warmup
-  sweeps after it, never in the sampling sweeps.
+  sweeps after it, never in the sampling sweeps. An ``update`` that takes a keyword ``tune``
+  (a bool, shared by vectorised chains) is passed it instead, true in those sweeps, and tunes
+  itself there (the reward emission: where its move's first pass has solved what the tuning
+  needs).
 - ``redraw_unused`` (an integer class attribute, 1 by default): the sweeps between the prior
   redraws of unused skills' parameters that ``fit`` asks the sampler for
   (``moves["redraw_unused"]``: in between they are kept, also an exact move); more than 1 where a
@@ -178,7 +181,11 @@ class Emission(Pytree):
         the warmup's greedy merges and splits (a split's allocation fits by it too); optional.
         ``with_evidence`` (a bool or a traced one; optional in an implementation, the greedy
         moves pass it only where it is taken): where false the caller needs the estimates only,
-        and the log evidences may be anything (e.g. NaN, skipping their cost)."""
+        and the log evidences may be anything (e.g. NaN, skipping their cost). An
+        implementation may also take ``with_likelihoods`` (a Python bool): then, when true, it
+        returns the estimates' per-step log-likelihoods (N, T, M) third, where it has them
+        cheaper than ``log_likelihoods`` would (the reward emission: from its fits' soft values,
+        no solve); the greedy moves ask for them where it is taken."""
         raise NotImplementedError(f"the {self.name!r} emission has no fit_evidence (needed by greedy merges)")
 
     @classmethod

@@ -139,15 +139,19 @@ def count_table(states, actions, weights, num_states: int, num_actions: int, mas
 
 
 # --------------------------------------------------------------------------- policies
-def _solve_policy(solver, theta, v0=None, temperature=1.0, epsilon=0.0):
+def _solve_policy(solver, theta, v0=None, temperature=1.0, epsilon=0.0, solved=False):
     """The one place the demonstrator's policy is made from reward weights: the soft solve of
     the rewards tau * phi . theta (tau: the inverse temperature), its Boltzmann log-policy mixed
-    with uniform actions at rate epsilon. Returns (log_pi, V, the solver's residual)."""
-    res = solver(solver.rewards(theta * temperature), v0)
+    with uniform actions at rate epsilon. Returns (log_pi, V, the solver's residual).
+    ``solved``: v0 are these rewards' soft values already (an IRL fit's), and the policy is one
+    backup from them (:meth:`SoftSolver.at_values`: no solve, the same derivative)."""
+    rewards = solver.rewards(theta * temperature)
+    res = solver.at_values(rewards, v0) if solved else solver(rewards, v0)
     return noisy_log_policy(res.Q - res.V[..., None], epsilon), res.V, res.residual
 
 
-def log_policy(solver: SoftSolver, theta, v0=None, temperature: float = 1.0, epsilon: float = 0.0):
+def log_policy(solver: SoftSolver, theta, v0=None, temperature: float = 1.0, epsilon: float = 0.0,
+               solved: bool = False):
     """Boltzmann log-policies of reward weights.
 
     Args:
@@ -156,13 +160,17 @@ def log_policy(solver: SoftSolver, theta, v0=None, temperature: float = 1.0, eps
         v0: optional warm start (K, S) (or (S,)), e.g. the V of a previous call.
         temperature: inverse temperature tau: the policy of the rewards tau * phi . theta.
         epsilon: the noisy expert's random-action probability (:func:`noisy_log_policy`).
+        solved: v0 holds these weights' soft values already (e.g. :func:`fit_reward`'s V, to
+            the solver's tolerance): the policies by one backup from them, no solve.
     Returns:
         (log_pi, V): log pi(a | s), (K, S, A) (or (S, A)), and the soft values (K, S) (or (S,)).
     """
     solver = as_solver(solver)
     if _is_concrete(theta):
         _check_theta(theta, solver.num_features)
-    log_pi, V, _ = _solve_policy(solver, theta, v0, temperature, epsilon)
+    if solved and v0 is None:
+        raise ValueError("log_policy: solved=True needs the soft values v0 of theta")
+    log_pi, V, _ = _solve_policy(solver, theta, v0, temperature, epsilon, solved)
     return log_pi, V
 
 
@@ -359,16 +367,20 @@ def _ll_and_grad(solver, theta, counts, v0, epsilon=0.0):
 _LL_AND_GRAD = jit(_ll_and_grad, static_argnums=4)
 
 
-def fisher_information(solver: SoftSolver, theta, counts, v0=None, temperature: float = 1.0) -> jax.Array:
+def fisher_information(solver: SoftSolver, theta, counts, v0=None, temperature: float = 1.0,
+                       solved: bool = False) -> jax.Array:
     """Fisher information of each skill's weights given its steps' count table,
     sum_s n_s Cov_{a ~ pi(.|s)}[d log pi(a | s) / d theta].
 
-    One batched solve and D batched forward-mode (implicit tangent) solves, all skills at once.
+    One batched solve and D batched forward-mode (implicit tangent) solves, all skills at once;
+    with ``solved`` (v0 holds theta's soft values already, e.g. :func:`fit_reward`'s V) the
+    tangent solves only.
 
     Args:
         solver: a SoftSolver or a TabularMDP.
         theta: (K, D) (or (D,)); counts: (K, S, A) (or (S, A)); v0: optional (K, S) warm start.
         temperature: tau, as in :func:`log_policy` (the information of theta, not of tau theta).
+        solved: v0 are the soft values at theta (to the solver's tolerance): no solve.
     Returns:
         (K, D, D) (or (D, D)).
     """
@@ -377,11 +389,13 @@ def fisher_information(solver: SoftSolver, theta, counts, v0=None, temperature: 
     counts = jnp.asarray(counts, jnp.float64)
     if theta.ndim == 1:
         return fisher_information(solver, theta[None], counts[None], None if v0 is None else jnp.asarray(v0)[None],
-                                  temperature)[0]
+                                  temperature, solved)[0]
     K, D = theta.shape
+    if solved and v0 is None:
+        raise ValueError("fisher_information: solved=True needs the soft values v0 at theta")
 
     def log_pi(t):
-        return _solve_policy(solver, t, v0, temperature)[0]
+        return _solve_policy(solver, t, v0, temperature, solved=solved)[0]
 
     # the D tangent solves batched (vmap), not unrolled: a program of one solve's size for any D;
     # the policy is the jvp's primal, which does not depend on the direction (one solve, not two)

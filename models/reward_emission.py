@@ -346,7 +346,12 @@ class RewardEmission(Emission):
         return ll, new_cache
 
     # ------------------------------------------------------------------ moves
-    def update(self, key, params, cache, data, weights, adapt):
+    def update(self, key, params, cache, data, weights, adapt, tune=False):
+        """The reward move (MALA, then with a sampled prior variance the magnitude move and
+        sigma^2 | theta), or the MAP refit (``update_kind="map"``). ``tune`` (a bool, not
+        batched over chains): refresh the MALA preconditioner first, as :meth:`tune` does, from
+        the Fisher information at the skills' current weights; here the move's first pass has
+        solved each skill at them already, so the refresh costs only the tangent solves."""
         theta = params["theta"]
         K, D = theta.shape
         counts = self.counts(data, weights)  # (K, S, A)
@@ -360,7 +365,7 @@ class RewardEmission(Emission):
             cache = {**cache, "V": V}
         else:
             k_move, k_rescale = jax.random.split(k_move) if self.scale_prior else (k_move, None)
-            new, cache, accept, log_density = self._mala(k_move, theta, counts, cache, adapt, scale, has_steps)
+            new, cache, accept, log_density = self._mala(k_move, theta, counts, cache, adapt, scale, has_steps, tune)
             if self.scale_prior:
                 # (its sigma^2 is not kept: the exact conditional below redraws it from theta alone)
                 new, cache = self._rescale(k_rescale, new, params["sigma2"], log_density, counts, cache, adapt)
@@ -407,37 +412,52 @@ class RewardEmission(Emission):
         per coordinate 1 / sqrt(F_dd + 1 / sigma^2) in the cache's "scale" (a Student t prior:
         its curvature at the current weights for 1 / sigma^2, :func:`npbrs.models.reward.prior_curvature`). The sampler calls
         this in warmup only, every ``tune_every`` sweeps (D tangent solves a skill: the most
-        expensive part of a warmup sweep with many features); the sampling sweeps keep it fixed."""
+        expensive part of a warmup sweep with many features); the sampling sweeps keep it fixed.
+        The sampler asks :meth:`update` for it instead (``tune``), where the skills' values are
+        solved already; this one solves for them."""
         theta = params["theta"]
-        counts = self.counts(data, weights)
-        fisher = jax.vmap(lambda t, c, v: jnp.diag(fisher_information(self.solver, t, c, v, self.temperature)))(
-            theta, counts, cache["V"])
-        scale = jnp.asarray(self._scales(params))
-        curvature = prior_curvature(theta, scale[..., None] if jnp.ndim(scale) else scale, self.prior_df)
-        return {**cache, "scale": 1.0 / jnp.sqrt(jnp.maximum(fisher, 0.0) + curvature)}
+        scale = self._preconditioner(theta, self._scales(params), self.counts(data, weights), cache["V"])
+        return {**cache, "scale": scale}
 
-    def _mala(self, key, theta, counts, cache, adapt, prior_scale, active):
+    def _preconditioner(self, theta, prior_scale, counts, V, solved=False):
+        """:meth:`tune`'s per-coordinate scales (K, D) at weights theta (K, D), by this
+        emission's solver; ``solved``: V are their soft values already (no solve)."""
+        fisher = jax.vmap(lambda t, c, v: jnp.diag(fisher_information(self.solver, t, c, v, self.temperature,
+                                                                      solved)))(theta, counts, V)
+        scale = jnp.asarray(prior_scale)
+        curvature = prior_curvature(theta, scale[..., None] if jnp.ndim(scale) else scale, self.prior_df)
+        return 1.0 / jnp.sqrt(jnp.maximum(fisher, 0.0) + curvature)
+
+    def _mala(self, key, theta, counts, cache, adapt, prior_scale, active, tune=False):
         """``mala_steps`` steps of the reward move (:mod:`npbrs.models.reward_mala`) with the
-        cache's preconditioner (refreshed by :meth:`tune` during warmup); in warmup each skill's
-        step size follows its acceptance rate towards ``target_accept``."""
+        cache's preconditioner (refreshed during warmup by :meth:`tune`, or here where ``tune``
+        is true: after the first pass, from its values, at the search's tolerance as
+        :meth:`tune`); in warmup each skill's step size follows its acceptance rate towards
+        ``target_accept``."""
         kernel = reward_mala.build_kernel(self.solver, prior_scale, temperature=self.temperature,
                                           epsilon=self.epsilon, prior_df=self.prior_df)
-        minv = cache["scale"] ** 2
+        search = self.for_search()
 
         def step(carry, x):
             key, evaluate = x
-            state, log_step, acc_sum = carry
+            state, log_step, acc_sum, scale = carry
             # only skills with steps (``active``) are solved: the others are redrawn from the prior after the move
-            state, info = kernel(key, state, counts, jnp.exp(log_step), minv, active, evaluate)
+            state, info = kernel(key, state, counts, jnp.exp(log_step), scale ** 2, active, evaluate)
             log_step = jnp.where(adapt & active & ~evaluate,
                                  log_step + 0.3 * (info.acceptance_rate - self.target_accept), log_step)
-            return (state, log_step, acc_sum + info.acceptance_rate), None
+            if tune is not False:  # (the first pass's values are the weights' own: no solve)
+                scale = jax.lax.cond(evaluate & tune, lambda s: search._preconditioner(s.theta, prior_scale, counts,
+                                                                                      s.V, solved=True),
+                                     lambda s: scale, state)
+            return (state, log_step, acc_sum + info.acceptance_rate, scale), None
 
         # the chain's start (reward_mala.init) is the loop's first pass: one compiled solve for both
-        init = (reward_mala.unevaluated(theta, cache["V"]), cache["log_step"], jnp.zeros(theta.shape[0]))
+        init = (reward_mala.unevaluated(theta, cache["V"]), cache["log_step"], jnp.zeros(theta.shape[0]),
+                cache["scale"])
         keys = jnp.concatenate([key[None], jax.random.split(key, self.mala_steps)])
-        (state, log_step, acc_sum), _ = jax.lax.scan(step, init, (keys, jnp.arange(self.mala_steps + 1) == 0))
-        return state.theta, {**cache, "V": state.V, "log_step": log_step}, acc_sum / self.mala_steps, state.log_density
+        (state, log_step, acc_sum, scale), _ = jax.lax.scan(step, init, (keys, jnp.arange(self.mala_steps + 1) == 0))
+        return (state.theta, {**cache, "V": state.V, "log_step": log_step, "scale": scale}, acc_sum / self.mala_steps,
+                state.log_density)
 
     def _rescale(self, key, theta, sigma2, log_density, counts, cache, adapt):
         """A joint move of each skill's magnitude: (theta, sigma^2) -> (c theta, c^2 sigma^2),
@@ -511,18 +531,21 @@ class RewardEmission(Emission):
 
     def _laplace_precision(self, fit, counts, V, scale):
         """:meth:`laplace`'s precisions (M, D, D) at its fits."""
-        F = fisher_information(self.solver, fit, counts, V, self.temperature)  # (M, D, D)
+        # (at the fits' own values: no solve, only the tangent solves)
+        F = fisher_information(self.solver, fit, counts, V, self.temperature, solved=True)  # (M, D, D)
         curvature = prior_curvature(fit, scale[:, None], self.prior_df)  # (M, D): 1 / sigma^2 for a Gaussian
         precision = F + jax.vmap(jnp.diag)(curvature)
         return 0.5 * (precision + jnp.swapaxes(precision, -1, -2))
 
-    def fit_evidence(self, data, weights, init=None, with_evidence=True):
+    def fit_evidence(self, data, weights, init=None, with_evidence=True, with_likelihoods=False):
         """IRL fits (M, D) to weighted steps (N, T, M) and each skill's Laplace log evidence at
         its fit, log p(steps | theta) + log p0(theta) + D/2 log 2 pi - 1/2 log det(precision)
         (see :meth:`laplace`); with a sampled prior variance, sigma^2 integrated out too
         (:meth:`scale_mixture_evidence`). ``with_evidence`` (a bool, or a traced one): where
         false, the fits only, their log evidences NaN (no Fisher information computed), so
-        that one compiled call serves fits and evidences (the greedy split's allocation)."""
+        that one compiled call serves fits and evidences (the greedy split's allocation).
+        ``with_likelihoods``: also the fits' per-step log-likelihoods (N, T, M), from the fits'
+        own soft values (one backup each, no solve)."""
         counts = self.counts(data, weights)
         M = counts.shape[0]
         theta, log_lik, V, scale = self._laplace_fit(counts, init, at_sampled_scale=bool(self.scale_prior))
@@ -540,7 +563,10 @@ class RewardEmission(Emission):
             log_ev = evidence(None)
         else:
             log_ev = jax.lax.cond(with_evidence, evidence, lambda _: jnp.full((M,), jnp.nan), None)
-        return self._point(theta), log_ev
+        if not with_likelihoods:
+            return self._point(theta), log_ev
+        log_pi, _ = log_policy(self.solver, theta, V, self.temperature, self.epsilon, solved=True)
+        return self._point(theta), log_ev, step_log_likelihoods(log_pi, data.states, data.actions, data.mask)
 
     def _t_laplace_correction(self, theta, precision, scale):
         """(M,) what a Student t prior's Laplace evidence misses: the Laplace approximation of

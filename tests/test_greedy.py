@@ -1,6 +1,8 @@
 """Greedy merges of warmup: a copy of a skill is merged into it, distinct skills are not, the
 move changes nothing outside warmup, and it removes copies the Gibbs sweeps keep."""
 
+import functools
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -54,10 +56,14 @@ def test_a_copy_is_merged_into_its_skill_and_distinct_skills_are_not():
     f0 = np.asarray(s.features)
     np.testing.assert_array_equal(np.asarray(f)[:, 0], np.maximum(f0[:, 0], f0[:, 3]))
     assert not np.any(np.asarray(f)[:, 3])
-    # slot 3 holds a prior draw now, and the likelihoods returned are those of the parameters
+    # slot 3 holds a prior draw now; the likelihoods returned are those of the parameters of the
+    # skills with steps, and slot 3 keeps its column (no trial reads an unused slot's, and the
+    # sweep recomputes them all: the draw is not solved for)
     assert not np.allclose(np.asarray(params["policy"][3]), np.asarray(s.params["policy"][3]))
-    np.testing.assert_allclose(np.asarray(log_lik), np.asarray(jax.jit(em.log_likelihoods)(params, data)[0]),
+    log_lik = np.asarray(log_lik)
+    np.testing.assert_allclose(log_lik[..., :3], np.asarray(jax.jit(em.log_likelihoods)(params, data)[0])[..., :3],
                                atol=1e-10)
+    np.testing.assert_array_equal(log_lik[..., 3:], np.asarray(s.log_lik)[..., 3:])
     # the gain is the score's change, and it is positive (compiled: op by op it was 100 programs)
     score = jax.jit(merge_score)
     gain = float(score(em, data, hyper, f, z) - score(em, data, hyper, s.features, s.z))
@@ -345,8 +351,9 @@ def test_the_search_solves_looser_and_only_the_search(monkeypatch):
     """``RewardEmission.for_search``: a copy whose solver has ``search_tol`` (itself when the
     solver is as loose already); warm-started as in the greedy moves, its Laplace evidences and
     fits are the exact solver's within 1e-5 nats and 1e-4. The kernel hands it to the starting
-    fits, the greedy moves and the reward move's preconditioner (``tune``) only: the reward
-    move and the likelihoods the sampler keeps see the solver's own tolerance. (Traced, not
+    fits, the greedy moves and the reward move's preconditioner (refreshed inside ``update``,
+    ``_preconditioner``) only: the reward move and the likelihoods the sampler keeps see the
+    solver's own tolerance. (Traced, not
     compiled: each method records the tolerance it ran with.) It failed with the greedy moves
     given the kernel's emission."""
     from gridworld import gridworld
@@ -381,11 +388,18 @@ def test_the_search_solves_looser_and_only_the_search(monkeypatch):
     (fits, log_ev), (loose_fits, loose_ev) = both(weights, fits)
     np.testing.assert_allclose(np.asarray(loose_ev), np.asarray(log_ev), atol=1e-5)
     np.testing.assert_allclose(np.asarray(loose_fits["theta"]), np.asarray(fits["theta"]), atol=1e-4)
+    # the fits' likelihoods that the greedy moves ask for come from the fits' own values (no
+    # solve): those of the fits, to the search's tolerance (checked to fail with the values of the
+    # fits' starts)
+    loose_fits, loose_ev, lik = jax.jit(lambda w, init: search.fit_evidence(data, w, init, with_likelihoods=True))(
+        weights, fits)
+    np.testing.assert_allclose(np.asarray(lik), np.asarray(search.log_likelihoods(loose_fits, data)[0]), atol=1e-5)
 
     seen = {}
-    for name in ("update", "tune", "log_likelihoods", "fit_evidence", "fit_point", "init_params"):
+    for name in ("update", "tune", "_preconditioner", "log_likelihoods", "fit_evidence", "fit_point", "init_params"):
         method = getattr(RewardEmission, name)
 
+        @functools.wraps(method)  # (the sampler reads the keywords an emission's method takes)
         def recording(self, *args, _name=name, _method=method, **kwargs):
             seen.setdefault(_name, set()).add(self.solver.tol)
             return _method(self, *args, **kwargs)
@@ -394,5 +408,5 @@ def test_the_search_solves_looser_and_only_the_search(monkeypatch):
     kernel = BPHMMKernel(em, data, max_skills=3, moves={"greedy_merge": 1, "greedy_split": 1, "greedy_from": 0.0})
     state = jax.eval_shape(lambda k: kernel.initial_state(k, None, 4), jax.random.PRNGKey(0))
     jax.eval_shape(kernel.sweep, state)
-    assert seen == {"init_params": {1e-6}, "fit_evidence": {1e-6}, "update": {1e-10},
-                    "tune": {1e-6}, "log_likelihoods": {1e-10, 1e-6}}, seen
+    assert seen == {"init_params": {1e-6}, "fit_evidence": {1e-6}, "update": {1e-10}, "_preconditioner": {1e-6},
+                    "log_likelihoods": {1e-10}}, seen

@@ -131,6 +131,17 @@ def test_fisher_information_matches_finite_differences_of_the_policy(small):
         centred = J - np.einsum("sa,sad->sd", pi, J)[:, None, :]
         expected = np.einsum("s,sa,sad,sae->de", counts[k].sum(-1), pi, centred, centred)
         np.testing.assert_allclose(F[k], expected, rtol=1e-6, atol=1e-8)
+    # at values already solved for (``solved``: an IRL fit's), no solve, the same information
+    # and policy; at values of other weights, not (checked to fail with the tangents' policy
+    # taken from the warm start instead of the backup)
+    log_pi, V = log_policy(solver, theta)
+    np.testing.assert_allclose(fisher_information(solver, theta, counts, V, solved=True), F, rtol=1e-9, atol=1e-12)
+    np.testing.assert_allclose(log_policy(solver, theta, V, solved=True)[0], log_pi, atol=1e-11)
+    assert "while" not in str(jax.make_jaxpr(lambda t, v: log_policy(solver, t, v, solved=True)[0])(theta, V))
+    _, V_other = log_policy(solver, 0.5 * theta)
+    assert not np.allclose(fisher_information(solver, theta, counts, V_other, solved=True), F, rtol=1e-3)
+    with pytest.raises(ValueError, match="solved=True needs"):
+        fisher_information(solver, theta, counts, solved=True)
 
 
 def test_irl_fit_reaches_a_stationary_point_inside_jit_and_warm_starts(small):

@@ -304,3 +304,31 @@ def test_start_at_the_fit_is_each_skills_posterior_mode():
     assert np.max(np.abs(np.asarray(gradient_at_start(jax.random.PRNGKey(0))))) < 1e-3
     with pytest.raises(ValueError, match="start"):
         RewardEmission(dom.mdp, start="mode")
+
+
+def test_the_preconditioner_refreshed_inside_the_update_is_tunes():
+    """``update(..., tune=True)`` (what the sampler passes in its tuning sweeps) refreshes the
+    MALA preconditioner from the first pass's values, with no solve of its own: the same
+    scales as :meth:`RewardEmission.tune` at the same weights, for every skill with steps (a
+    skill without steps is not solved by the move, and is redrawn from the prior). Without
+    ``tune`` the cache's scales are kept. (Checked to fail with the refresh at the values the
+    cache held before the move.)"""
+    dom = gridworld(size=3)
+    demos = generate_demonstrations(dom, num_trajectories=3, length=20, seed=2)
+    data = HMMData.from_demonstrations(demos)
+    em = RewardEmission(dom.mdp, scale_prior=(2.0, 8.0), temperature=1.5)
+    K = 3
+    z = np.zeros(data.mask.shape, int)
+    for i, s in enumerate(demos.skills):
+        z[i, :len(s)] = np.minimum(s, 1)  # skills 0 and 1 have steps, skill 2 none
+    weights = jax.nn.one_hot(jnp.asarray(z), K) * data.mask[..., None]
+    params = {"theta": jnp.asarray(np.random.default_rng(0).normal(size=(K, dom.mdp.num_features))),
+              "sigma2": jnp.full(K, 4.0)}
+    cache = em.init_cache(K)  # (cold: values of zero, which the move's first pass solves from)
+    key = jax.random.PRNGKey(3)
+    refreshed = jax.jit(lambda p, c: em.update(key, p, c, data, weights, True, tune=True)[1]["scale"])(params, cache)
+    kept = jax.jit(lambda p, c: em.update(key, p, c, data, weights, True)[1]["scale"])(params, cache)
+    tuned = jax.jit(lambda p, c: em.for_search().tune(p, c, data, weights)["scale"])(params, cache)
+    np.testing.assert_allclose(np.asarray(refreshed)[:2], np.asarray(tuned)[:2], rtol=1e-5)
+    np.testing.assert_array_equal(np.asarray(kept), np.asarray(cache["scale"]))
+    assert not np.allclose(np.asarray(tuned)[:2], np.asarray(cache["scale"])[:2], rtol=1e-2)

@@ -356,3 +356,45 @@ def test_a_looser_copy_of_a_solver_solves_to_its_tolerance_and_loosens_only(prob
         solver.with_tolerance(0.0)
     with pytest.raises(ValueError, match="grad_tol"):
         solver.with_tolerance(1e-6, -1.0)
+
+
+def test_at_values_is_the_solve_at_its_own_values_with_the_same_derivatives(problem):
+    """``SoftSolver.at_values``: at a solve's V, one backup gives the solve's Q and V (residual
+    below the tolerance) and holds no nonlinear solve; its forward- and reverse-mode derivatives
+    are the solve's, against the dense reference's finite differences too. Away from the fixed
+    point its residual says so. (Checked to fail with the derivative rule's right-hand side
+    taken from the wrong policy, and with the backup's V returned unnormalised.)"""
+    mdp, P, solver, R = problem
+    S, A = mdp.num_states, mdp.num_actions
+    solved = solver(R)
+    at = solver.at_values(R, solved.V)
+    np.testing.assert_allclose(at.V, solved.V, rtol=1e-11, atol=1e-11)
+    np.testing.assert_allclose(at.Q, solved.Q, rtol=1e-11, atol=1e-11)
+    np.testing.assert_allclose(np.exp(np.asarray(at.Q - at.V[..., None])).sum(-1), 1.0, atol=1e-12)
+    assert np.all(np.asarray(at.residual) <= 1e-11) and np.all(np.asarray(at.num_iter) == 0)
+    # its program holds no loop: no solve
+    assert "while" not in str(jax.make_jaxpr(lambda r, v: solver.at_values(r, v).Q)(R, solved.V))
+    assert np.asarray(solver.at_values(R, solved.V + 1.0).residual).min() > 1e-6  # (relative to |V|)
+    # derivatives: reverse (the transposed linear solve) and forward (the tangent solve)
+    w = jnp.asarray(np.random.default_rng(7).normal(size=(3, S, A)))
+    loss = lambda f: (lambda r: jnp.sum(w * (f(r).Q - f(r).V[..., None])))  # noqa: E731
+    V0 = solved.V
+    g_solve = jax.jit(jax.grad(loss(solver)))(jnp.asarray(R))
+    g_at = jax.jit(jax.grad(loss(lambda r: solver.at_values(r, V0))))(jnp.asarray(R))
+    np.testing.assert_allclose(g_at, g_solve, rtol=1e-8, atol=1e-10)
+    dr = jnp.asarray(np.random.default_rng(8).normal(size=R.shape))
+    t_solve = jax.jvp(loss(solver), (jnp.asarray(R),), (dr,))[1]
+    t_at = jax.jvp(loss(lambda r: solver.at_values(r, V0)), (jnp.asarray(R),), (dr,))[1]
+    np.testing.assert_allclose(t_at, t_solve, rtol=1e-8)
+    # against central differences of the dense reference's log-policy
+    h, k = 1e-6, 1
+    up = numpy_soft_vi(P, R[k] + h * np.asarray(dr[k]), mdp.discount)
+    down = numpy_soft_vi(P, R[k] - h * np.asarray(dr[k]), mdp.discount)
+    fd = np.sum(np.asarray(w[k]) * ((up[1] - up[0][:, None]) - (down[1] - down[0][:, None]))) / (2 * h)
+    one = jax.jvp(lambda r: jnp.sum(w[k] * (solver.at_values(r, V0[k]).Q - solver.at_values(r, V0[k]).V[:, None])),
+                  (jnp.asarray(R[k]),), (dr[k],))[1]
+    np.testing.assert_allclose(one, fd, rtol=1e-5)
+    with pytest.raises(ValueError, match="V must have shape"):
+        solver.at_values(R, np.zeros((3, S + 1)))
+    with pytest.raises(ValueError, match="V .*non-finite"):
+        solver.at_values(R[0], np.full(S, np.nan))

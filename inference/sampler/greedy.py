@@ -185,22 +185,29 @@ def _run_trial(trial: _Trial, state: MoveState, emission, data, hyper):
     parameters, and keep it when the score rises: (state, :class:`GreedyInfo`).
 
     One loop of the allocation's ``num_blocks + 1`` steps, each one ``fit_evidence`` of three
-    columns (the two parts, the whole) and one ``log_likelihoods`` of two, so that the
-    program holds one compiled copy of each (for the reward emission, an IRL fit with its
-    solves and their adjoints). A split's step fits the parts to the allocation so far (the
-    whole again from its start, the same fit each time), then allocates the step's block; its
-    last step (no block) fits the final allocation and computes the evidences. A merge runs
-    the last step only. The kept likelihood columns are the last step's."""
+    columns (the two parts, the whole) with the fits' likelihoods, so that the program holds
+    one compiled copy of it (for the reward emission, an IRL fit with its solves and their
+    adjoints; the likelihoods come from the fits' own soft values, no solve). A split's step
+    fits the parts to the allocation so far (the whole again from its start, the same fit each
+    time), then allocates the step's block; its last step (no block) fits the final allocation
+    and computes the evidences. A merge runs the last step only. The kept likelihood columns
+    are the last step's: a split's parts', a merge's whole's for skill k; a merge's slot j, its
+    parameters a prior draw, keeps its column (see :func:`greedy_merge_at`)."""
     plan, merging = trial.plan, trial.merging
     N = data.mask.shape[0]
     last_step = plan.rows.shape[0] - 1
     prior = emission.sample_prior_one(trial.prior_key)
     nan3 = jnp.full((3,), jnp.nan)
+    old_j = state.log_lik[..., trial.slots[1]]  # (a merge's slot j: its column, kept)
 
     def pair(fits, final):
-        """The two columns whose likelihoods a step needs: the allocation's two fits, or at the
-        end the two slots' new parameters (a merge's whole and a prior draw, a split's parts)."""
+        """The two slots' parameters at the end: a merge's whole and a prior draw, a split's parts."""
         return jax.tree.map(lambda f, p: jnp.where(merging & final, jnp.stack([f[2], p]), f[:2]), fits, prior)
+
+    def pair_lik(lik3, final):
+        """The two columns of likelihoods a step needs, of the fits' three (N, T, 3): the
+        allocation's parts, or at a merge's end the whole's and slot j's own."""
+        return jnp.where(merging & final, jnp.stack([lik3[..., 2], old_j], -1), lik3[..., :2])
 
     def fit_step(carry, x):
         z, done, parts, fits, log_ev, lik = carry
@@ -212,9 +219,8 @@ def _run_trial(trial: _Trial, state: MoveState, emission, data, hyper):
             # the parts from the last fits, the whole from its start
             init = jax.tree.map(lambda f, i: i.at[:2].set(f[:2]), fits, trial.init)
             w = jnp.concatenate([parts, trial.whole[..., None]], -1)
-            new, log_ev = _fit_evidence(emission, data, w, init, last)
-            lik, _ = emission.log_likelihoods(pair(new, last), data, emission.init_cache(2))  # (N, T, 2)
-            return new, log_ev, lik
+            new, log_ev, lik3 = _fit_evidence(emission, data, w, init, last)
+            return new, log_ev, pair_lik(lik3, last)
 
         run = jnp.where(merging, last, fit_on | last)
         fits, log_ev, lik = jax.lax.cond(run, fit, lambda operand: operand, (fits, log_ev, lik))
@@ -260,11 +266,18 @@ def _run_trial(trial: _Trial, state: MoveState, emission, data, hyper):
 
 
 def _fit_evidence(emission, data, weights, init, with_evidence):
-    """``emission.fit_evidence``, told when only the fits are needed if it takes
-    ``with_evidence`` (an emission written without it computes its evidences always)."""
-    if "with_evidence" in inspect.signature(emission.fit_evidence).parameters:
-        return emission.fit_evidence(data, weights, init, with_evidence=with_evidence)
-    return emission.fit_evidence(data, weights, init)
+    """``emission.fit_evidence`` and the fits' likelihoods (N, T, M): (fits, log evidences,
+    likelihoods). It is told when only the fits are needed if it takes ``with_evidence`` (an
+    emission written without it computes its evidences always), and asked for the likelihoods
+    if it takes ``with_likelihoods`` (the reward emission's come from its fits' soft values);
+    otherwise they are the fits' ``log_likelihoods``."""
+    taken = inspect.signature(emission.fit_evidence).parameters
+    kwargs = {"with_evidence": with_evidence} if "with_evidence" in taken else {}
+    if "with_likelihoods" in taken:
+        return emission.fit_evidence(data, weights, init, with_likelihoods=True, **kwargs)
+    fits, log_ev = emission.fit_evidence(data, weights, init, **kwargs)
+    lik, _ = emission.log_likelihoods(fits, data, emission.init_cache(weights.shape[-1]))
+    return fits, log_ev, lik
 
 
 def _pick_merge(key, state: MoveState, data):
@@ -301,8 +314,11 @@ def greedy_merge(key, state: MoveState, emission, data, hyper):
 def greedy_merge_at(key, state: MoveState, emission, data, hyper, j):
     """Merge skill j into the used skill that explains its steps best, if that raises
     :func:`merge_score`: returns (state, :class:`GreedyInfo`). The state's ``log_lik`` holds
-    the likelihoods of its ``params``, before and after. ``key`` draws slot j's new parameters
-    from the prior. The emission needs ``fit_evidence``."""
+    the likelihoods of its ``params`` before; after a kept merge, those of every skill with
+    steps, while slot j (no steps now) keeps its column. ``key`` draws slot j's new parameters
+    from the prior: an unused slot's likelihoods are read by no greedy trial (they pick among
+    skills with steps) and the sweep computes every slot's anew after the emission's update, so
+    the draw's are not solved for here. The emission needs ``fit_evidence``."""
     return _run_trial(_merge_trial(key, state, data, j, 1), state, emission, data, hyper)
 
 

@@ -22,6 +22,8 @@ Every density used here is one of the model's own (``npbrs.models.bphmm``).
 
 from __future__ import annotations
 
+import inspect
+
 from functools import partial
 from typing import Any, Dict, NamedTuple, Optional
 
@@ -582,12 +584,15 @@ class BPHMMKernel(MCMCKernel, Pytree):
         # the emission's warmup-only work (e.g. the reward's Fisher preconditioner) run always
         cache = state.cache
         # (a preconditioner: any fixed one leaves the posterior invariant; the search's accuracy)
-        tune = search.tune
+        tune, tuned = search.tune, {}
         if tune is not None:
             every = int(self.emission.tune_every)
-            cache = jax.lax.cond((step < num_warmup) & (step % every == 0),
-                                 lambda c: tune(params, c, self.data, weights), lambda c: c, cache)
-        params, cache, info = self.emission.update(k_em, params, cache, self.data, weights, step < num_warmup)
+            tune_now = (step < num_warmup) & (step % every == 0)
+            if "tune" in inspect.signature(self.emission.update).parameters:
+                tuned = {"tune": tune_now}  # (the update tunes itself where it has what tuning needs)
+            else:
+                cache = jax.lax.cond(tune_now, lambda c: tune(params, c, self.data, weights), lambda c: c, cache)
+        params, cache, info = self.emission.update(k_em, params, cache, self.data, weights, step < num_warmup, **tuned)
         if not isinstance(info, EmissionInfo):
             raise TypeError(f"the {self.emission.name!r} emission's update returned {type(info).__name__} as its "
                             "info; it must return (params, cache, npbrs.models.emissions.EmissionInfo(accept=...))")
