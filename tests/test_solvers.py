@@ -363,37 +363,38 @@ def test_at_values_is_the_solve_at_its_own_values_with_the_same_derivatives(prob
     below the tolerance) and holds no nonlinear solve; its forward- and reverse-mode derivatives
     are the solve's, against the dense reference's finite differences too. Away from the fixed
     point its residual says so. (Checked to fail with the derivative rule's right-hand side
-    taken from the wrong policy, and with the backup's V returned unnormalised.)"""
+    taken from one action's reward tangent, and with the given V returned for the backup's.)"""
     mdp, P, solver, R = problem
-    S, A = mdp.num_states, mdp.num_actions
+    S = mdp.num_states
     solved = solver(R)
-    at = solver.at_values(R, solved.V)
+    at_values = jax.jit(solver.at_values)
+    at = at_values(R, solved.V)
     np.testing.assert_allclose(at.V, solved.V, rtol=1e-11, atol=1e-11)
     np.testing.assert_allclose(at.Q, solved.Q, rtol=1e-11, atol=1e-11)
     np.testing.assert_allclose(np.exp(np.asarray(at.Q - at.V[..., None])).sum(-1), 1.0, atol=1e-12)
     assert np.all(np.asarray(at.residual) <= 1e-11) and np.all(np.asarray(at.num_iter) == 0)
     # its program holds no loop: no solve
     assert "while" not in str(jax.make_jaxpr(lambda r, v: solver.at_values(r, v).Q)(R, solved.V))
-    assert np.asarray(solver.at_values(R, solved.V + 1.0).residual).min() > 1e-6  # (relative to |V|)
-    # derivatives: reverse (the transposed linear solve) and forward (the tangent solve)
-    w = jnp.asarray(np.random.default_rng(7).normal(size=(3, S, A)))
-    loss = lambda f: (lambda r: jnp.sum(w * (f(r).Q - f(r).V[..., None])))  # noqa: E731
-    V0 = solved.V
-    g_solve = jax.jit(jax.grad(loss(solver)))(jnp.asarray(R))
-    g_at = jax.jit(jax.grad(loss(lambda r: solver.at_values(r, V0))))(jnp.asarray(R))
-    np.testing.assert_allclose(g_at, g_solve, rtol=1e-8, atol=1e-10)
-    dr = jnp.asarray(np.random.default_rng(8).normal(size=R.shape))
-    t_solve = jax.jvp(loss(solver), (jnp.asarray(R),), (dr,))[1]
-    t_at = jax.jvp(loss(lambda r: solver.at_values(r, V0)), (jnp.asarray(R),), (dr,))[1]
-    np.testing.assert_allclose(t_at, t_solve, rtol=1e-8)
-    # against central differences of the dense reference's log-policy
-    h, k = 1e-6, 1
-    up = numpy_soft_vi(P, R[k] + h * np.asarray(dr[k]), mdp.discount)
-    down = numpy_soft_vi(P, R[k] - h * np.asarray(dr[k]), mdp.discount)
-    fd = np.sum(np.asarray(w[k]) * ((up[1] - up[0][:, None]) - (down[1] - down[0][:, None]))) / (2 * h)
-    one = jax.jvp(lambda r: jnp.sum(w[k] * (solver.at_values(r, V0[k]).Q - solver.at_values(r, V0[k]).V[:, None])),
-                  (jnp.asarray(R[k]),), (dr[k],))[1]
-    np.testing.assert_allclose(one, fd, rtol=1e-5)
+    off = at_values(R, solved.V + 1.0)
+    assert np.asarray(off.residual).min() > 1e-6  # (relative to |V|)
+    # (its V is the backup's, logsumexp Q: a normalised policy away from the fixed point too)
+    np.testing.assert_allclose(np.exp(np.asarray(off.Q - off.V[..., None])).sum(-1), 1.0, atol=1e-12)
+    # derivatives: forward mode (the tangent solve) against central differences of the dense
+    # reference's log-policies, and reverse mode (the transposed solve) against forward mode
+    w = np.random.default_rng(7).normal(size=R.shape)
+    dr = np.random.default_rng(8).normal(size=R.shape)
+    h, fd = 1e-6, 0.0
+    for k in range(len(R)):
+        up, down = (numpy_soft_vi(P, R[k] + sign * h * dr[k], mdp.discount) for sign in (1.0, -1.0))
+        fd += np.sum(w[k] * ((up[1] - up[0][:, None]) - (down[1] - down[0][:, None]))) / (2 * h)
+
+    def derivatives(r, d, v):
+        loss = lambda r_: jnp.sum(w * (lambda a: a.Q - a.V[..., None])(solver.at_values(r_, v)))  # noqa: E731
+        return jax.jvp(loss, (r,), (d,))[1], jnp.sum(jax.grad(loss)(r) * d)
+
+    forward, reverse = jax.jit(derivatives)(jnp.asarray(R), jnp.asarray(dr), solved.V)
+    np.testing.assert_allclose(forward, fd, rtol=1e-5)
+    np.testing.assert_allclose(reverse, forward, rtol=1e-8)
     with pytest.raises(ValueError, match="V must have shape"):
         solver.at_values(R, np.zeros((3, S + 1)))
     with pytest.raises(ValueError, match="V .*non-finite"):
