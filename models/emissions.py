@@ -32,6 +32,11 @@ An emission model supplies everything that depends on what a skill *is*:
   redraws of unused skills' parameters that ``fit`` asks the sampler for
   (``moves["redraw_unused"]``: in between they are kept, also an exact move); more than 1 where a
   new draw's likelihoods are expensive (a soft Bellman solve from a cold start).
+- optionally ``solves_in_update`` (a bool, False by default): ``update`` then takes
+  ``redraw_unused`` (whether the skills without steps get prior draws in this sweep, else keep
+  their parameters; the sampler stops choosing for it) and returns a cache from which
+  ``log_likelihoods(params, data, cache, solved=True)`` gives the likelihoods of the parameters it
+  returned without evaluating them afresh (the reward emission: its move's values).
 - optionally ``init_window`` (an integer or None) and ``initial_skills(max_skills)`` (an integer
   or None): the initial segmentation's window length and number of skills where the user gives
   none (None: the kernel's defaults), and ``fixed_max_skills`` (an integer or None): a number of
@@ -114,6 +119,11 @@ class Emission(Pytree):
     name: str = "emission"
     #: the sweeps between prior redraws of unused skills' parameters that ``fit`` asks for
     redraw_unused: int = 1
+    #: whether ``update`` takes ``redraw_unused`` (a bool shared by vectorised chains: the skills
+    #: without steps get prior draws, else keep their parameters) and returns a cache from which
+    #: ``log_likelihoods(params, data, cache, solved=True)`` gives its parameters' likelihoods
+    #: without the work of a fresh evaluation (the reward emission: the values its move solved)
+    solves_in_update: bool = False
     #: the initial segmentation's window length (None: the kernel's ``DEFAULT_INIT_WINDOW``)
     init_window: Optional[int] = None
     #: the skill slots the emission needs, if a fixed number (None: ``fit``'s ``max_skills``)

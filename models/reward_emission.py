@@ -337,50 +337,78 @@ class RewardEmission(Emission):
         uniform actions at rate epsilon, (K, S, A) (the policies the likelihood uses)."""
         return self._log_policies_and_values(params["theta"])[0]
 
-    def log_likelihoods(self, params, data, cache=()):
+    def log_likelihoods(self, params, data, cache=(), solved=False):
+        """Per-step log-likelihoods (N, T, K) and the cache with the values of ``params``;
+        ``solved``: the cache's values are those of ``params`` already (what :meth:`update`
+        returns with MALA): one backup, no solve."""
         theta = params["theta"]
-        log_pi, V = self._log_policies_and_values(theta, cache)
+        if solved:
+            log_pi, V = log_policy(self.solver, theta, cache["V"], self.temperature, self.epsilon, solved=True)
+        else:
+            log_pi, V = self._log_policies_and_values(theta, cache)
         ll = step_log_likelihoods(log_pi, data.states, data.actions, data.mask)
         new_cache = dict(cache) if isinstance(cache, dict) else self.init_cache(theta.shape[0])
         new_cache["V"] = V
         return ll, new_cache
 
     # ------------------------------------------------------------------ moves
-    def update(self, key, params, cache, data, weights, adapt, tune=False):
+    def update(self, key, params, cache, data, weights, adapt, tune=False, redraw_unused=True):
         """The reward move (MALA, then with a sampled prior variance the magnitude move and
-        sigma^2 | theta), or the MAP refit (``update_kind="map"``). ``tune`` (a bool, not
+        sigma^2 | theta), or the MAP refit (``update="map"``). ``tune`` (a bool, not
         batched over chains): refresh the MALA preconditioner first, as :meth:`tune` does, from
         the Fisher information at the skills' current weights; here the move's first pass has
-        solved each skill at them already, so the refresh costs only the tangent solves."""
+        solved each skill at them already, so the refresh costs only the tangent solves.
+        ``redraw_unused`` (a bool, not batched): the skills without steps get prior draws (else
+        they keep their parameters, also an exact move). With MALA (:attr:`solves_in_update`)
+        the draws come before the move, whose first pass solves every skill, so that the
+        returned cache holds the values of the returned weights (:meth:`log_likelihoods` with
+        ``solved``)."""
         theta = params["theta"]
         K, D = theta.shape
         counts = self.counts(data, weights)  # (K, S, A)
         has_steps = jnp.sum(counts, axis=(1, 2)) > 0
         k_prior, k_move = jax.random.split(key)
-        scale = self._scales(params)
+        if not self.scale_prior:
+            prior_draw = {"theta": self.prior_scale * (jax.random.normal(k_prior, (K, D)) if self.prior_df is None
+                                                       else jax.random.t(k_prior, self.prior_df, (K, D)))}
+        else:  # a skill without steps draws (sigma^2, theta) from the prior
+            k_prior, k_var, k_var0 = jax.random.split(k_prior, 3)
+            sigma2_0 = self._variance_prior().sample(k_var0, (K,))
+            prior_draw = {"theta": jnp.sqrt(sigma2_0)[:, None] * jax.random.normal(k_prior, (K, D)), "sigma2": sigma2_0}
+        drawn = ~has_steps & redraw_unused
         if self.update_kind == "map":
-            new, _, V, _, _ = fit_reward(self.solver, counts, theta, cache["V"], scale, self.map_steps,
+            new, _, V, _, _ = fit_reward(self.solver, counts, theta, cache["V"], self._scales(params), self.map_steps,
                                          epsilon=self.epsilon, temperature=self.temperature, prior_df=self.prior_df)
             accept = jnp.ones(K)
             cache = {**cache, "V": V}
-        else:
-            k_move, k_rescale = jax.random.split(k_move) if self.scale_prior else (k_move, None)
-            new, cache, accept, log_density = self._mala(k_move, theta, counts, cache, adapt, scale, has_steps, tune)
+            info = EmissionInfo(jnp.sum(jnp.where(has_steps, accept, 0.0)) / jnp.maximum(jnp.sum(has_steps), 1))
+            out = {"theta": new}
             if self.scale_prior:
-                # (its sigma^2 is not kept: the exact conditional below redraws it from theta alone)
-                new, cache = self._rescale(k_rescale, new, params["sigma2"], log_density, counts, cache, adapt)
+                out["sigma2"] = self._variance_conditional(new).sample(k_var)
+            keep = ~has_steps & ~drawn
+            out = jax.tree.map(lambda n, d, p: jnp.where(has_steps.reshape((K,) + (1,) * (n.ndim - 1)), n,
+                                                         jnp.where(keep.reshape((K,) + (1,) * (n.ndim - 1)), p, d)),
+                               out, prior_draw, params)
+            return out, cache, info
+        # the prior draws first: the move's first pass solves them with the rest
+        start = jax.tree.map(lambda d, p: jnp.where(drawn.reshape((K,) + (1,) * (d.ndim - 1)), d, p), prior_draw, params)
+        k_move, k_rescale = jax.random.split(k_move) if self.scale_prior else (k_move, None)
+        new, cache, accept, log_density = self._mala(k_move, start["theta"], counts, cache, adapt, self._scales(start),
+                                                     has_steps, tune)
         info = EmissionInfo(jnp.sum(jnp.where(has_steps, accept, 0.0)) / jnp.maximum(jnp.sum(has_steps), 1))
         if not self.scale_prior:
-            prior_draw = self.prior_scale * (jax.random.normal(k_prior, (K, D)) if self.prior_df is None
-                                             else jax.random.t(k_prior, self.prior_df, (K, D)))
-            return {"theta": jnp.where(has_steps[:, None], new, prior_draw)}, cache, info
-        # sigma^2 | theta exactly; a skill without steps draws (sigma^2, theta) from the prior
-        k_prior, k_var, k_var0 = jax.random.split(k_prior, 3)
-        sigma2 = self._variance_conditional(new).sample(k_var)
-        sigma2_0 = self._variance_prior().sample(k_var0, (K,))
-        prior_draw = jnp.sqrt(sigma2_0)[:, None] * jax.random.normal(k_prior, (K, D))
-        return ({"theta": jnp.where(has_steps[:, None], new, prior_draw), "sigma2": jnp.where(has_steps, sigma2, sigma2_0)},
-                cache, info)
+            return {"theta": new}, cache, info
+        # (its sigma^2 is not kept: the exact conditional below redraws it from theta alone; a
+        # skill without steps keeps its pair as the magnitude move leaves it)
+        new, sigma2, cache = self._rescale(k_rescale, new, start["sigma2"], log_density, counts, cache, adapt,
+                                           has_steps)
+        sigma2 = jnp.where(has_steps, self._variance_conditional(new).sample(k_var), sigma2)
+        return {"theta": new, "sigma2": sigma2}, cache, info
+
+    @property
+    def solves_in_update(self) -> bool:
+        """MALA's update returns the values of its weights in the cache (see :class:`Emission`)."""
+        return self.update_kind != "map"
 
     # warmup sweeps between refreshes of the preconditioner (see :meth:`tune`)
     tune_every = 10
@@ -442,7 +470,8 @@ class RewardEmission(Emission):
             key, evaluate = x
             state, log_step, acc_sum, scale = carry
             # only skills with steps (``active``) are solved: the others are redrawn from the prior after the move
-            state, info = kernel(key, state, counts, jnp.exp(log_step), scale ** 2, active, evaluate)
+            # (the first pass solves every skill: the values of the weights returned, moved or not)
+            state, info = kernel(key, state, counts, jnp.exp(log_step), scale ** 2, active | evaluate, evaluate)
             log_step = jnp.where(adapt & active & ~evaluate,
                                  log_step + 0.3 * (info.acceptance_rate - self.target_accept), log_step)
             if tune is not False:  # (the first pass's values are the weights' own: no solve)
@@ -459,7 +488,7 @@ class RewardEmission(Emission):
         return (state.theta, {**cache, "V": state.V, "log_step": log_step, "scale": scale}, acc_sum / self.mala_steps,
                 state.log_density)
 
-    def _rescale(self, key, theta, sigma2, log_density, counts, cache, adapt):
+    def _rescale(self, key, theta, sigma2, log_density, counts, cache, adapt, active=True):
         """A joint move of each skill's magnitude: (theta, sigma^2) -> (c theta, c^2 sigma^2),
         log c ~ N(0, h^2). The prior of theta given sigma cancels (with the Jacobian c^(D+2)),
         so the ratio is L(c theta) / L(theta) IG(c^2 sigma^2) / IG(sigma^2) c^2: the weights that
@@ -475,10 +504,10 @@ class RewardEmission(Emission):
                                                             self.epsilon)
         prior = self._variance_prior()
         log_ratio = ll_new - ll_old + prior.log_prob(s2_prop) - prior.log_prob(sigma2) + 2.0 * log_c
-        accept, rate = metropolis_accept(k_acc, log_ratio, ok)
-        theta, V = select(accept, (prop, V_new), (theta, cache["V"]))
-        log_rescale = jnp.where(adapt, cache["log_rescale"] + 0.3 * (rate - 0.4), cache["log_rescale"])
-        return theta, {**cache, "V": V, "log_rescale": log_rescale}
+        accept, rate = metropolis_accept(k_acc, log_ratio, ok & active)  # (``active``: the skills with steps)
+        theta, sigma2, V = select(accept, (prop, s2_prop, V_new), (theta, sigma2, cache["V"]))
+        log_rescale = jnp.where(adapt & active, cache["log_rescale"] + 0.3 * (rate - 0.4), cache["log_rescale"])
+        return theta, sigma2, {**cache, "V": V, "log_rescale": log_rescale}
 
     # ------------------------------------------------------------------ data-driven proposal
     def fit_point(self, data, weights, init=None):

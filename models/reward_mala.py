@@ -205,7 +205,8 @@ def build_kernel(solver, prior_scale=PRIOR_SCALE, *, temperature: float = 1.0, e
         log_q_fwd = -0.5 * jnp.sum((prop - mean_fwd) ** 2 / minv / eps ** 2, -1)
         log_q_bwd = -0.5 * jnp.sum((theta - mean_bwd) ** 2 / minv / eps ** 2, -1)
         log_ratio = new.log_density - lp + log_q_bwd - log_q_fwd
-        accept, rate = metropolis_accept(k_acc, log_ratio, possible=new.ok)
+        # (an inactive skill is never moved, whether its proposal was solved or not)
+        accept, rate = metropolis_accept(k_acc, log_ratio, possible=new.ok if active is None else new.ok & active)
         accept, rate = accept | evaluate, jnp.where(evaluate, 0.0, rate)
         state = select(accept, RewardMALAState(prop, new.log_density, new.grad, new.V), state)
         failed = (~new.ok if active is None else active & ~new.ok) & ~evaluate

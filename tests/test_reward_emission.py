@@ -332,3 +332,45 @@ def test_the_preconditioner_refreshed_inside_the_update_is_tunes():
     np.testing.assert_allclose(np.asarray(refreshed)[:2], np.asarray(tuned)[:2], rtol=1e-5)
     np.testing.assert_array_equal(np.asarray(kept), np.asarray(cache["scale"]))
     assert not np.allclose(np.asarray(tuned)[:2], np.asarray(cache["scale"])[:2], rtol=1e-2)
+
+
+@pytest.mark.parametrize("scale_prior", [None, (2.0, 8.0)])
+def test_the_sweeps_likelihoods_are_backups_from_the_moves_values(scale_prior, monkeypatch):
+    """With MALA (``solves_in_update``) the reward emission draws or keeps the unused skills'
+    weights itself (``redraw_unused``: the sampler's schedule, here every 3 sweeps) before its
+    move, whose first pass solves every skill, and the sweep's likelihoods are backups from the
+    values it returns: after a sweep that keeps and one that redraws, the state's likelihoods and
+    values are a fresh solve's of its weights, the unused skills' weights kept exactly or drawn
+    anew, the used skills' moved. The fixed-variance case solves the skills in chunks of 2 (as a
+    large MDP does; here too small to need it), the other all at once. (Checked to fail with the
+    first pass solving only the skills with steps, and with the prior draws made after the
+    move.)"""
+    from npbrs.inference.sampler import BPHMMKernel
+    from npbrs.models import reward_mala
+
+    if scale_prior is None:
+        monkeypatch.setattr(reward_mala, "BATCH_ENTRIES", 2 * 9 * 5)  # (9 states, 5 actions: chunks of 2)
+
+    dom = gridworld(size=3)
+    demos = generate_demonstrations(dom, num_trajectories=3, length=20, seed=2)
+    data = HMMData.from_demonstrations(demos)
+    em = RewardEmission(dom.mdp, scale_prior=scale_prior, temperature=1.5)
+    assert em.solves_in_update and not RewardEmission(dom.mdp, update="map").solves_in_update
+    kernel = BPHMMKernel(em, data, max_skills=5, init_skills=2, moves={"redraw_unused": 3})
+    state = kernel.init(jax.random.PRNGKey(1), 0, None, (), {})
+    sweep = jax.jit(kernel.sweep)
+    fresh = jax.jit(lambda p: em.log_likelihoods(p, data))
+    for step, redraw in ((1, False), (3, True)):
+        s = state._replace(step=jnp.int32(step))
+        new = sweep(s)
+        ll, cache = fresh(new.params)
+        np.testing.assert_allclose(np.asarray(new.log_lik), np.asarray(ll), atol=1e-8)
+        np.testing.assert_allclose(np.asarray(new.cache["V"]), np.asarray(cache["V"]), rtol=1e-8, atol=1e-8)
+        used = np.asarray(jnp.any((new.z[..., None] == jnp.arange(5)) & data.mask[..., None], axis=(0, 1)))
+        assert used.any() and (~used).any()
+        old, theta = np.asarray(s.params["theta"]), np.asarray(new.params["theta"])
+        assert not np.allclose(theta[used], old[used])
+        if redraw:
+            assert not np.any(np.isclose(theta[~used], old[~used]))
+        else:
+            np.testing.assert_array_equal(theta[~used], old[~used])

@@ -307,10 +307,12 @@ class BPHMMKernel(MCMCKernel, Pytree):
             return None
         return end_gate(state.ends, self.data.states, self.data.mask)
 
-    def _finish(self, state: BPHMMState) -> BPHMMState:
-        """Recompute likelihoods, the log joint and the summaries of ``state``."""
+    def _finish(self, state: BPHMMState, solved: bool = False) -> BPHMMState:
+        """Recompute likelihoods, the log joint and the summaries of ``state``; ``solved``: its
+        cache is the emission's update's, whose values are its parameters' (``Emission.solves_in_update``)."""
         K = self.max_skills
-        log_lik, cache = self.emission.log_likelihoods(state.params, self.data, state.cache)
+        log_lik, cache = self.emission.log_likelihoods(state.params, self.data, state.cache,
+                                                       **({"solved": True} if solved else {}))
         log_marg = log_marginal_likelihoods(state.features, state.eta, log_lik, self.data.mask, self.gate(state))
         terms = log_joint_terms(state.omega, state.features, state.eta, state.params, log_marg, state.hyper,
                                 self.emission, self.hyperpriors or None, valid=self._valid, ends=state.ends,
@@ -592,12 +594,15 @@ class BPHMMKernel(MCMCKernel, Pytree):
                 tuned = {"tune": tune_now}  # (the update tunes itself where it has what tuning needs)
             else:
                 cache = jax.lax.cond(tune_now, lambda c: tune(params, c, self.data, weights), lambda c: c, cache)
+        every = self.moves["redraw_unused"]
+        solved = bool(self.emission.solves_in_update)
+        if solved:  # (the update draws or keeps the unused skills' parameters itself)
+            tuned["redraw_unused"] = (step % every == 0) if every > 1 else True
         params, cache, info = self.emission.update(k_em, params, cache, self.data, weights, step < num_warmup, **tuned)
         if not isinstance(info, EmissionInfo):
             raise TypeError(f"the {self.emission.name!r} emission's update returned {type(info).__name__} as its "
                             "info; it must return (params, cache, npbrs.models.emissions.EmissionInfo(accept=...))")
-        every = self.moves["redraw_unused"]
-        if every > 1:
+        if every > 1 and not solved:
             # a skill without steps has its prior as conditional: the update's prior draw every
             # ``every`` sweeps (the clock's, shared by vectorised chains), and between those the
             # parameters as they are (also exact), whose likelihoods need no new solve
@@ -609,7 +614,7 @@ class BPHMMKernel(MCMCKernel, Pytree):
                              hyper=hyper, **greedy_kept, **ends)
         if sticky:
             new = new._replace(hyper=new.hyper._replace(kappa=model_kappa))
-        new = self._finish(new)
+        new = self._finish(new, solved)
         better = (state.step >= state.num_warmup) & (new.log_joint > state.best_log_joint)
         pick = lambda a, b: jax.tree.map(lambda x, y: jnp.where(better, x, y), a, b)  # noqa: E731
         return new._replace(step=state.step + 1, best_log_joint=jnp.where(better, new.log_joint, state.best_log_joint),
