@@ -376,6 +376,8 @@ class RewardEmission(Emission):
             sigma2_0 = self._variance_prior().sample(k_var0, (K,))
             prior_draw = {"theta": jnp.sqrt(sigma2_0)[:, None] * jax.random.normal(k_prior, (K, D)), "sigma2": sigma2_0}
         drawn = ~has_steps & redraw_unused
+        # the unused skills' weights, drawn or kept, before the move: its first pass solves them
+        start = jax.tree.map(lambda d, p: jnp.where(drawn.reshape((K,) + (1,) * (d.ndim - 1)), d, p), prior_draw, params)
         if self.update_kind == "map":
             new, _, V, _, _ = fit_reward(self.solver, counts, theta, cache["V"], self._scales(params), self.map_steps,
                                          epsilon=self.epsilon, temperature=self.temperature, prior_df=self.prior_df)
@@ -385,13 +387,9 @@ class RewardEmission(Emission):
             out = {"theta": new}
             if self.scale_prior:
                 out["sigma2"] = self._variance_conditional(new).sample(k_var)
-            keep = ~has_steps & ~drawn
-            out = jax.tree.map(lambda n, d, p: jnp.where(has_steps.reshape((K,) + (1,) * (n.ndim - 1)), n,
-                                                         jnp.where(keep.reshape((K,) + (1,) * (n.ndim - 1)), p, d)),
-                               out, prior_draw, params)
+            out = jax.tree.map(lambda n, s0: jnp.where(has_steps.reshape((K,) + (1,) * (n.ndim - 1)), n, s0),
+                               out, start)
             return out, cache, info
-        # the prior draws first: the move's first pass solves them with the rest
-        start = jax.tree.map(lambda d, p: jnp.where(drawn.reshape((K,) + (1,) * (d.ndim - 1)), d, p), prior_draw, params)
         k_move, k_rescale = jax.random.split(k_move) if self.scale_prior else (k_move, None)
         new, cache, accept, log_density = self._mala(k_move, start["theta"], counts, cache, adapt, self._scales(start),
                                                      has_steps, tune)
@@ -469,8 +467,8 @@ class RewardEmission(Emission):
         def step(carry, x):
             key, evaluate = x
             state, log_step, acc_sum, scale = carry
-            # only skills with steps (``active``) are solved: the others are redrawn from the prior after the move
-            # (the first pass solves every skill: the values of the weights returned, moved or not)
+            # the first pass solves every skill (the values of the weights returned, moved or not),
+            # the steps only the skills with steps (``active``): the others are never moved
             state, info = kernel(key, state, counts, jnp.exp(log_step), scale ** 2, active | evaluate, evaluate)
             log_step = jnp.where(adapt & active & ~evaluate,
                                  log_step + 0.3 * (info.acceptance_rate - self.target_accept), log_step)
