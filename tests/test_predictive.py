@@ -203,14 +203,16 @@ def with_segmentations(run, demos):
 
 
 def exact_marginals(policies, features, states, actions, own=None):
-    """p(z_t = k | x, fit) by enumeration: draws weighted by p(x | draw); own: each draw's fixed
-    skill set of this trajectory instead of the predictive."""
+    """p(z_t = k | x, fit) by enumeration: for a new trajectory, draws weighted by p(x | draw);
+    own: each draw's fixed skill set of this trajectory (a fitted one) instead of the predictive,
+    and the draws counted equally (they are posterior draws given x already)."""
     C, D, N, _ = features.shape
     T = len(states)
     zs = np.array(list(itertools.product(range(K), repeat=T)))
     joint = np.zeros((T, K))
     for c in range(C):
         for d in range(D):
+            draw = np.zeros((T, K))
             m = features[c, d].sum(0)
             p_on = (m + ALPHA / K) / (N + 1 + ALPHA / K)
             log_emit = np.log(policies[c, d][:, states, actions]).T
@@ -228,7 +230,8 @@ def exact_marginals(policies, features, states, actions, own=None):
                                                             KAPPA, GAMMA))
                 w = np.exp(log_pf + lz + log_emit[np.arange(T), zs].sum(1))
                 for t in range(T):
-                    joint[t] += np.bincount(zs[:, t], weights=w, minlength=K)
+                    draw[t] += np.bincount(zs[:, t], weights=w, minlength=K)
+            joint += draw if own is None else draw / draw.sum(1, keepdims=True)
     return joint / joint.sum(1, keepdims=True)
 
 

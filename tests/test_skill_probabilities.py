@@ -40,8 +40,8 @@ def test_one_sampling_sweep_counts_exactly_its_skill_sequences(method):
 
 
 def test_the_counts_agree_with_segment_and_label_the_planted_skills(tmp_path, monkeypatch):
-    # (the draws are autocorrelated and both estimates are Monte Carlo ones: their mean gap fell
-    # from 0.08 to 0.034 to 0.026 with 60, 600 and 2,000 sampling sweeps)
+    # (both estimates are Monte Carlo ones: mean gap 0.006, largest 0.053; 0.032 and 0.26 while
+    # segment weighted each draw by the fitted trajectory's likelihood again, counting it twice)
     result = fit(MDP, DEMOS, num_samples=600, **KW)
     counts = result.step_skill_counts
     # every sampling sweep counts each real step once per chain, and nothing else
@@ -51,9 +51,9 @@ def test_the_counts_agree_with_segment_and_label_the_planted_skills(tmp_path, mo
     ours = result.skill_probabilities()
     theirs = result.segment(MDP, num_draws=200, num_samples=64)
     diff = np.concatenate([np.abs(a - b).ravel() for a, b in zip(ours.probs, theirs.probs)])
-    assert diff.mean() < 0.06 and diff.max() < 0.4, (diff.mean(), diff.max())
+    assert diff.mean() < 0.015 and diff.max() < 0.15, (diff.mean(), diff.max())
     agree = np.mean(np.concatenate(ours.labels) == np.concatenate(theirs.labels))
-    assert agree > 0.93, agree
+    assert agree > 0.96, agree
     from npbrs.inference.analysis.metrics import hungarian_accuracy
 
     assert hungarian_accuracy(DEMOS.skills, ours.labels) > 0.9

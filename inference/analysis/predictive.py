@@ -125,8 +125,11 @@ def segment(result, mdp, demos=None, *, num_samples: int = 32, num_draws: int = 
     """Posterior probabilities of the run's skills at every step, averaged over its draws.
 
     For new demonstrations, a trajectory's skill set follows the beta-Bernoulli predictive of
-    each draw's features and its transition weights their prior; for the fitted ones
-    (``demos=None``), its skill set is the draw's own. Either way the transition weights and
+    each draw's features and its transition weights their prior, and each draw is weighted by
+    the trajectory's likelihood under it (p(z | x, fit) = sum_s p(x | s) p(z | x, s) / sum_s
+    p(x | s)); for the fitted ones (``demos=None``), its skill set is the draw's own and the
+    draws count equally (they are draws of the posterior given these trajectories already:
+    p(z | x, fit) = mean_s p(z | x, s)). Either way the transition weights and
     (for new ones) the skill set are integrated by self-normalised importance sampling
     (``num_samples`` per draw, the self shares of the transition weights proposed around the
     trajectory's own stays as for :func:`log_predictive`, each sample weighted by the
@@ -156,6 +159,12 @@ def segment(result, mdp, demos=None, *, num_samples: int = 32, num_draws: int = 
     acc = np.full((n, T, L), -np.inf)
     for c, j, lm, post in _draw_moments(result, mdp, demos, idx, num_samples, seed, emission,
                                         leave_one_out=False, marginals=True, own_features=fitted):
+        if fitted:
+            # the draws already condition on the fitted trajectories: each draw's own posterior
+            # counts once (weighting it by p(x_i | draw) as well would count x_i twice)
+            seen = np.isfinite(lm)
+            post = np.where(seen[:, None, None], post - np.where(seen, lm, 0.0)[:, None, None], -np.inf)
+            lm = np.where(seen, 0.0, -np.inf)
         total = np.logaddexp(total, lm)
         for k, skill in enumerate(mapping[c]):
             if skill >= 0:
