@@ -28,7 +28,7 @@ An emission model supplies everything that depends on what a skill *is*:
   (a bool, shared by vectorised chains) is passed it instead, true in those sweeps, and tunes
   itself there (the reward emission: where its move's first pass has solved what the tuning
   needs).
-- ``redraw_unused`` (an integer attribute or property, 1 by default): the sweeps between the prior
+- ``redraw_unused`` (an integer class attribute, 1 by default): the sweeps between the prior
   redraws of unused skills' parameters that ``fit`` asks the sampler for
   (``moves["redraw_unused"]``: in between they are kept, also an exact move); more than 1 where a
   new draw's likelihoods are expensive (a soft Bellman solve from a cold start).

@@ -75,9 +75,6 @@ _STARTS = ("auto", "draw", "fit")
 # around the fit otherwise (a handful of features: the paper's domains, where starting at the
 # fit gave the quadcopter a fourth skill in 2 of 10 runs)
 START_FIT_FEATURES = 16
-# ``RewardEmission.redraw_unused``: MDPs of at most this many state-action pairs redraw the unused
-# skills' rewards every sweep (the benchmark worlds: 125-520; the highway 3,240, the quadcopter 46,656)
-REDRAW_EVERY_SWEEP_PAIRS = 1024
 # the initial segmentation's windows for such rewards (RewardEmission.init_window)
 SHORT_INIT_WINDOW = 5
 # prior_df="auto" (the default): for rewards of more than START_FIT_FEATURES weights, each weight's
@@ -413,15 +410,9 @@ class RewardEmission(Emission):
 
     # warmup sweeps between refreshes of the preconditioner (see :meth:`tune`)
     tune_every = 10
-    @property
-    def redraw_unused(self) -> int:
-        """Sweeps between prior redraws of unused skills in ``fit``: every sweep in an MDP of at
-        most ``REDRAW_EVERY_SWEEP_PAIRS`` state-action pairs, where a redraw's cold solves cost
-        little and its fresh draws (the births the sweeps offer) mix the number of skills
-        (``benchmarks/NOTES.md``, session 52: the labyrinth's R-hat of it 1.40 -> 1.19, 2 chains),
-        else every fifth (on the highway, 1,080 x 3, redraws took half of a sweep when made every
-        sweep)."""
-        return 1 if self.num_states * self.num_actions <= REDRAW_EVERY_SWEEP_PAIRS else 5
+    # sweeps between prior redraws of unused skills in ``fit`` (a redraw's likelihoods are cold
+    # solves: on the highway they took half of a sweep when redrawn every sweep)
+    redraw_unused = 5
 
     def initial_skills(self, max_skills: int):
         """``fit``'s number of skills in the initial segmentation: every slot (``max_skills``)

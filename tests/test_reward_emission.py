@@ -16,23 +16,6 @@ from npbrs.models.reward import fisher_information
 from npbrs.models.reward_emission import RewardEmission
 
 
-def test_unused_rewards_are_redrawn_every_sweep_where_the_mdp_is_small():
-    """fit's schedule of the unused skills' prior redraws: every sweep up to
-    REDRAW_EVERY_SWEEP_PAIRS state-action pairs (their cold solves cost little there), every
-    fifth above; a run's configuration records a schedule other than the kernel's every sweep."""
-    from npbrs.inference import ModelConfig
-    from npbrs.inference.driver.fit import default_moves
-    from npbrs.models.reward_emission import REDRAW_EVERY_SWEEP_PAIRS
-
-    for size, every in ((14, 1), (15, 5)):  # 980 and 1,125 pairs
-        mdp = gridworld(size=size).mdp
-        assert (mdp.num_states * mdp.num_actions <= REDRAW_EVERY_SWEEP_PAIRS) == (every == 1)
-        emission = RewardEmission(mdp)
-        assert emission.redraw_unused == every
-        moves = default_moves(ModelConfig(), emission).sampler.moves
-        assert moves.get("redraw_unused", 1) == every and ("redraw_unused" in moves) == (every > 1)
-
-
 def test_reward_emission_follows_the_protocol():
     dom = gridworld(size=3)
     demos = generate_demonstrations(dom, num_trajectories=3, length=12, seed=1)

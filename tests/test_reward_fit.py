@@ -87,10 +87,9 @@ def test_a_data_set_in_the_same_shape_bucket_reuses_the_compiled_sampler():
     assert [len(z) for z in result.segmentation] == list(demos.lengths)
     assert result.samples["features"].shape[2] == 9 and result.chain_best_z.shape[1:] == (9, 61)
     assert result.config["sampler"]["bucket"] is True
-    # fit redraws the unused reward skills every sweep in an MDP this small (the emission's
-    # redraw_unused; test_reward_emission.py has the rule), the kernel's default, which the run
-    # records by leaving it out
-    assert result.config["sampler"]["moves"] == NO_GREEDY
+    # fit redraws the unused reward skills every fifth sweep (the emission's redraw_unused), and
+    # the run records it
+    assert result.config["sampler"]["moves"] == {**NO_GREEDY, "redraw_unused": 5}
     assert result.equals(fit(dom.mdp, demos, **kwargs))
 
 
