@@ -242,7 +242,9 @@ def test_segment_equals_enumerated_posterior_marginals():
                            [np.array([1, 1, 0, 0, 1]), np.array([0, 0, 1, 1]), np.array([1, 0, 0]),
                             np.array([0, 1, 1, 0])])
     run = with_segmentations(policy_run(policies, features), demos)
+    run.demos = None  # (a run without its demonstrations: these are new to it)
     new = run.segment(two_state_mdp(), demos, num_samples=3000, seed=2)
+    run.demos = demos
     for i in range(4):
         expected = exact_marginals(policies, features, demos.states[i], demos.actions[i])
         np.testing.assert_allclose(new.probs[i], expected, atol=0.02)
@@ -252,3 +254,14 @@ def test_segment_equals_enumerated_posterior_marginals():
     for i in range(4):
         expected = exact_marginals(policies, features, demos.states[i], demos.actions[i], own=features[:, :, i])
         np.testing.assert_allclose(fitted.probs[i], expected, atol=0.02)
+    # the fitted demonstrations passed in (a copy) are the fitted ones, not new evidence again;
+    # one action changed, they are new
+    copy = Demonstrations([s.copy() for s in demos.states], [a.copy() for a in demos.actions])
+    again = run.segment(two_state_mdp(), copy, num_samples=3000, seed=2)
+    for a, b in zip(again.probs, fitted.probs):
+        np.testing.assert_array_equal(a, b)
+    actions = [a.copy() for a in demos.actions]
+    actions[3][0] = 1 - actions[3][0]
+    changed = run.segment(two_state_mdp(), Demonstrations(demos.states, actions), num_samples=3000, seed=2)
+    np.testing.assert_allclose(changed.probs[0], exact_marginals(policies, features, demos.states[0],
+                                                                 demos.actions[0]), atol=0.02)

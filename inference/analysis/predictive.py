@@ -129,7 +129,9 @@ def segment(result, mdp, demos=None, *, num_samples: int = 32, num_draws: int = 
     the trajectory's likelihood under it (p(z | x, fit) = sum_s p(x | s) p(z | x, s) / sum_s
     p(x | s)); for the fitted ones (``demos=None``), its skill set is the draw's own and the
     draws count equally (they are draws of the posterior given these trajectories already:
-    p(z | x, fit) = mean_s p(z | x, s)). Either way the transition weights and
+    p(z | x, fit) = mean_s p(z | x, s)). Demonstrations equal to the fitted ones (the same
+    trajectories, states and actions, in the same order) are the fitted ones: a session observed
+    once is not new evidence a second time. Either way the transition weights and
     (for new ones) the skill set are integrated by self-normalised importance sampling
     (``num_samples`` per draw, the self shares of the transition weights proposed around the
     trajectory's own stays as for :func:`log_predictive`, each sample weighted by the
@@ -143,7 +145,7 @@ def segment(result, mdp, demos=None, *, num_samples: int = 32, num_draws: int = 
     from .diagnostics import relabel
 
     _check_counts(num_samples=num_samples, num_draws=num_draws)
-    fitted = demos is None
+    fitted = demos is None or (result.demos is not None and _same_demonstrations(demos, result.demos))
     if fitted:
         if result.demos is None:
             raise ValueError("the run does not hold its demonstrations; pass the demonstrations to segment")
@@ -175,6 +177,16 @@ def segment(result, mdp, demos=None, *, num_samples: int = 32, num_draws: int = 
     probs = np.exp(acc - total[:, None, None])
     rows = [probs[i, :m] for i, m in enumerate(demos.lengths)]
     return SkillProbabilities(probs=rows, labels=[np.argmax(r, axis=-1) for r in rows])
+
+
+def _same_demonstrations(a, b) -> bool:
+    """Whether two Demonstrations hold the same trajectories (states and actions) in order."""
+    if a is b:
+        return True
+    if len(a.lengths) != len(b.lengths) or not np.array_equal(a.lengths, b.lengths):
+        return False
+    return all(np.array_equal(x, y) for x, y in zip(a.states, b.states)) and \
+        all(np.array_equal(x, y) for x, y in zip(a.actions, b.actions))
 
 
 def _check_counts(**values):
