@@ -230,6 +230,16 @@ class Demonstrations:
             h.update(np.ascontiguousarray(arr).tobytes())
         return h.hexdigest()
 
+    def same_trajectories(self, other: "Demonstrations") -> bool:
+        """Whether ``other`` holds the same trajectories (states and actions, in order), whatever
+        either says of the true skills."""
+        if self is other:
+            return True
+        if not np.array_equal(self.lengths, other.lengths):
+            return False
+        mine, theirs = self._arrays(), other._arrays()
+        return all(np.array_equal(mine[k], theirs[k]) for k in ("lengths", "states", "actions"))
+
     def __eq__(self, other):
         if not isinstance(other, Demonstrations):
             return NotImplemented

@@ -383,25 +383,21 @@ class RewardEmission(Emission):
                                          epsilon=self.epsilon, temperature=self.temperature, prior_df=self.prior_df)
             accept = jnp.ones(K)
             cache = {**cache, "V": V}
-            info = EmissionInfo(jnp.sum(jnp.where(has_steps, accept, 0.0)) / jnp.maximum(jnp.sum(has_steps), 1))
             out = {"theta": new}
-            if self.scale_prior:
-                out["sigma2"] = self._variance_conditional(new).sample(k_var)
-            out = jax.tree.map(lambda n, s0: jnp.where(has_steps.reshape((K,) + (1,) * (n.ndim - 1)), n, s0),
-                               out, start)
-            return out, cache, info
-        k_move, k_rescale = jax.random.split(k_move) if self.scale_prior else (k_move, None)
-        new, cache, accept, log_density = self._mala(k_move, start["theta"], counts, cache, adapt, self._scales(start),
-                                                     has_steps, tune)
+        else:  # (MALA never moves a skill without steps: its start comes back as it went in)
+            k_move, k_rescale = jax.random.split(k_move) if self.scale_prior else (k_move, None)
+            new, cache, accept, log_density = self._mala(k_move, start["theta"], counts, cache, adapt,
+                                                         self._scales(start), has_steps, tune)
+            out = {"theta": new}
+            if self.scale_prior:  # (nor does the magnitude move)
+                out["theta"], out["sigma2"], cache = self._rescale(k_rescale, new, start["sigma2"], log_density,
+                                                                   counts, cache, adapt, has_steps)
+        if self.scale_prior:  # sigma^2 | theta exactly (the moves' own sigma^2 is not kept)
+            out["sigma2"] = self._variance_conditional(out["theta"]).sample(k_var)
+        # the skills without steps: their start, drawn or kept
+        out = jax.tree.map(lambda n, s0: jnp.where(has_steps.reshape((K,) + (1,) * (n.ndim - 1)), n, s0), out, start)
         info = EmissionInfo(jnp.sum(jnp.where(has_steps, accept, 0.0)) / jnp.maximum(jnp.sum(has_steps), 1))
-        if not self.scale_prior:
-            return {"theta": new}, cache, info
-        # (its sigma^2 is not kept: the exact conditional below redraws it from theta alone; a
-        # skill without steps keeps its pair as the magnitude move leaves it)
-        new, sigma2, cache = self._rescale(k_rescale, new, start["sigma2"], log_density, counts, cache, adapt,
-                                           has_steps)
-        sigma2 = jnp.where(has_steps, self._variance_conditional(new).sample(k_var), sigma2)
-        return {"theta": new, "sigma2": sigma2}, cache, info
+        return out, cache, info
 
     @property
     def solves_in_update(self) -> bool:

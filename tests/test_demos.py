@@ -198,3 +198,15 @@ def test_demonstrations_remember_their_mdp_and_refuse_another(tmp_path):
         back.validate(quadcopter.mdp)
     # without a record (a user's own arrays) only the ranges are checked
     Demonstrations(demos.states, demos.actions).validate(quadcopter.mdp)
+
+
+def test_same_trajectories_compares_states_and_actions_not_the_true_skills():
+    def demos(states, actions, skills=None):
+        return Demonstrations([np.array(x) for x in states], [np.array(x) for x in actions],
+                              None if skills is None else [np.array(x) for x in skills])
+
+    a = demos([[0, 1], [2, 0, 1]], [[1, 0], [0, 1, 1]])
+    assert a.same_trajectories(demos([[0, 1], [2, 0, 1]], [[1, 0], [0, 1, 1]], [[0, 0], [1, 1, 0]]))
+    assert not a.same_trajectories(demos([[0, 1], [2, 0, 1]], [[1, 1], [0, 1, 1]]))  # an action
+    assert not a.same_trajectories(demos([[0, 1, 2], [0, 1]], [[1, 0, 0], [1, 1]]))  # the same steps, cut elsewhere
+    assert not a.same_trajectories(demos([[0, 1]], [[1, 0]]))

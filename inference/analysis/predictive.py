@@ -145,7 +145,7 @@ def segment(result, mdp, demos=None, *, num_samples: int = 32, num_draws: int = 
     from .diagnostics import relabel
 
     _check_counts(num_samples=num_samples, num_draws=num_draws)
-    fitted = demos is None or (result.demos is not None and _same_demonstrations(demos, result.demos))
+    fitted = demos is None or (result.demos is not None and demos.same_trajectories(result.demos))
     if fitted:
         if result.demos is None:
             raise ValueError("the run does not hold its demonstrations; pass the demonstrations to segment")
@@ -177,16 +177,6 @@ def segment(result, mdp, demos=None, *, num_samples: int = 32, num_draws: int = 
     probs = np.exp(acc - total[:, None, None])
     rows = [probs[i, :m] for i, m in enumerate(demos.lengths)]
     return SkillProbabilities(probs=rows, labels=[np.argmax(r, axis=-1) for r in rows])
-
-
-def _same_demonstrations(a, b) -> bool:
-    """Whether two Demonstrations hold the same trajectories (states and actions) in order."""
-    if a is b:
-        return True
-    if len(a.lengths) != len(b.lengths) or not np.array_equal(a.lengths, b.lengths):
-        return False
-    return all(np.array_equal(x, y) for x, y in zip(a.states, b.states)) and \
-        all(np.array_equal(x, y) for x, y in zip(a.actions, b.actions))
 
 
 def _check_counts(**values):
