@@ -348,14 +348,28 @@ class FitResult:
         return label_invariant_diagnostic(self.stats, "ess")
 
     def convergence_warning(self) -> str:
-        """A line saying which label-invariant scalars have R-hat above 1.05 or ESS below 100,
-        and what to do; "" when none has."""
+        """Lines saying which label-invariant scalars have R-hat above 1.05 or ESS below 100, how
+        each chain's mean of them moved from the first to the second half of its draws (a
+        chain still drifting, or chains holding different levels), and what to do; "" when
+        none has."""
         rhat, ess = self.rhat, self.ess
         bad = [n for n in LABEL_INVARIANT if rhat[n] > 1.05 or ess[n] < 100]  # (NaN compares False)
         if not bad:
             return ""
+        halves = []
+        for name in bad:
+            x = np.asarray(self.stats[name], float)
+            if x.ndim == 2 and x.shape[1] >= 2:
+                h = x.shape[1] // 2
+                per_chain = " | ".join(f"{a:.4g} -> {b:.4g}" for a, b in zip(x[:, :h].mean(1), x[:, h:].mean(1)))
+                halves.append(f"{name} {per_chain}")
+        moved = ("\n  each chain's mean over the first -> the second half of its draws: " + "; ".join(halves)
+                 if halves else "")
         return (f"not converged: {', '.join(bad)} (R-hat above 1.05 or ESS below 100); run more sweeps "
-                "(samples, warmup) or more chains before trusting the skills found")
+                f"(samples, warmup) or more chains before trusting the skills found{moved}\n  (a chain whose "
+                "halves differ is still moving: more warmup; chains steady at different levels sit in different "
+                "regions: more chains or sampling sweeps; fit(..., max_samples=N, time_budget=SECONDS) samples on "
+                "until every R-hat is at most 1.05)")
 
     def check_mdp(self, mdp) -> None:
         """Raise ValueError unless ``mdp`` is the MDP the run was fitted in (when the run knows it)."""
