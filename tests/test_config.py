@@ -317,6 +317,27 @@ def test_progress_in_a_log_shows_compiling_then_sweeps_with_an_eta(capsys):
     assert len(lines) == 13 and "\r" not in err
 
 
+def test_progress_with_several_chains_says_what_it_counts():
+    """Chains swept in turn or on threads count each chain's sweeps one by one; the lines say so,
+    and the closing line gives the sweeps each chain ran. (Checked to fail: a closing line of
+    the counted total, or one without the chains.)"""
+    import io
+
+    from npbrs.inference.driver.fit import _Progress
+
+    for chains, counted, first in ((4, 4, "; 40 sweeps to run (4 chains' sweeps, counted one by one)"),
+                                   (4, 1, "; 10 sweeps to run"), (1, 1, "; 10 sweeps to run")):
+        out = io.StringIO()  # (not a terminal: plain lines)
+        bar = _Progress(10 * counted, 0, True, stream=out, chains=chains, counted=counted)
+        for _ in range(10):
+            bar.update(counted)
+        bar.close_done(10, 1.3)
+        lines = out.getvalue().splitlines()
+        assert lines[0] == "npbrs fit: compiling the sampler (the first sweep)" + first
+        each = " of each of 4 chains" if chains == 4 else ""
+        assert lines[-1] == f"npbrs fit: done: 10 sweeps{each} in 1.3 s", lines[-1]
+
+
 def test_the_warmup_sweeps_scalars_are_kept_saved_and_drawn(tmp_path):
     from npbrs.inference import load
     from npbrs.inference.analysis.plots import plot_trace

@@ -722,8 +722,11 @@ class _Progress:
     ``total / 10`` sweeps instead of carriage returns.
     """
 
-    def __init__(self, total: int, initial: int, enabled: bool, stream=None):
+    def __init__(self, total: int, initial: int, enabled: bool, stream=None, chains: int = 1, counted: int = 1):
+        """``chains``: the run's; ``counted``: the chains whose sweeps count one by one (``chains``
+        where they are swept in turn or on threads), 1 where a sweep moves every chain at once."""
         self.total, self.n, self.enabled = int(total), int(initial), bool(enabled)
+        self.chains, self.counted = int(chains), int(counted)
         self.stream = sys.stderr if stream is None else stream
         self.phase, self.postfix = "compiling", ""
         self.timed_from = None  # (time, sweeps) after the first sweep
@@ -737,7 +740,8 @@ class _Progress:
                             smoothing=0, file=self.stream)
             self.bar.set_description("compiling", refresh=True)
         elif self.plain:
-            self._line(f"compiling the sampler (the first sweep); {self.total - self.n} sweeps to run")
+            self._line(f"compiling the sampler (the first sweep); {self.total - self.n} sweeps to run"
+                       + (f" ({self.chains} chains' sweeps, counted one by one)" if self.counted > 1 else ""))
 
     def _line(self, text):
         print(f"npbrs fit: {text}", file=self.stream, flush=True)
@@ -780,6 +784,11 @@ class _Progress:
         if self.bar is not None:
             self.bar.total = self.total
             self.bar.refresh()
+
+    def close_done(self, sweeps: int, seconds: float):
+        """Close with the sweeps each chain has run and the run's wall time."""
+        each = f" of each of {self.chains} chains" if self.chains > 1 else ""
+        self.close(f"done: {sweeps} sweeps{each} in {seconds:.1f} s")
 
     def close(self, message: str = ""):
         if self.bar is not None:
@@ -1195,8 +1204,8 @@ def _fit(mdp, demos, config, *, emission, emission_options, num_chains, num_samp
         decision = None if saved.get("stopped") else saved.get("decision")
 
     start = time.perf_counter()
-    bar = _Progress(total * (C if method == "sequential" else 1), done * (C if method == "sequential" else 1),
-                    progress_bar)
+    counted = C if method == "sequential" else 1
+    bar = _Progress(total * counted, done * counted, progress_bar, chains=C, counted=counted)
     try:
         if state is None:
             if mesh is None and compile_beside:
@@ -1301,7 +1310,7 @@ def _fit(mdp, demos, config, *, emission, emission_options, num_chains, num_samp
                                                  for k, v in run_length["rhat"].items())
                 bar.set_postfix(rhat_text)
     finally:
-        bar.close(f"done: {done} sweeps in {time.perf_counter() - start:.1f} s")
+        bar.close_done(done, time.perf_counter() - start)
     return finish()
 
 
