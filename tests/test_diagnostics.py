@@ -182,7 +182,7 @@ def test_the_summary_shows_arviz_diagnostics_and_says_when_a_run_has_not_converg
     # each chain's mean over its halves, where the warning names what to do about each pattern
     lj = stuck.stats["log_joint"]
     means = [(lj[c, :100].mean(), lj[c, 100:].mean()) for c in range(2)]
-    assert f"log_joint {means[0][0]:.4g} -> {means[0][1]:.4g} | {means[1][0]:.4g} -> {means[1][1]:.4g}" in text
+    assert f"log_joint {means[0][0]:.1f} -> {means[0][1]:.1f} | {means[1][0]:.1f} -> {means[1][1]:.1f}" in text
     assert "num_skills" not in stuck.convergence_warning() and "max_samples" in text
     drifting = _stats_result(rng.normal(size=(2, 200)) + np.linspace(0.0, 6.0, 200), mixed.stats["num_skills"][:2],
                              mixed.stats["num_switches"][:2])

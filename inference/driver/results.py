@@ -361,7 +361,8 @@ class FitResult:
             x = np.asarray(self.stats[name], float)
             if x.ndim == 2 and x.shape[1] >= 2:
                 h = x.shape[1] // 2
-                per_chain = " | ".join(f"{a:.4g} -> {b:.4g}" for a, b in zip(x[:, :h].mean(1), x[:, h:].mean(1)))
+                fmt = ".1f" if name == "log_joint" else ".2f"
+                per_chain = " | ".join(f"{a:{fmt}} -> {b:{fmt}}" for a, b in zip(x[:, :h].mean(1), x[:, h:].mean(1)))
                 halves.append(f"{name} {per_chain}")
         moved = ("\n  each chain's mean over the first -> the second half of its draws: " + "; ".join(halves)
                  if halves else "")
