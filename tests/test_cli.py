@@ -6,12 +6,13 @@ import io
 import os
 import subprocess
 import sys
+import warnings
 
 import numpy as np
 import pytest
 
 from npbrs.domains.mdp import TabularMDP
-from npbrs.inference import ModelConfig, load, save_mdp
+from npbrs.inference import ConvergenceWarning, ModelConfig, load, save_mdp
 from npbrs.inference.cli import compilation_cache_dir, main
 
 
@@ -144,14 +145,21 @@ def test_fit_on_the_demos_files_reproduces_the_demos_run(demo):
     assert short.num_draws == 2 and short.model_config.sampler.seed == 5
     # (--devices passes fit's devices=; the runs on several devices are test_devices.py's)
     # --init-from starts from a saved run's segmentation, as fit(init_segmentation=...) does
-    code, _, stderr = run_main(["fit", out / "demos.npz", "--domain", "highway", "--config", out / "config.toml",
-                                "--samples", "2", "--init-from", out / "run.nc", "-o", out / "init.nc", "--no-progress"])
+    with warnings.catch_warnings(record=True) as seen:
+        warnings.simplefilter("always")
+        code, stdout, stderr = run_main(["fit", out / "demos.npz", "--domain", "highway", "--config",
+                                         out / "config.toml", "--samples", "6", "--init-from", out / "run.nc", "-o",
+                                         out / "init.nc", "--no-progress"])
     assert code == 0, stderr
+    # six draws have not converged: the printed summary says so, and fit's warning is not repeated
+    assert "not converged" in stdout and not [w for w in seen if issubclass(w.category, ConvergenceWarning)]
     from npbrs.domains import Demonstrations, get_domain
     from npbrs.inference import fit
 
-    api = fit(get_domain("highway").mdp, Demonstrations.load(out / "demos.npz"), out / "config.toml", num_samples=2,
-              init_segmentation=load(out / "run.nc"), progress_bar=False)
+    with pytest.warns(ConvergenceWarning, match="npbrs.fit: not converged: .* result.summary") as seen:
+        api = fit(get_domain("highway").mdp, Demonstrations.load(out / "demos.npz"), out / "config.toml",
+                  num_samples=6, init_segmentation=load(out / "run.nc"), progress_bar=False)
+    assert [w.filename for w in seen if w.category is ConvergenceWarning] == [__file__]  # the user's call
     assert load(out / "init.nc").equals(api)
 
 

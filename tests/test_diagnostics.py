@@ -1,6 +1,8 @@
 """Diagnostics survive label switching: chains that number the same skills differently are
 matched back to one labelling before per-skill summaries; convergence uses label-invariant scalars."""
 
+import warnings
+
 import numpy as np
 import pytest
 
@@ -187,6 +189,16 @@ def test_the_summary_shows_arviz_diagnostics_and_says_when_a_run_has_not_converg
     drifting = _stats_result(rng.normal(size=(2, 200)) + np.linspace(0.0, 6.0, 200), mixed.stats["num_skills"][:2],
                              mixed.stats["num_switches"][:2])
     assert "log_joint" in drifting.convergence_warning() and " -> " in drifting.convergence_warning()
+    # fit warns (ConvergenceWarning, at the user's line) exactly when the summary says so
+    from npbrs.inference import ConvergenceWarning
+    from npbrs.inference.driver.fit import warn_if_unconverged
+
+    with pytest.warns(ConvergenceWarning, match="npbrs.fit: not converged: log_joint .*result.summary") as seen:
+        warn_if_unconverged(stuck)
+    assert [w.filename for w in seen] == [__file__]
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        warn_if_unconverged(mixed)
     # too short to split, and constant: undefined, never an overflowed number
     short = _stats_result(np.array([[1.0, 2.0, 3.0]]), np.full((1, 3), 3.0), np.array([[1.0, 1.0, 2.0]]))
     text = short.summary()

@@ -12,8 +12,10 @@
 from __future__ import annotations
 
 import argparse
+import contextlib
 import os
 import sys
+import warnings
 from typing import Optional
 
 from npbrs.domains.precision import float64_all
@@ -51,6 +53,17 @@ def use_compilation_cache() -> Optional[str]:
 
 
 # ------------------------------------------------------------------------------------ fit
+@contextlib.contextmanager
+def _summary_says_convergence():
+    """The commands print the run's summary, whose convergence lines say what ``fit``'s
+    ConvergenceWarning says: no second copy on stderr."""
+    from npbrs.inference.driver.results import ConvergenceWarning
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", ConvergenceWarning)
+        yield
+
+
 def _add_fit(sub):
     p = sub.add_parser("fit", help="segment demonstrations into skills (BP-HMM MCMC) and save the run",
                        description="Fit the BP-HMM to demonstrations and write the run (ArviZ netCDF). The model "
@@ -127,13 +140,14 @@ def fit_command(args) -> int:
     if args.resume and checkpoint and os.path.exists(checkpoint):
         print(f"resuming from {checkpoint}")
     try:
-        result = fit(mdp, demos, args.config, emission=args.emission, max_skills=args.max_skills,
-                     num_chains=args.chains, num_samples=args.samples, num_warmup=args.warmup, seed=args.seed,
-                     progress_bar=not args.no_progress, checkpoint_path=checkpoint,
-                     checkpoint_every=args.checkpoint_every or None, resume=args.resume, init_segmentation=init,
-                     devices=args.devices, max_samples=args.max_samples, target_rhat=args.target_rhat,
-                     time_budget=args.time_budget, restart_margin=args.restart_margin, grow=args.grow,
-                     switching=args.switching)
+        with _summary_says_convergence():
+            result = fit(mdp, demos, args.config, emission=args.emission, max_skills=args.max_skills,
+                         num_chains=args.chains, num_samples=args.samples, num_warmup=args.warmup, seed=args.seed,
+                         progress_bar=not args.no_progress, checkpoint_path=checkpoint,
+                         checkpoint_every=args.checkpoint_every or None, resume=args.resume, init_segmentation=init,
+                         devices=args.devices, max_samples=args.max_samples, target_rhat=args.target_rhat,
+                         time_budget=args.time_budget, restart_margin=args.restart_margin, grow=args.grow,
+                         switching=args.switching)
     except (OSError, ValueError) as e:  # a missing or unreadable --config among them
         message = str(e)
         if args.config and message.startswith("emission.options") and os.fspath(args.config) not in message:
@@ -300,7 +314,8 @@ def demo_command(args) -> int:
           f"chain{'s' if sampler.chains > 1 else ''} x ({sampler.warmup} warmup + {sampler.samples}) sweeps: "
           f"{config_path}")
     try:
-        result = fit(domain.mdp, demos, config, progress_bar=not args.no_progress)
+        with _summary_says_convergence():
+            result = fit(domain.mdp, demos, config, progress_bar=not args.no_progress)
     except ValueError as e:
         return command_error("demo", e)
     result.save(run_path)

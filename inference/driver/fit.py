@@ -44,7 +44,7 @@ from ..sampler.kernel import BPHMMKernel, initial_skills, initial_window
 from ..sampler.options import MOVE_DEFAULTS
 from .config import EmissionConfig, ModelConfig, PriorConfig
 from .threads import cores, on_threads, threads_for
-from .results import LABEL_INVARIANT, STEP_COUNTS, FitResult, label_invariant_diagnostic
+from .results import LABEL_INVARIANT, STEP_COUNTS, ConvergenceWarning, FitResult, label_invariant_diagnostic
 
 __all__ = ["fit", "make_emission", "resolve_config", "default_moves", "compilation_cache_dir", "use_compilation_cache",
            "device_mesh", "CHAINS", "TRAJECTORIES", "DEFAULT_GREEDY_TRIALS"]
@@ -935,6 +935,10 @@ def fit(mdp, demos: Demonstrations, config: Union[ModelConfig, dict, str, os.Pat
             seed giving the same fit), then the state fit from its.
     Returns:
         a :class:`~npbrs.inference.driver.results.FitResult`.
+    Warns:
+        ConvergenceWarning: the draws fail the label-invariant diagnostics (an R-hat above 1.05
+            or an ESS below 100; ``result.summary()`` says how each chain moved).
+        UserWarning: every skill slot was in use in most of the draws (without ``grow``).
     Raises:
         ValueError: bad demonstrations, configuration, devices or checkpoint, before anything is
             compiled.
@@ -954,9 +958,18 @@ def fit(mdp, demos: Demonstrations, config: Union[ModelConfig, dict, str, os.Pat
             raise ValueError("grow=True refits with more skill slots, which a checkpoint of one run cannot hold; "
                              "give either grow or checkpoint_path")
         prior = resolve_config(config, switching=switching).prior
-        if prior.switching != "auto":
-            return _fit_grown(args, grow)
-        return _fit_auto(args, grow, prior)
+        result = _fit_grown(args, grow) if prior.switching != "auto" else _fit_auto(args, grow, prior)
+    warn_if_unconverged(result)
+    return result
+
+
+def warn_if_unconverged(result: FitResult) -> None:
+    """A :class:`ConvergenceWarning` naming the user's call when ``result`` fails the
+    label-invariant diagnostics (what its summary says, in one line)."""
+    text = result.convergence_warning()
+    if text:
+        warnings.warn(f"npbrs.fit: {text.splitlines()[0]}; result.summary() shows how each chain moved",
+                      ConvergenceWarning, stacklevel=_user_stacklevel())
 
 
 #: ``switching="auto"``: the log Bayes factor (nats) of state-dependent ends over sticky switching,

@@ -49,8 +49,14 @@ from .config import ModelConfig
 #: ``fit``'s draws entry counting each step's skill slots over the sampling sweeps (C, N, T, K)
 STEP_COUNTS = "step_skill_counts"
 
-__all__ = ["FitResult", "LABEL_INVARIANT", "label_invariant_diagnostic", "RUN_FORMAT", "RUN_VERSION", "NETCDF_ENGINE",
-           "trajectory_rows"]
+__all__ = ["FitResult", "ConvergenceWarning", "LABEL_INVARIANT", "label_invariant_diagnostic", "RUN_FORMAT",
+           "RUN_VERSION", "NETCDF_ENGINE", "trajectory_rows"]
+
+
+class ConvergenceWarning(UserWarning):
+    """``fit``'s draws fail the label-invariant diagnostics (an R-hat above 1.05 or an ESS below
+    100: :meth:`FitResult.convergence_warning`). Silence it with
+    ``warnings.filterwarnings("ignore", category=npbrs.inference.ConvergenceWarning)``."""
 
 #: Scalars whose meaning does not depend on how skills are labelled: safe for R-hat and ESS
 #: across chains (skill labels switch between chains).
