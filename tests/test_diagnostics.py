@@ -203,5 +203,14 @@ def test_the_summary_shows_arviz_diagnostics_and_says_when_a_run_has_not_converg
     short = _stats_result(np.array([[1.0, 2.0, 3.0]]), np.full((1, 3), 3.0), np.array([[1.0, 1.0, 2.0]]))
     text = short.summary()
     assert "R-hat undefined ESS undefined" in text and "-1801" not in text
+    assert "not converged: log_joint, num_switches (R-hat above 1.05 or ESS below 100; undefined for log_joint, " \
+        "num_switches, which varies: fewer than 4 draws a chain" in text  # (num_skills is constant: converged)
     constant = _stats_result(rng.normal(size=(2, 50)), np.full((2, 50), 3.0), rng.normal(size=(2, 50)))
     assert np.isnan(constant.rhat["num_skills"]) and "num_skills R-hat undefined" in constant.summary()
+    assert "num_skills" not in constant.convergence_warning()  # the same in every draw of every chain
+    # two chains each constant at a different value: not converged, however ArviZ's R-hat comes out
+    # (infinite, or huge, by the draws' number)
+    apart = _stats_result(mixed.stats["log_joint"][:2], np.repeat([[3.0], [4.0]], 200, axis=1),
+                          mixed.stats["num_switches"][:2])
+    assert "not converged: num_skills (" in apart.convergence_warning()
+    assert "num_skills 3.00 -> 3.00 | 4.00 -> 4.00" in apart.convergence_warning()

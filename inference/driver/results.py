@@ -354,12 +354,23 @@ class FitResult:
         return label_invariant_diagnostic(self.stats, "ess")
 
     def convergence_warning(self) -> str:
-        """Lines saying which label-invariant scalars have R-hat above 1.05 or ESS below 100, how
-        each chain's mean of them moved from the first to the second half of its draws (a
-        chain still drifting, or chains holding different levels), and what to do; "" when
-        none has."""
+        """Lines saying which label-invariant scalars have R-hat above 1.05 or ESS below 100, or
+        diagnostics that are undefined although the scalar varies (fewer than 4 draws a chain,
+        or chains each constant at a different value: a scalar constant over every draw of
+        every chain is converged), how each chain's mean of them moved from the first to the
+        second half of its draws (a chain still drifting, or chains holding different levels),
+        and what to do; "" when none has."""
         rhat, ess = self.rhat, self.ess
-        bad = [n for n in LABEL_INVARIANT if rhat[n] > 1.05 or ess[n] < 100]  # (NaN compares False)
+        bad, undefined = [], []
+        for n in LABEL_INVARIANT:
+            x = np.asarray(self.stats[n], float)
+            if x.size == 0 or np.ptp(x) == 0:
+                continue
+            if not (np.isfinite(rhat[n]) and np.isfinite(ess[n])):
+                bad.append(n)
+                undefined.append(n)
+            elif rhat[n] > 1.05 or ess[n] < 100:
+                bad.append(n)
         if not bad:
             return ""
         halves = []
@@ -372,7 +383,11 @@ class FitResult:
                 halves.append(f"{name} {per_chain}")
         moved = ("\n  each chain's mean over the first -> the second half of its draws: " + "; ".join(halves)
                  if halves else "")
-        return (f"not converged: {', '.join(bad)} (R-hat above 1.05 or ESS below 100); run more sweeps "
+        why = "R-hat above 1.05 or ESS below 100"
+        if undefined:
+            why += (f"; undefined for {', '.join(undefined)}, which varies: fewer than 4 draws a chain, or chains "
+                    "each constant at a different value")
+        return (f"not converged: {', '.join(bad)} ({why}); run more sweeps "
                 f"(samples, warmup) or more chains before trusting the skills found{moved}\n  (a chain whose "
                 "halves differ is still moving: more warmup; chains steady at different levels sit in different "
                 "regions: more chains or sampling sweeps; fit(..., max_samples=N, time_budget=SECONDS) samples on "
