@@ -238,7 +238,7 @@ class Demonstrations:
         if not np.array_equal(self.lengths, other.lengths):
             return False
         mine, theirs = self._arrays(), other._arrays()
-        return all(np.array_equal(mine[k], theirs[k]) for k in ("lengths", "states", "actions"))
+        return all(np.array_equal(mine[k], theirs[k]) for k in ("states", "actions"))
 
     def __eq__(self, other):
         if not isinstance(other, Demonstrations):

@@ -44,7 +44,8 @@ from ..sampler.kernel import BPHMMKernel, initial_skills, initial_window
 from ..sampler.options import MOVE_DEFAULTS
 from .config import EmissionConfig, ModelConfig, PriorConfig
 from .threads import cores, on_threads, threads_for
-from .results import LABEL_INVARIANT, STEP_COUNTS, ConvergenceWarning, FitResult, label_invariant_diagnostic
+from .results import (LABEL_INVARIANT, STEP_COUNTS, ConvergenceWarning, FitResult, label_invariant_diagnostic,
+                      unconverged)
 
 __all__ = ["fit", "make_emission", "resolve_config", "default_moves", "compilation_cache_dir", "use_compilation_cache",
            "device_mesh", "CHAINS", "TRAJECTORIES", "DEFAULT_GREEDY_TRIALS"]
@@ -1339,9 +1340,7 @@ def _run_length(draws: dict, sampler, drawn: int, most: int, elapsed: float) -> 
     scalar over the draws so far and the rule that stops it ("converged", "max_samples",
     "time_budget"), or "running"."""
     rhat = label_invariant_diagnostic(draws, "rhat")
-    # (NaN: a constant scalar, converged if every chain holds the same value)
-    converged = all(v <= sampler.target_rhat if np.isfinite(v) else np.ptp(draws[k]) == 0 for k, v in rhat.items())
-    if converged:
+    if not unconverged(draws, rhat, target_rhat=sampler.target_rhat)[0]:  # (R-hat alone: the rule's target)
         stopped = "converged"
     elif drawn >= most:
         stopped = "max_samples"

@@ -49,7 +49,7 @@ from .config import ModelConfig
 #: ``fit``'s draws entry counting each step's skill slots over the sampling sweeps (C, N, T, K)
 STEP_COUNTS = "step_skill_counts"
 
-__all__ = ["FitResult", "ConvergenceWarning", "LABEL_INVARIANT", "label_invariant_diagnostic", "RUN_FORMAT",
+__all__ = ["FitResult", "ConvergenceWarning", "LABEL_INVARIANT", "label_invariant_diagnostic", "unconverged", "RUN_FORMAT",
            "RUN_VERSION", "NETCDF_ENGINE", "trajectory_rows"]
 
 
@@ -92,6 +92,28 @@ def label_invariant_diagnostic(stats: Dict[str, np.ndarray], which: str = "rhat"
     finally:
         logger.setLevel(level)
     return out
+def unconverged(stats: Dict[str, np.ndarray], rhat: Dict[str, float], ess: Optional[Dict[str, float]] = None,
+                target_rhat: float = 1.05, min_ess: float = 100.0):
+    """(failing, undefined): the label-invariant scalars in ``stats`` ({name: (chains, draws)})
+    that have not converged, and those of them whose diagnostics are undefined although they
+    vary (fewer than 4 draws a chain, chains each constant at a different value). A scalar
+    constant over every draw of every chain has converged; one that varies fails on an
+    undefined diagnostic, an R-hat above ``target_rhat`` or (where ``ess`` is given) an ESS
+    below ``min_ess``. ``rhat``, ``ess``: :func:`label_invariant_diagnostic`'s."""
+    failing, undefined = [], []
+    for name in LABEL_INVARIANT:
+        x = np.asarray(stats[name], float)
+        if x.size == 0 or np.ptp(x) == 0:
+            continue
+        values = [rhat[name]] + ([] if ess is None else [ess[name]])
+        if not np.all(np.isfinite(values)):
+            failing.append(name)
+            undefined.append(name)
+        elif rhat[name] > target_rhat or (ess is not None and ess[name] < min_ess):
+            failing.append(name)
+    return failing, undefined
+
+
 #: The ArviZ form's format name and version (``constant_data`` attributes), and the netCDF engine.
 RUN_FORMAT, RUN_VERSION = "npbrs-run", 1
 NETCDF_ENGINE = "h5netcdf"
@@ -353,24 +375,16 @@ class FitResult:
         """Bulk effective sample size (ArviZ) of the label-invariant scalars; NaN where undefined."""
         return label_invariant_diagnostic(self.stats, "ess")
 
-    def convergence_warning(self) -> str:
+    def convergence_warning(self, rhat: Optional[Dict[str, float]] = None,
+                            ess: Optional[Dict[str, float]] = None) -> str:
         """Lines saying which label-invariant scalars have R-hat above 1.05 or ESS below 100, or
-        diagnostics that are undefined although the scalar varies (fewer than 4 draws a chain,
-        or chains each constant at a different value: a scalar constant over every draw of
-        every chain is converged), how each chain's mean of them moved from the first to the
-        second half of its draws (a chain still drifting, or chains holding different levels),
-        and what to do; "" when none has."""
-        rhat, ess = self.rhat, self.ess
-        bad, undefined = [], []
-        for n in LABEL_INVARIANT:
-            x = np.asarray(self.stats[n], float)
-            if x.size == 0 or np.ptp(x) == 0:
-                continue
-            if not (np.isfinite(rhat[n]) and np.isfinite(ess[n])):
-                bad.append(n)
-                undefined.append(n)
-            elif rhat[n] > 1.05 or ess[n] < 100:
-                bad.append(n)
+        diagnostics that are undefined although the scalar varies (:func:`unconverged`), how
+        each chain's mean of them moved from the first to the second half of its draws (a
+        chain still drifting, or chains holding different levels), and what to do; "" when
+        none has. ``rhat``, ``ess``: the run's, where the caller has them already."""
+        rhat = self.rhat if rhat is None else rhat
+        ess = self.ess if ess is None else ess
+        bad, undefined = unconverged(self.stats, rhat, ess)
         if not bad:
             return ""
         halves = []
@@ -659,7 +673,7 @@ class FitResult:
 
         lines.append("label-invariant diagnostics (ArviZ): " + "; ".join(
             f"{n} R-hat {shown(rhat[n], '.3f')} ESS {shown(ess[n], '.0f')}" for n in LABEL_INVARIANT))
-        warning = self.convergence_warning()
+        warning = self.convergence_warning(rhat, ess)
         if warning:
             lines.append(warning)
         return "\n".join(lines)
