@@ -67,7 +67,7 @@ import numpy as np
 from npbrs.domains.pytree import Pytree
 from npbrs.domains.precision import float64_all
 
-__all__ = ["HMMData", "Emission", "EmissionInfo", "register_emission", "get_emission_class", "EMISSIONS",
+__all__ = ["HMMData", "Emission", "EmissionInfo", "register_emission", "get_emission_class", "make_emission", "EMISSIONS",
            "bucket_size"]
 
 
@@ -256,6 +256,29 @@ def get_emission_class(name: str):
     if name not in EMISSIONS:
         raise ValueError(f"unknown emission {name!r}; known emissions: {sorted(EMISSIONS)}")
     return EMISSIONS[name]
+
+
+def make_emission(emission, mdp, **options) -> Emission:
+    """An emission model from a registered name or an instance.
+
+    Args:
+        emission: a registered name ("reward", "policy", ...) or an :class:`Emission` instance.
+        mdp: the TabularMDP the emission's ``from_mdp`` builds it for.
+        **options: keyword options of the emission's ``from_mdp`` (none with an instance).
+    Returns:
+        the Emission.
+    """
+    if isinstance(emission, Emission):
+        if options:
+            raise ValueError(f"emission options {sorted(options)} given with an emission instance")
+        return emission
+    if not isinstance(emission, str):
+        raise ValueError(f"emission must be a registered name or an Emission, got {emission!r}")
+    cls = get_emission_class(emission)
+    try:
+        return cls.from_mdp(mdp, **options)
+    except TypeError as e:  # an unknown or missing option
+        raise ValueError(f"emission.options: {emission!r} does not take these options ({e})") from None
 
 
 @register_emission("policy")
