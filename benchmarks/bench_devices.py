@@ -27,6 +27,9 @@ import sys
 import time
 from datetime import datetime, timezone
 
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+from runinfo import run_info  # noqa: E402
+
 CHILD = r"""
 import json, os, sys, time
 import numpy as np
@@ -94,7 +97,7 @@ def main(argv=None):
     p.add_argument("--json", default=os.path.join(os.path.dirname(__file__), "results", "bench_devices.json"))
     p.add_argument("--note", default="", help="what else was running on the machine")
     args = p.parse_args(argv)
-    out = {"meta": {"date": datetime.now(timezone.utc).isoformat(timespec="seconds"), "python": sys.version.split()[0],
+    out = {"meta": {**run_info(), "date": datetime.now(timezone.utc).isoformat(timespec="seconds"),
                     "machine": platform.platform(), "cpus": os.cpu_count(), "trajectories": 1024,
                     "length": args.length, "sweeps": args.sweeps, "note": args.note}}
     out.update(compare(args.length, args.sweeps, os.path.splitext(args.json)[0], lambda m: print(m, flush=True)))

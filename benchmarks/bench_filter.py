@@ -1,9 +1,9 @@
 """The forward filter's cost against a log-space reference, alone and inside whole sweeps.
 
-``npbrs.models.hmm.forward_filter`` runs in probability space (session 22): the likelihoods are
+``npbrs.models.hmm.forward_filter`` runs in probability space: the likelihoods are
 exponentiated for all steps at once and the loop holds no exponential, only each step's
-normaliser's logarithm. The reference here is the recursion it replaced, written plainly in log
-space (a baseline for timing, not a second implementation the library uses):
+normaliser's logarithm. The reference here is the same recursion written plainly in log space
+(a baseline for timing, not a second implementation the library uses):
 
 - ``--part filter``: N trajectories x T steps x K skills (default 400 x 500 x 8: the benchmark
   grid's 200 trajectories, 2 chains), the log marginal alone (what the feature Gibbs step and
@@ -15,8 +15,9 @@ space (a baseline for timing, not a second implementation the library uses):
   in one process (caches cleared between); the median sweep of each kind (plain warmup, greedy,
   sampling), compilation left out.
 
-Prints the times and the ratios library / reference; ``--json PATH`` writes them with the load
-average before and after.
+Prints the times and the ratios library / reference, and writes them with the load average
+before and after, the command and the machine to ``--json PATH`` (default
+``benchmarks/results/bench_filter.json``).
 
     python benchmarks/bench_filter.py [--part filter,sweep] [--json PATH] [--note "what ran"]
 """
@@ -27,7 +28,11 @@ import argparse
 import json
 import os
 import platform
+import sys
 import time
+
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+from runinfo import processor, run_info  # noqa: E402
 
 os.environ.setdefault("NPBRS_CACHE_DIR", "off")
 
@@ -37,8 +42,8 @@ import numpy as np  # noqa: E402
 
 
 def reference_filter(log_init, log_trans, log_lik, mask=None, active=None, gate=None):
-    """The log-space forward filter (the library's until session 22), for timing: the
-    prediction a matrix product in probability space, everything else in logs."""
+    """A log-space forward filter, for timing: the prediction a matrix product in probability
+    space, everything else in logs."""
     from npbrs.models.hmm import NEG_LOG, _prepare, _prepare_lik
 
     if gate is not None:
@@ -160,7 +165,8 @@ def part_sweep(world_name: str, sweeps: int, chains: int) -> dict:
 def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--part", default="filter,sweep", help="comma-separated: filter, sweep")
-    parser.add_argument("--json", metavar="PATH", help="write the figures here")
+    parser.add_argument("--json", metavar="PATH", help="write the figures here (default: benchmarks/results/bench_filter.json)",
+                        default=os.path.join(os.path.dirname(os.path.abspath(__file__)), "results", "bench_filter.json"))
     parser.add_argument("--note", default="", help="what else was running on the machine")
     parser.add_argument("--size", default="400,500,8", help="N,T,K of --part filter")
     parser.add_argument("--repeats", type=int, default=9)
@@ -169,7 +175,9 @@ def main(argv=None):
     parser.add_argument("--chains", type=int, default=2)
     args = parser.parse_args(argv)
     out = {"benchmark": "bench_filter", "note": args.note, "started": time.strftime("%Y-%m-%d %H:%M:%S"),
-           "machine": {"cpus": os.cpu_count(), "platform": platform.platform(), "jax": jax.__version__}}
+           "command": run_info()["command"],
+           "machine": {"cpus": os.cpu_count(), "platform": platform.platform(), "processor": processor(),
+                       "jax": jax.__version__}}
     parts = [p.strip() for p in args.part.split(",") if p.strip()]
     if "filter" in parts:
         N, T, K = (int(x) for x in args.size.split(","))

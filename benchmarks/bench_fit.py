@@ -20,7 +20,7 @@ compiles on a thread of its own beside the initial state (``compile_sum_s`` is t
 larger when they overlap); ``sweep_ms`` = (total - compile) / sweeps (all chains sweep
 together, on the chains' threads by ``fit``'s default ``chain_method="auto"`` on a CPU).
 
-    python benchmarks/bench_fit.py --json benchmarks/results/bench_fit.json [--only tiny] [--cache]
+    python benchmarks/bench_fit.py [--json benchmarks/results/bench_fit.json] [--only tiny] [--cache]
         [--note "what else was running"]
 
 Times are absolute wall-clock seconds on the machine that runs this; the JSON records the load
@@ -37,17 +37,21 @@ import sys
 import time
 from datetime import datetime, timezone
 
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+from runinfo import run_info  # noqa: E402
+
 
 def main(argv=None):
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    p.add_argument("--json", required=True, help="where to write the figures (JSON)")
+    p.add_argument("--json", default=os.path.join(os.path.dirname(os.path.abspath(__file__)), "results", "bench_fit.json"),
+                   help="where to write the figures (JSON; default: benchmarks/results/bench_fit.json)")
     p.add_argument("--only", default="tiny,highway500,quadcopter500",
                    help="comma-separated parts: tiny, highway500, quadcopter500")
     p.add_argument("--cache", action="store_true", help="keep JAX's persistent cache on (npbrs's folder)")
     p.add_argument("--note", default="", help="what else was running on the machine")
     p.add_argument("--reference", default="", metavar="METHOD",
-                   help="also fit highway500 and quadcopter500 with this chain_method (e.g. vectorized, the "
-                        "default before session 37) after the default's fit, and print the ratio")
+                   help="also fit highway500 and quadcopter500 with this chain_method (e.g. vectorized) after "
+                        "the default's fit, and print the ratio")
     args = p.parse_args(argv)
     if not args.cache:
         os.environ["NPBRS_CACHE_DIR"] = "off"
@@ -60,7 +64,7 @@ def main(argv=None):
     import npbrs.inference  # noqa: F401
     from npbrs.domains import generate_demonstrations, highway, quadcopter
     from npbrs.inference import fit, hungarian_accuracy
-    out = {"meta": {"date": datetime.now(timezone.utc).isoformat(timespec="seconds"), "python": sys.version.split()[0],
+    out = {"meta": {**run_info(), "date": datetime.now(timezone.utc).isoformat(timespec="seconds"),
                     "jax": jax.__version__, "machine": platform.platform(), "cpus": os.cpu_count(),
                     "cache": bool(args.cache), "note": args.note},
            "import_s": round(time.perf_counter() - start, 2)}

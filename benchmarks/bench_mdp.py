@@ -5,6 +5,9 @@ in the same process.
     python benchmarks/bench_mdp.py [--json PATH] [--domains highway quadcopter] [--repeats 15]
                                    [--clock wall|process]
 
+writes the figures, with ``meta`` (the command, the machine and the device), to ``--json PATH``
+(default ``benchmarks/results/bench_mdp.json``).
+
 Figures (milliseconds; JAX timings exclude compilation and are the median of ``--repeats``
 runs; ``*_ratio`` = NumPy time / JAX time):
 
@@ -38,6 +41,9 @@ import sys
 import time
 
 import numpy as np
+
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+from runinfo import run_info  # noqa: E402
 
 TOL = 1e-8  # the solve figures' relative tolerance; gradients and fits use the library default
 
@@ -248,7 +254,8 @@ def _numpy_irl_eval_ms(ref, counts, D, prior_scale, num_evals=3):
 
 def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("--json", help="write the figures to this JSON file")
+    parser.add_argument("--json", default=os.path.join(os.path.dirname(os.path.abspath(__file__)), "results", "bench_mdp.json"),
+                        help="write the figures to this JSON file (default: benchmarks/results/bench_mdp.json)")
     parser.add_argument("--domains", nargs="+", default=["highway", "quadcopter"])
     parser.add_argument("--repeats", type=int, default=15, help="timed repetitions of each JAX figure")
     parser.add_argument("--numpy-repeats", type=int, default=1, help="timed repetitions of each NumPy figure")
@@ -263,10 +270,12 @@ def main(argv=None):
     jax.config.update("jax_enable_x64", True)
     print(f"jax {jax.__version__} on {jax.devices()[0].platform}, {os.cpu_count()} CPU cores, "
           f"{len(os.sched_getaffinity(0))} usable, {args.clock} clock")
-    results = {}
+    results = {"meta": {**run_info(), "jax": jax.__version__, "device": jax.devices()[0].device_kind,
+                        "clock": args.clock, "repeats": args.repeats}}
     for name in args.domains:
         results.update(bench_domain(name, args.repeats, args.numpy_repeats))
     if args.json:
+        os.makedirs(os.path.dirname(os.path.abspath(args.json)), exist_ok=True)
         tmp = args.json + ".tmp"
         with open(tmp, "w") as f:
             json.dump(results, f, indent=2, sort_keys=True)

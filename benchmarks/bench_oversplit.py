@@ -10,17 +10,24 @@ default start are a mixing failure, not what the posterior prefers.
 
     python benchmarks/bench_oversplit.py --domain quadcopter --seeds 0 1 2 [--chains 1]
         [--warmup 20] [--samples 20] [--moves '{"split_merge": 1}'] [--starts default truth]
-        [--json out.json]
+        [--json PATH]
+
+writes the rows, with the command and the machine, to ``--json PATH`` (default
+``benchmarks/results/bench_oversplit.json``).
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 import time
 
 import numpy as np
+
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+from runinfo import run_info  # noqa: E402
 
 
 def main(argv=None):
@@ -33,7 +40,8 @@ def main(argv=None):
     parser.add_argument("--moves", type=json.loads, default=None, help="the kernel's moves, as JSON")
     parser.add_argument("--starts", nargs="+", choices=("default", "truth"), default=["default", "truth"],
                         help="which starts to fit from")
-    parser.add_argument("--json", metavar="PATH", help="write the rows as JSON")
+    parser.add_argument("--json", metavar="PATH", help="write the rows as JSON (default: benchmarks/results/bench_oversplit.json)",
+                        default=os.path.join(os.path.dirname(os.path.abspath(__file__)), "results", "bench_oversplit.json"))
     args = parser.parse_args(argv)
 
     from npbrs.domains.demos import generate_demonstrations
@@ -69,8 +77,9 @@ def main(argv=None):
             print(f"{seed:>4} {start:>8} {row['skills']:>6} {row['hungarian']:>9.3f} {row['mean_log_joint']:>15.1f} "
                   f"{row['max_log_joint']:>14.1f} {wall:>6.0f}s  {sizes}", flush=True)
     if args.json:
+        os.makedirs(os.path.dirname(os.path.abspath(args.json)), exist_ok=True)
         with open(args.json, "w") as f:
-            json.dump({"domain": args.domain, "chains": args.chains, "warmup": args.warmup,
+            json.dump({"meta": run_info(), "domain": args.domain, "chains": args.chains, "warmup": args.warmup,
                        "samples": args.samples, "moves": args.moves, "rows": rows}, f, indent=1)
     return rows
 

@@ -2,10 +2,10 @@
 reward emission) and in a whole fit, against solving every slot, in the same process.
 
 The reward move's solves cost about their batch size times one skill's on MDPs with many
-(state, action) entries (``npbrs.models.reward_mala.BATCH_ENTRIES``): there the kernel now
+(state, action) entries (``npbrs.models.reward_mala.BATCH_ENTRIES``): there the kernel
 solves only the active skills, ``chunk_size`` at a time. The reference run sets
-``BATCH_ENTRIES`` so high that every slot is solved at once (the kernel's behaviour before):
-the same draws for the active skills, up to the solver's tolerance.
+``BATCH_ENTRIES`` so high that every slot is solved at once: the same draws for the active
+skills, up to the solver's tolerance.
 
 For each domain (highway: 1080 states x 3 actions; quadcopter: 11664 x 4), it times
 
@@ -15,7 +15,8 @@ For each domain (highway: 1080 states x 3 actions; quadcopter: 11664 x 4), it ti
 - ``fit`` (``--fit``): a default 2-chain fit of 8 x 128 steps (20 + 20 sweeps), the seconds per
   sweep with compilation taken out (JAX's monitoring events).
 
-Prints each figure for both settings and their ratio, and writes them with ``--json PATH``.
+Prints each figure for both settings and their ratio, and writes them, with the command and the
+machine, to ``--json PATH`` (default ``benchmarks/results/bench_reward_move.json``).
 Times are absolute seconds under whatever else runs on the machine; say what that was
 (``--note``).
 
@@ -29,13 +30,18 @@ import json
 import os
 import platform
 import statistics
+import sys
 import time
 from datetime import datetime, timezone
+
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+from runinfo import run_info  # noqa: E402
 
 
 def main(argv=None):
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    p.add_argument("--json", help="write the figures here (JSON)")
+    p.add_argument("--json", default=os.path.join(os.path.dirname(os.path.abspath(__file__)), "results", "bench_reward_move.json"),
+                   help="write the figures here (JSON; default: benchmarks/results/bench_reward_move.json)")
     p.add_argument("--fit", action="store_true", help="also time a whole tiny highway fit per setting")
     p.add_argument("--domains", default="highway,quadcopter")
     p.add_argument("--note", default="", help="what else was running on the machine")
@@ -57,7 +63,7 @@ def main(argv=None):
 
     default_entries = reward_mala.BATCH_ENTRIES
     settings = {"active only": default_entries, "every slot": 10 ** 12}
-    out = {"meta": {"date": datetime.now(timezone.utc).isoformat(timespec="seconds"), "jax": jax.__version__,
+    out = {"meta": {**run_info(), "date": datetime.now(timezone.utc).isoformat(timespec="seconds"), "jax": jax.__version__,
                     "machine": platform.platform(), "cpus": os.cpu_count(), "note": args.note}}
 
     for name in [d for d in args.domains.split(",") if d]:
@@ -119,6 +125,7 @@ def main(argv=None):
         out["tiny_fit"] = row
 
     if args.json:
+        os.makedirs(os.path.dirname(os.path.abspath(args.json)), exist_ok=True)
         with open(args.json, "w") as f:
             json.dump(out, f, indent=1)
     return 0

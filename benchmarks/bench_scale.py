@@ -8,7 +8,10 @@ the sampler in the number of trajectories N (``--part trajectories``).
 
 ``--part all`` runs states, trajectories and devices and writes every key of the issue in one
 JSON (``exponent_n``, ``exponent_s``, ``solve_1e6_cold_s``, ``fit_n1024_peak_mb``,
-``devices4_ratio``); ``--part memory`` runs a whole default fit alone (below).
+``devices4_ratio``); ``--part memory`` runs a whole default fit alone (below). The JSON, with
+the command and the machine, goes to ``--json PATH``; by default
+``benchmarks/results/bench_scale.json`` for ``--part all``, ``bench_scale_PART.json`` beside it
+for the other parts.
 
 Devices. One chain's 1024 highway trajectories of ``--device-length`` steps, its trajectories
 sharded over 4 CPU host devices against 1 device, each in a process of its own
@@ -40,11 +43,10 @@ runs in a fresh process of its own (so that its peak memory is its own), and rep
 
 - ``build_s``: building the world; ``first_call_s``: the first solve from V = 0, compilation
   included (no persistent compilation cache: what a new process pays;
-  ``solve_1e6_first_call_s``). ``--skills 1`` measures one reward table alone:
-  ``results/bench_scale_states_k1.json``;
+  ``solve_1e6_first_call_s``). ``--skills 1`` measures one reward table alone;
 - ``solve_s``: the same solve again, compiled (the median of ``--repeats``; ``solve_runs_s``
   all of them). This is the cold solve, ``solve_1e6_cold_s``: from V = 0, as in "a cold soft
-  solve takes 7 ms, a warm one 1.9 ms" (until session 20 that key held the first call);
+  solve takes 7 ms, a warm one 1.9 ms";
 - ``warm_start_s``: a solve after the rewards change by a relative 1e-3, started from the
   previous values (a sampler's or an optimiser's step; the median of ``--repeats``);
 - ``*_cpu_s``: the same figures in CPU time of the process (all its threads): on a shared machine
@@ -78,6 +80,9 @@ import time
 import numpy as np
 
 HERE = os.path.dirname(os.path.abspath(__file__))
+sys.path.insert(0, HERE)
+from runinfo import processor  # noqa: E402
+
 DEFAULT_SIZES = (10 ** 4, 10 ** 5, 10 ** 6)
 
 
@@ -412,7 +417,8 @@ def part_memory(args) -> dict:
 
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("--json", help="write the results here")
+    parser.add_argument("--json", help="write the results here (default: benchmarks/results/bench_scale.json for "
+                                       "--part all, bench_scale_PART.json for another part)")
     parser.add_argument("--part", choices=("states", "trajectories", "devices", "sweep", "memory", "all"),
                         default="states",
                         help="all: states, trajectories and devices (sweep and memory run alone)")
@@ -447,10 +453,14 @@ def main(argv=None) -> int:
         print(json.dumps(measure_states(int(args._states_child), args.skills, args.repeats)))
         return 0
 
+    if args.json is None:
+        name = "bench_scale.json" if args.part == "all" else f"bench_scale_{args.part}.json"
+        args.json = os.path.join(os.path.dirname(os.path.abspath(__file__)), "results", name)
     import jax
 
     report = {"benchmark": "bench_scale", "command": " ".join([os.path.basename(sys.executable)] + sys.argv),
-              "machine": {"cpus": os.cpu_count(), "platform": platform.platform(), "python": platform.python_version(),
+              "machine": {"cpus": os.cpu_count(), "platform": platform.platform(), "processor": processor(),
+                          "python": platform.python_version(),
                           "jax": jax.__version__, "xla_flags": os.environ.get("XLA_FLAGS", "")},
               "started": time.strftime("%Y-%m-%d %H:%M:%S"), "note": args.note, "machine_at_start": machine_state()}
     if args.part in ("states", "all"):

@@ -32,14 +32,14 @@ reports per world:
   memory of the process that generated the world and ran that fit (each world runs in a process
   of its own), measured right after the fit.
 
-    python benchmarks/bench_worlds.py --json benchmarks/results/bench_worlds.json
+    python benchmarks/bench_worlds.py [--json benchmarks/results/bench_worlds.json]
         [--worlds tabular_grid,labyrinth] [--quick] [--seed 0] [--note "what ran, how"]
         [--fit-options '{"switching": "state"}'] [--cache]
 
 JAX's persistent compilation cache is off unless ``--cache``: ``fit`` would otherwise reuse the
 programs an earlier run left in npbrs's folder, and the wall time and peak memory would say
-whether one had (session 28: the labyrinth's default fit 66 s and 1.0 GB with a warm cache,
-84-90 s and 1.9-2.2 GB cold).
+whether one had (the labyrinth's default fit: 66 s and 1.0 GB with a warm cache, 84-90 s and
+1.9-2.2 GB cold).
 
 ``--fit-options`` (JSON) gives the fitted model's ``fit`` keyword arguments (for a model variant
 measured the same way: the single-reward comparison keeps the defaults); the JSON records them.
@@ -68,7 +68,11 @@ from datetime import datetime, timezone
 
 import numpy as np
 
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+from runinfo import processor  # noqa: E402
+
 WORLD_NAMES = ("tabular_grid", "labyrinth", "rooms")
+DEFAULT_JSON = os.path.join(os.path.dirname(os.path.abspath(__file__)), "results", "bench_worlds.json")
 
 QUICK_SIZES = {
     "tabular_grid": dict(num_trajectories=8, length=60, num_heldout=4),
@@ -257,7 +261,9 @@ def markdown(rows: dict, meta: dict) -> str:
 
 def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], allow_abbrev=False)
-    parser.add_argument("--json", metavar="PATH", required=True, help="write (or update) the rows here")
+    parser.add_argument("--json", metavar="PATH",
+                        help="write (or update) the rows here (default: benchmarks/results/bench_worlds.json; "
+                             "--quick needs a PATH of its own)")
     parser.add_argument("--worlds", default=",".join(WORLD_NAMES),
                         help=f"comma-separated worlds to run (default: {','.join(WORLD_NAMES)})")
     parser.add_argument("--quick", action="store_true", help="tiny worlds and short fits (a smoke test)")
@@ -272,6 +278,10 @@ def main(argv=None):
                              "runs (a warm cache hid a fit's compile and about 1 GB of its peak memory)")
     parser.add_argument("--child", metavar="WORLD", help=argparse.SUPPRESS)  # one world in this process
     args = parser.parse_args(argv)
+    if args.json is None:
+        if args.quick:
+            parser.error("--quick: give --json PATH (the default file holds the measurement)")
+        args.json = DEFAULT_JSON
     if not args.cache:
         os.environ["NPBRS_CACHE_DIR"] = "off"  # (the world processes inherit it)
     try:
@@ -319,7 +329,7 @@ def main(argv=None):
     meta.update({"started": meta.get("started", started) if set(rows) - set(worlds) else started,
                  "finished": _now(), "machine": f"{platform.node()}, {os.cpu_count()} CPUs, {platform.platform()}",
                  "python": sys.version.split()[0], "seed": args.seed, "note": UNKNOWN_LOAD,
-                 "command": " ".join([os.path.basename(sys.executable), *sys.argv])})
+                 "processor": processor(), "command": " ".join([os.path.basename(sys.executable), *sys.argv])})
     meta.pop("run_note", None)  # a note describes the run that passes it
     meta["persistent_cache"] = bool(args.cache)
     if args.note:

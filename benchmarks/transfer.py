@@ -57,7 +57,7 @@ def true_segmentation_rewards(domain, demos, prior_scale=None):
     """(K, D) MAP IRL weights of each true skill from its own steps (the reward emission's fit)."""
     import jax.numpy as jnp
 
-    from npbrs.inference.driver.fit import make_emission
+    from npbrs.models.emissions import make_emission
     from npbrs.models.emissions import HMMData
 
     options = {"refit_steps": 50, **({"prior_scale": prior_scale} if prior_scale else {})}
