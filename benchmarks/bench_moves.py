@@ -7,9 +7,10 @@ For each move setting, 8 chains run 40 sweeps; a chain has *recovered* the skill
 sweep where it uses at most 3 skills and labels at least 90% of the steps correctly under
 one-to-one matching. Prints, per setting, the sweeps each chain needed (41: not within 40),
 their median, the skills each chain ends with, and the wall time (compilation included);
-``--json PATH`` writes the same.
+``--json PATH`` (default ``benchmarks/results/bench_moves.json``) gets the same, with the command
+and the machine.
 
-    python benchmarks/bench_moves.py [--seed 0] [--chains 8] [--sweeps 40] [--json out.json]
+    python benchmarks/bench_moves.py [--seed 0] [--chains 8] [--sweeps 40] [--json PATH]
 """
 
 from __future__ import annotations
@@ -24,15 +25,16 @@ import jax
 import numpy as np
 
 sys.path.insert(0, os.path.join(os.path.dirname(__file__), "..", "tests"))
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 
 from gridworld import gridworld  # noqa: E402
 
 from npbrs.domains.demos import generate_demonstrations  # noqa: E402
 from npbrs.domains.precision import float64  # noqa: E402
-from npbrs.inference.driver.fit import make_emission  # noqa: E402
 from npbrs.inference.sampler.kernel import BPHMMKernel  # noqa: E402
 from npbrs.inference.analysis.metrics import hungarian_accuracy  # noqa: E402
-from npbrs.models.emissions import HMMData  # noqa: E402
+from npbrs.models.emissions import HMMData, make_emission  # noqa: E402
+from runinfo import run_info  # noqa: E402
 
 SETTINGS = {"gibbs only": {}, "birth/death 2": {"birth_death": 2}, "split-merge 1": {"split_merge": 1},
             "both": {"birth_death": 2, "split_merge": 1}}
@@ -72,7 +74,8 @@ def main(argv=None):
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--chains", type=int, default=8)
     parser.add_argument("--sweeps", type=int, default=40)
-    parser.add_argument("--json", default=None)
+    parser.add_argument("--json", default=os.path.join(os.path.dirname(os.path.abspath(__file__)), "results", "bench_moves.json"),
+                        help="write the figures here (default: benchmarks/results/bench_moves.json)")
     parser.add_argument("--init-skills", type=int, default=5, help="skills of the initial state (5: over-segmented)")
     parser.add_argument("--settings", nargs="+", choices=list(SETTINGS), default=list(SETTINGS))
     args = parser.parse_args(argv)
@@ -81,7 +84,8 @@ def main(argv=None):
     data = HMMData.from_demonstrations(demos)
     true = [np.asarray(t) for t in demos.skills]
     emission = make_emission("reward", dom.mdp)
-    out = {}
+    out = {"meta": {**run_info(), "jax": jax.__version__, "seed": args.seed, "chains": args.chains,
+                    "sweeps": args.sweeps, "init_skills": args.init_skills}}
     for name in args.settings:
         moves = SETTINGS[name]
         hits, final, wall = sweeps_to_recover(data, true, emission, moves, args.chains, args.sweeps, args.seed,
@@ -91,6 +95,7 @@ def main(argv=None):
         print(f"{name:14s} sweeps to recover {hits}  median {np.median(hits):4.1f}  final skills {final}  "
               f"wall {wall:6.1f} s", flush=True)
     if args.json:
+        os.makedirs(os.path.dirname(os.path.abspath(args.json)), exist_ok=True)
         with open(args.json, "w") as fh:
             json.dump(out, fh, indent=1)
 
