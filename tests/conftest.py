@@ -252,7 +252,7 @@ def _library_level(request, monkeypatch):
     call. (The level set in ``XLA_FLAGS`` by whoever runs the suite is left alone.) Measured on
     two cores, cold, one process: the four files with marked tests (reproduction, control, IRL,
     greedy) took 86.5 CPU-seconds instead of 103.5. Every program at level 1 is no choice: the
-    whole suite took 504 s instead of 352 s so (session 36)."""
+    whole suite took 504 s instead of 352 s so."""
     if _LEVEL_SET_HERE and request.node.get_closest_marker("library_level"):
         flags = " ".join(f for f in os.environ["XLA_FLAGS"].split() if "xla_backend_optimization_level" not in f)
         monkeypatch.setenv("XLA_FLAGS", flags)

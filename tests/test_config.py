@@ -102,7 +102,7 @@ def test_the_initial_windows_are_the_emissions_unless_the_configuration_sets_the
 
 def test_the_initial_skills_are_every_slot_for_one_weight_per_state_unless_the_configuration_sets_them():
     """``init_skills`` left open: every slot for rewards of more than 16 weights (a start with
-    fewer skills than the data lumps goals into one: ``benchmarks/NOTES.md``, session 45), else
+    fewer skills than the data lumps goals into one, as on the rooms world), else
     half of them, as the kernel takes it too; ``fit`` records it; a given value wins, and one
     above ``max_skills`` is refused by name."""
     from gridworld import gridworld

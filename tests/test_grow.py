@@ -22,7 +22,7 @@ def test_a_saturated_truncation_grows_and_the_refit_is_a_fit_with_more_slots(pro
     mdp, demos = problem
     with pytest.warns(UserWarning, match=r"all 2 skill slots were in use in 100% .* max_skills=4 or with grow=True") as seen:
         small = fit(mdp, demos, max_skills=2, **KW)
-    # the warning names the user's call, not a line of npbrs (until session 48: fit.py's)
+    # the warning names the user's call, not a line of npbrs
     assert [w.filename for w in seen if "skill slots" in str(w.message)] == [__file__]
     assert saturation(small) == (2, 1.0) and small.truncation is None
     grown = fit(mdp, demos, max_skills=2, grow=True, **KW)

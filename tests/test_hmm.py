@@ -409,9 +409,9 @@ def test_the_gated_filters_gradients_are_the_posterior_marginals_and_finite_diff
     """d log p(x) / d log_lik[t, k] is p(z_t = k | x) (Fisher's identity: what a move that
     sums the skill sequences out differentiates), with state-dependent ends, a padded step, an
     inactive skill and a trajectory whose first step is not its first row; d / d gate matches
-    central differences. (Until session 48 the gated filter's gradient was NaN at each
-    trajectory's first step: its unused prediction there, floored at exp(-700), was divided
-    by its sum inside a ``where``; the zero cotangent times 1 / exp(-700) overflowed.)"""
+    central differences; all finite at each trajectory's first step (its unused prediction there,
+    floored at exp(-700), must not be divided by its sum inside a ``where``: the zero cotangent
+    times 1 / exp(-700) overflows)."""
     log_init, log_trans, log_lik, gate = gated_hmm(61, 3, 5, zero_diagonal=False)
     active = np.array([True, False, True])
     lls = np.stack([np.concatenate([log_lik, np.zeros((2, 3))]), np.concatenate([np.zeros((2, 3)), log_lik])])

@@ -341,7 +341,7 @@ def test_sweeps_alternated_with_simulated_data_sample_the_prior_with_rewards():
 
 @pytest.mark.slow
 def test_sweeps_alternated_with_simulated_data_sample_the_prior_with_student_t_rewards():
-    """The same with the reward emission's Student t prior per weight (``prior_df``; session 44):
+    """The same with the reward emission's Student t prior per weight (``prior_df``):
     its density and gradient in the MALA move, its draws for unused skills, and the proposals'
     ratios to it in the birth-death and split-merge moves. (Slow, as the Gaussian case.)"""
     results, threshold = joint_distribution_test(REWARD_T)

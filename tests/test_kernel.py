@@ -120,8 +120,8 @@ def test_vectorized_and_sequential_chains_give_the_same_draws():
     # (and with the warmup's greedy merges and splits, whose loops hold conds on per-chain values;
     # and with state-dependent ends, a sticky phase (a cond on the clock) and a sampled kappa)
     greedy = {"greedy_merge": 1, "greedy_split": 1, "greedy_from": 0.0}
-    # (greedy moves without the ends, a third case until session 44, added 15-20 s: their loops and
-    # conds are those of the case with the ends)
+    # (greedy moves without the ends would add 15-20 s and no case: their loops and conds are
+    # those of the case with the ends)
     for moves, extra in ((None, {}),
                          ({**greedy, "sticky_phase": 0.5},
                           {"termination": Termination(4), "hyperpriors": {"kappa": (2.0, 0.2)}})):

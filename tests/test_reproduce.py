@@ -149,8 +149,8 @@ def test_bad_methods_and_settings_are_refused():
 
 
 def test_a_methods_switching_setting_reaches_its_fit_and_the_record(oracle_fit, monkeypatch):
-    """``settings={"npbrs": {"switching": "state"}}`` (the state-dependent ends' table in
-    ``benchmarks/NOTES.md``, session 41) is passed to ``fit`` and kept in the result."""
+    """``settings={"npbrs": {"switching": "state"}}`` (a reproduction with state-dependent ends)
+    is passed to ``fit`` and kept in the result."""
     module = sys.modules["npbrs.inference.driver.fit"]
     inner, seen = module.fit, []
 

@@ -30,8 +30,7 @@ def converged(stats, n, target):
 
 def test_a_run_extends_until_the_label_invariant_rhat_reaches_its_target(tmp_path):
     # (a seed whose chains agree within the 60 draws: on this small problem about one seed in
-    # three does, the rest keep an extra skill in one chain; seed 0 did until the backward
-    # sampler's draws changed in session 49)
+    # three does, the rest keep an extra skill in one chain)
     kw = {**KW, "seed": 1, "num_warmup": 10}
     checkpoint = tmp_path / "run.ckpt.npz"
     result = fit(MDP, DEMOS, max_samples=60, target_rhat=1.1, checkpoint_path=checkpoint, **kw)

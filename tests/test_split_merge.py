@@ -1,11 +1,10 @@
 """Split-merge moves: the collapsed densities they use, and a split followed by the matching
 merge returns the state with reciprocal acceptance ratios.
 
-(A slow test that one chain recovered planted reward skills in fewer sweeps with a split-merge
-trial per sweep was removed in session 36: with the sampler's draws of today it no longer does,
-and over ``benchmarks/bench_moves.py``'s 8 chains the trials do not speed recovery either
-(median 28 sweeps against Gibbs' 20; ``results/bench_moves-session36.json``). The move is off
-by default; its exactness is tested here and in test_posterior.py.)"""
+(No test here that a split-merge trial per sweep speeds the recovery of planted reward skills:
+over ``benchmarks/bench_moves.py``'s 8 chains it does not (median 28 sweeps against Gibbs' 20;
+``benchmarks/results/bench_moves.json``). The move is off by default; its exactness is tested
+here and in test_posterior.py.)"""
 
 import itertools
 
@@ -182,8 +181,7 @@ def test_moves_start_runs_gibbs_before_the_start_sweep_and_the_moves_from_it():
     state = jax.jit(jax.vmap(gibbs.initial_state))(jax.random.split(jax.random.PRNGKey(3), 2))
     sweep = {k: jax.jit(lambda s, k=k: k.sample(s, (), {})) for k in (gibbs, always, early, late)}
     # until a split-merge trial is accepted, the four kernels agree (the moves' keys are drawn
-    # either way); the sweep where one is (the first, found here: it was sweep 8 until the
-    # sampler's draws changed in later sessions) tells the moves' start apart
+    # either way); the sweep where one is (the first, found here) tells the moves' start apart
     for step in range(30):
         new, with_moves = sweep[gibbs](state), sweep[always](state)
         if not _tree_equal(with_moves, new):

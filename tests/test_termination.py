@@ -246,8 +246,8 @@ def test_a_fit_with_state_dependent_ends_finds_where_the_planted_skills_end(tmp_
     ends = np.asarray(result.samples["ends"])[0].mean(0)  # (K, S) posterior means
     used = np.asarray(result.samples["skill_steps"])[0].mean(0) > 20
     typical = np.median(ends, axis=1)
-    # (the entrance's end was 0.28 at a ratio of 4.6 with the Student t reward prior of session 44,
-    # above 0.3 with the Gaussian before it: 0.25 is the floor)
+    # (the entrance's end is about 0.28 at a ratio of 4.6 with the Student t reward prior, above
+    # 0.3 with a Gaussian one: 0.25 is the floor)
     for goal in (world.params["water_port"], 0):  # the port, the entrance
         ratio = np.where(used, ends[:, goal] / typical, 0.0)
         assert ratio.max() > 2.5 and ends[np.argmax(ratio), goal] > 0.25, (goal, ends[:, goal], typical)
@@ -457,8 +457,8 @@ def test_the_sticky_phase_is_a_sticky_sweep_and_ends_after_it():
     counts in the phase; the gate not replaced by ones in the phase; the moves given the
     model's gate in the phase.) Every move reads its gate from one MoveState, so one move shows
     which gate they see: the greedy split, accepted often enough in these 7 sweeps to show it
-    (split-merge or birth-death moves alone did not catch that third change; with both on as
-    well, until session 44, the test compiled twice as long: 60-70 s against 33 s)."""
+    (split-merge or birth-death moves alone do not catch that third change; with both on as
+    well, the test would compile twice as long: 60-70 s against 33 s)."""
     data = ragged_data(7, N=5, T=25, pad=False)
     # (no greedy merges: on these data they merge every skill into one, and the sweeps after the
     # phase would then not differ from the sticky kernel's)

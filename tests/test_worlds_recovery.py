@@ -4,24 +4,23 @@ on an initial segmentation of 5-step windows: the reward emission's ``init_windo
 run (2 chains, 30 + 30 sweeps): the skills found and the share of steps they label right under
 one-to-one matching.
 
-What these small worlds show today with the default reward prior (``prior_scale="auto"``: sigma
+What these small worlds show with the default reward prior (``prior_scale="auto"``: sigma
 20 / sqrt(D) here, 3.2-4.0; fit seeds 0 / 1 / 2), the levels the tests hold so that a regression
 shows: the grid's two modes are found, labelled nearly as well as by the generating model's own
 Viterbi segmentation (0.948 / 0.933 / 0.949 against 0.98); rooms' three skills mostly (0.869 /
 0.852 / 0.845 against the oracle's 0.97); the labyrinth's three skills are found, but labelled
-little better than by its most common skill alone (0.735 / 0.698 / 0.671; the oracle 0.91; see
-``benchmarks/results/worlds-probes/`` and ``benchmarks/NOTES.md`` for why: the start and the
-mixing, and switching that depends on the state, which the sticky BP-HMM lacks;
+little better than by its most common skill alone (0.735 / 0.698 / 0.671; the oracle 0.91: the
+start and the mixing, and switching that depends on the state, which the sticky BP-HMM lacks;
 ``switching="state"`` has it, and ``tests/test_termination.py`` checks that a fit with it finds
 where the small labyrinth's skills end). A fit with one skill slot scores each world's most
 common skill's share and fails all three.
 
-Two chains, not one (session 40): one chain's accuracy on small rooms spreads from 0.56 to 0.90
-over fit seeds (10 of 24 seeds under the floor of 0.75, with session 39's sampler), so a change
-that moved one seed's rounding failed the test without changing the distribution; the best
-draw of two chains was above 0.75 for 11 of 12 seeds.
+Two chains, not one: one chain's accuracy on small rooms spreads from 0.56 to 0.90 over fit
+seeds (10 of 24 seeds under the floor of 0.75), so a change that moves one seed's rounding
+would fail the test without changing the distribution; the best draw of two chains is above
+0.75 for 11 of 12 seeds.
 
-Since session 42 the default switching is "auto": the labyrinth's and the grid's default fits
+The default switching is "auto": the labyrinth's and the grid's default fits
 are refitted with state-dependent ends (their sticky fits' skill sequences favour them), rooms'
 stay sticky; the tests check the choice, and the last one how it was made."""
 
