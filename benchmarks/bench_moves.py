@@ -30,7 +30,7 @@ sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 from gridworld import gridworld  # noqa: E402
 
 from npbrs.domains.demos import generate_demonstrations  # noqa: E402
-from npbrs.domains.precision import float64  # noqa: E402
+from npbrs.domains.util.precision import float64  # noqa: E402
 from npbrs.inference.sampler.kernel import BPHMMKernel  # noqa: E402
 from npbrs.inference.analysis.metrics import hungarian_accuracy  # noqa: E402
 from npbrs.models.emissions import HMMData, make_emission  # noqa: E402

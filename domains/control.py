@@ -22,7 +22,7 @@ from typing import Dict, Sequence
 import numpy as np
 
 from .solvers import greedy_policy, value_iteration
-from .precision import float64_all
+from .util.precision import float64_all
 
 __all__ = ["evaluate_control", "expert_control", "skill_policies", "replay"]
 
@@ -155,4 +155,4 @@ def expert_control(domain, demos, seed: int = 0) -> Dict:
     return evaluate_control(domain, demos, demos.skills, domain.expert_policies(), seed)
 
 
-float64_all(globals())  # npbrs.domains.precision: float64 inside, the user's setting outside
+float64_all(globals())  # npbrs.domains.util.precision: float64 inside, the user's setting outside

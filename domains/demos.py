@@ -13,8 +13,8 @@ from typing import Optional, Sequence
 
 import numpy as np
 
-from .files import atomic_savez
-from .precision import float64_all
+from .util.files import atomic_savez
+from .util.precision import float64_all
 
 __all__ = ["Demonstrations", "generate_demonstrations"]
 
@@ -315,4 +315,4 @@ def generate_demonstrations(domain, num_trajectories: int = 16, length: int = 50
     return Demonstrations(list(states), list(actions), list(skills), mdp_fingerprint=mdp.fingerprint())
 
 
-float64_all(globals())  # npbrs.domains.precision: float64 inside, the user's setting outside
+float64_all(globals())  # npbrs.domains.util.precision: float64 inside, the user's setting outside

@@ -11,7 +11,7 @@ import scipy.sparse as sp
 from scipy.sparse.linalg import spsolve
 
 from .domain import Domain
-from .precision import float64_all
+from .util.precision import float64_all
 
 __all__ = ["q_learning", "policy_values", "policy_return"]
 
@@ -153,4 +153,4 @@ def policy_return(mdp, reward, policy) -> float:
     return float(mdp.initial @ policy_values(mdp, reward, policy))
 
 
-float64_all(globals())  # npbrs.domains.precision: float64 inside, the user's setting outside
+float64_all(globals())  # npbrs.domains.util.precision: float64 inside, the user's setting outside

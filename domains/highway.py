@@ -65,7 +65,7 @@ from gymnasium import spaces
 
 from .domain import Domain
 from .mdp import TabularMDP
-from .precision import float64_all
+from .util.precision import float64_all
 
 __all__ = ["highway", "HighwayEnv", "SkillEnv", "encode", "decode", "sample_step", "render_highway", "CLOSING",
            "APPEAR", "LANE_CHANGE_SLOWDOWN", "FEATURE_NAMES", "SKILL_WEIGHTS", "ENV_ID", "WORLDS", "world_parameters"]
@@ -482,4 +482,4 @@ if ENV_ID not in gym.registry:
     gym.register(id=ENV_ID, entry_point=HighwayEnv, max_episode_steps=500)
 
 
-float64_all(globals())  # npbrs.domains.precision: float64 inside, the user's setting outside
+float64_all(globals())  # npbrs.domains.util.precision: float64 inside, the user's setting outside

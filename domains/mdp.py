@@ -13,7 +13,7 @@ from typing import Callable, Optional
 
 import numpy as np
 
-from .pytree import Pytree
+from .util.pytree import Pytree
 
 __all__ = ["TabularMDP"]
 

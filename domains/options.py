@@ -31,7 +31,7 @@ from typing import List, NamedTuple, Optional, Sequence
 import jax.numpy as jnp
 import numpy as np
 
-from .precision import float64_all
+from .util.precision import float64_all
 
 __all__ = ["Option", "OptionRun", "estimate_options", "termination_counts", "arrival_counts", "run_option"]
 
@@ -226,4 +226,4 @@ def run_option(env, option: Option, *, state=None, seed: Optional[int] = None, g
                      state, reason)
 
 
-float64_all(globals())  # npbrs.domains.precision: float64 inside, the user's setting outside
+float64_all(globals())  # npbrs.domains.util.precision: float64 inside, the user's setting outside

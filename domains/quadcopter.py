@@ -45,7 +45,7 @@ import numpy as np
 from .domain import Domain
 from .highway import SkillEnv
 from .mdp import TabularMDP
-from .precision import float64_all
+from .util.precision import float64_all
 
 __all__ = ["quadcopter", "QuadcopterEnv", "encode", "decode", "sample_step", "render_quadcopter", "HOOPS",
            "HOOP_NAMES", "FEATURE_NAMES", "SKILL_WEIGHTS", "ENV_ID", "WORLDS", "world_parameters"]
@@ -341,4 +341,4 @@ if ENV_ID not in gym.registry:
     gym.register(id=ENV_ID, entry_point=QuadcopterEnv, max_episode_steps=500)
 
 
-float64_all(globals())  # npbrs.domains.precision: float64 inside, the user's setting outside
+float64_all(globals())  # npbrs.domains.util.precision: float64 inside, the user's setting outside

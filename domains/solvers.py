@@ -61,10 +61,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .linalg import solve_upper
-from .pytree import Pytree
-from .compiling import jit
-from .precision import float64_all
+from .util.linalg import solve_upper
+from .util.pytree import Pytree
+from .util.compiling import jit
+from .util.precision import float64_all
 
 __all__ = ["next_value_operator", "soft_value_iteration", "value_iteration", "SolveResult",
            "boltzmann_log_policy", "greedy_policy", "make_soft_solver", "make_hard_solver",
@@ -1087,4 +1087,4 @@ def greedy_policy(Q, atol: float = 1e-9) -> np.ndarray:
     return np.argmax(Q >= best - atol * np.maximum(1.0, np.abs(best)), axis=-1)
 
 
-float64_all(globals())  # npbrs.domains.precision: float64 inside, the user's setting outside
+float64_all(globals())  # npbrs.domains.util.precision: float64 inside, the user's setting outside

@@ -52,7 +52,7 @@ import numpy as np
 from .demos import Demonstrations
 from .domain import Domain
 from .mdp import TabularMDP, set_frozen
-from .precision import float64_all
+from .util.precision import float64_all
 
 __all__ = ["World", "SkillProcess", "Oracle", "tabular_grid", "labyrinth", "rooms", "grid_mdp", "labyrinth_mdp",
            "rooms_mdp", "WORLDS"]
@@ -706,4 +706,4 @@ def rooms(seed: int = 0, *, size: int = 11, num_skills: int = 5, num_trajectorie
 WORLDS = {"tabular_grid": tabular_grid, "labyrinth": labyrinth, "rooms": rooms}
 
 
-float64_all(globals())  # npbrs.domains.precision: float64 inside, the user's setting outside
+float64_all(globals())  # npbrs.domains.util.precision: float64 inside, the user's setting outside

@@ -36,7 +36,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .emissions import Emission, EmissionInfo, register_emission
-from npbrs.domains.precision import float64_all
+from npbrs.domains.util.precision import float64_all
 
 __all__ = ["AutoregressiveEmission", "MNIWPosterior"]
 
@@ -194,4 +194,4 @@ class AutoregressiveEmission(Emission):
         return {"name": self.name, "v0": self.v0, "nu0": self.nu0, "s0": self.s0}
 
 
-float64_all(globals())  # npbrs.domains.precision: float64 inside, the user's setting outside
+float64_all(globals())  # npbrs.domains.util.precision: float64 inside, the user's setting outside

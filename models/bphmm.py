@@ -42,9 +42,9 @@ import numpyro.distributions as dist
 from jax.scipy.special import betaln
 
 from .hmm import NEG_LOG, batch_forward_filter, batch_viterbi, transition_counts
-from npbrs.domains.compiling import jit
+from npbrs.domains.util.compiling import jit
 from npbrs.domains.options import arrival_counts
-from npbrs.domains.precision import float64_all
+from npbrs.domains.util.precision import float64_all
 
 __all__ = ["Hyper", "Termination", "prior_distributions", "sample_prior_eta", "hmm_parameters", "eta_gamma_shapes", "eta_from_gammas",
            "end_gate", "end_counts", "end_log_prior", "sample_end_means", "sample_ends",
@@ -594,4 +594,4 @@ def log_joint_terms(omega, features, eta, params, log_marginals, hyper: Hyper, e
     return terms
 
 
-float64_all(globals())  # npbrs.domains.precision: float64 inside, the user's setting outside
+float64_all(globals())  # npbrs.domains.util.precision: float64 inside, the user's setting outside

@@ -48,12 +48,12 @@ them as attributes.
 A new emission model implements this protocol and registers itself with
 :func:`register_emission`; the sampler needs no change.
 
-An emission is a pytree (:class:`npbrs.domains.pytree.Pytree`): the compiled sweep takes it as an
+An emission is a pytree (:class:`npbrs.domains.util.pytree.Pytree`): the compiled sweep takes it as an
 argument, its array attributes (and npbrs objects such as a solver) as traced inputs and its
 other attributes as static options, so that another MDP or dataset of the same shapes reuses the
 program. An attribute holding a closure or jitted function over its arrays must be named in
 ``_pytree_derived`` and rebuilt by ``_pytree_rebuild``. Its methods run in float64
-(:mod:`npbrs.domains.precision`).
+(:mod:`npbrs.domains.util.precision`).
 """
 
 from __future__ import annotations
@@ -64,8 +64,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from npbrs.domains.pytree import Pytree
-from npbrs.domains.precision import float64_all
+from npbrs.domains.util.pytree import Pytree
+from npbrs.domains.util.precision import float64_all
 
 __all__ = ["HMMData", "Emission", "EmissionInfo", "register_emission", "get_emission_class", "make_emission", "EMISSIONS",
            "bucket_size"]
@@ -376,4 +376,4 @@ class PolicyEmission(Emission):
         return {"name": self.name, "concentration": self.concentration}
 
 
-float64_all(globals())  # npbrs.domains.precision: float64 inside, the user's setting outside
+float64_all(globals())  # npbrs.domains.util.precision: float64 inside, the user's setting outside

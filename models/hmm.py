@@ -35,7 +35,7 @@ from typing import Tuple
 
 import jax
 import jax.numpy as jnp
-from npbrs.domains.precision import float64_all
+from npbrs.domains.util.precision import float64_all
 
 __all__ = ["NEG_LOG", "forward_filter", "backward_sample", "smooth", "path_log_prob", "viterbi", "batch_forward_filter",
            "batch_backward_sample", "batch_smooth", "batch_viterbi", "transition_counts", "initial_counts"]
@@ -469,4 +469,4 @@ def initial_counts(z, mask, num_states: int) -> jax.Array:
     return _one_hot(z, mask, num_states)[..., 0, :]
 
 
-float64_all(globals())  # npbrs.domains.precision: float64 inside, the user's setting outside
+float64_all(globals())  # npbrs.domains.util.precision: float64 inside, the user's setting outside

@@ -42,8 +42,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..domains.solvers import SoftSolver, make_soft_solver
-from npbrs.domains.compiling import jit
-from npbrs.domains.precision import float64_all
+from npbrs.domains.util.compiling import jit
+from npbrs.domains.util.precision import float64_all
 
 __all__ = ["PRIOR_SCALE", "count_table", "log_policy", "step_log_likelihoods", "count_log_likelihood",
            "count_log_likelihood_and_values",
@@ -619,4 +619,4 @@ def _fit_jit(solver, counts, theta0, v0, prior_scale, num_steps, history, epsilo
 _FIT_JIT = jit(fit_reward, static_argnums=(5, 6, 7, 8, 10))  # temperature is traced
 
 
-float64_all(globals())  # npbrs.domains.precision: float64 inside, the user's setting outside
+float64_all(globals())  # npbrs.domains.util.precision: float64 inside, the user's setting outside

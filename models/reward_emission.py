@@ -51,14 +51,14 @@ import numpy as np
 import numpyro
 import numpyro.distributions as dist
 
-from ..domains import linalg
+from ..domains.util import linalg
 from ..domains.solvers import make_soft_solver
 from .emissions import Emission, EmissionInfo, register_emission
 from . import reward_mala
 from .mcmc import metropolis_accept, select
 from .reward import (check_prior_df, count_log_likelihood_and_values, count_table, fisher_information, fit_reward,
                      log_policy, log_prior, prior_curvature, step_log_likelihoods)
-from npbrs.domains.precision import float64_all
+from npbrs.domains.util.precision import float64_all
 
 __all__ = ["RewardEmission", "SingleRewardEmission", "auto_prior_scale", "auto_prior_df"]
 
@@ -729,4 +729,4 @@ class SingleRewardEmission(RewardEmission):
     fixed_max_skills = 1
 
 
-float64_all(globals())  # npbrs.domains.precision: float64 inside, the user's setting outside
+float64_all(globals())  # npbrs.domains.util.precision: float64 inside, the user's setting outside

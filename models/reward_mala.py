@@ -33,8 +33,8 @@ import numpy as np
 
 from .mcmc import metropolis_accept, select
 from .reward import PRIOR_SCALE, Posterior, as_solver, check_prior_df, log_posterior
-from npbrs.domains.compiling import jit
-from npbrs.domains.precision import float64_all
+from npbrs.domains.util.compiling import jit
+from npbrs.domains.util.precision import float64_all
 
 __all__ = ["RewardMALAState", "RewardMALAInfo", "init", "build_kernel", "unevaluated"]
 
@@ -215,4 +215,4 @@ def build_kernel(solver, prior_scale=PRIOR_SCALE, *, temperature: float = 1.0, e
     return kernel
 
 
-float64_all(globals())  # npbrs.domains.precision: float64 inside, the user's setting outside
+float64_all(globals())  # npbrs.domains.util.precision: float64 inside, the user's setting outside

@@ -52,8 +52,8 @@ import numpy as np
 from npbrs.domains.solvers import make_soft_solver
 
 from .emissions import Emission, EmissionInfo, HMMData, register_emission
-from npbrs.domains.compiling import jit
-from npbrs.domains.precision import float64_all
+from npbrs.domains.util.compiling import jit
+from npbrs.domains.util.precision import float64_all
 
 __all__ = ["SubgoalEmission", "visited_states"]
 
@@ -293,4 +293,4 @@ class SubgoalEmission(Emission):
 # one compiled candidate table per emission structure and shapes, not a new jit per emission
 _SOLVE_CANDIDATES = jit(SubgoalEmission._solve_candidates)
 
-float64_all(globals())  # npbrs.domains.precision: float64 inside, the user's setting outside
+float64_all(globals())  # npbrs.domains.util.precision: float64 inside, the user's setting outside

@@ -15,7 +15,7 @@ fusion emitters where the installed jaxlib has that switch (a third less compile
 differ from the default emitters' in rounding only) and each program's machine code in one
 piece (``OPTIONAL_FLAGS``), unless ``XLA_FLAGS`` already sets them. A test marked
 ``library_level`` compiles npbrs's programs at the library's own level instead (LLVM level 1,
-``npbrs.domains.compiling``): for tests whose small programs run long (solves repeated to
+``npbrs.domains.util.compiling``): for tests whose small programs run long (solves repeated to
 convergence), which LLVM's level 0 runs several times slower.
 
 The suite runs in two pytest-xdist worker processes (``addopts`` in pyproject.toml), each
@@ -248,7 +248,7 @@ class _Usage:
 @pytest.fixture(autouse=True)
 def _library_level(request, monkeypatch):
     """``@pytest.mark.library_level``: npbrs's programs compile at the library's LLVM level (1)
-    rather than the suite's 0, which ``npbrs.domains.compiling`` reads from ``XLA_FLAGS`` at each
+    rather than the suite's 0, which ``npbrs.domains.util.compiling`` reads from ``XLA_FLAGS`` at each
     call. (The level set in ``XLA_FLAGS`` by whoever runs the suite is left alone.) Measured on
     two cores, cold, one process: the four files with marked tests (reproduction, control, IRL,
     greedy) took 86.5 CPU-seconds instead of 103.5. Every program at level 1 is no choice: the

@@ -176,7 +176,7 @@ def _program_texts(monkeypatch, *args, **kwargs) -> list:
 def test_the_reward_emissions_programs_call_no_library_kernel(monkeypatch):
     """fit's defaults with the reward emission (its greedy moves included), on a few reward
     features and on one per state: the init's and the sweep's programs call no library kernel
-    (npbrs.domains.linalg's plain-XLA Cholesky and solves instead of LAPACK's), so with any
+    (npbrs.domains.util.linalg's plain-XLA Cholesky and solves instead of LAPACK's), so with any
     jaxlib their chains run on every core. It failed with jnp.linalg.slogdet / cholesky / inv,
     numpyro's MultivariateNormal and jax.scipy's solve_triangular (GMRES) in them."""
     from gridworld import gridworld

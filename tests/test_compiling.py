@@ -1,5 +1,5 @@
 """npbrs compiles its own programs with LLVM's optimisation level 1 on the CPU, those a fit runs
-once with XLA's older fusion emitters too (:mod:`npbrs.domains.compiling`), as per-program
+once with XLA's older fusion emitters too (:mod:`npbrs.domains.util.compiling`), as per-program
 compile options: the user's ``XLA_FLAGS`` win, other backends are left alone, and the wrapped
 functions work where ``jax.jit`` does, inside other traces too (JAX refuses compile options on a
 nested jit)."""
@@ -11,8 +11,8 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from npbrs.domains import compiling
-from npbrs.domains.compiling import compiler_options, jit
+from npbrs.domains.util import compiling
+from npbrs.domains.util.compiling import compiler_options, jit
 
 
 def _record_jits(monkeypatch):
@@ -41,16 +41,16 @@ def test_a_program_run_once_also_gets_the_older_emitters_where_xla_takes_them(mo
     """The initial state compiles with XLA's older fusion emitters (it compiles faster), where
     the installed XLA accepts the option (asked once, by compiling a tiny program) and
     ``XLA_FLAGS`` does not name it; an option XLA does not know is left out, not an error."""
-    takes = compiling._accepted("xla_cpu_use_fusion_emitters", False)
+    takes = compiling.accepted("xla_cpu_use_fusion_emitters", False)
     emitters = {"xla_cpu_use_fusion_emitters": False} if takes else {}
     assert compiler_options("cpu", {}, once=True) == {"xla_backend_optimization_level": 1, **emitters}
     assert compiler_options("cpu", {"XLA_FLAGS": "--xla_backend_optimization_level=0"}, once=True) == emitters
     assert compiler_options("cpu", {"XLA_FLAGS": "--xla_cpu_use_fusion_emitters=true"}, once=True) == \
         {"xla_backend_optimization_level": 1}
     monkeypatch.setattr(compiling, "ONCE_OPTIONS", {**compiling.ONCE_OPTIONS, "xla_cpu_no_such_option": True})
-    monkeypatch.setattr(compiling, "_ACCEPTED", {})
+    monkeypatch.setattr(compiling, "ACCEPTED", {})
     options = compiler_options("cpu", {}, once=True)
-    assert "xla_cpu_no_such_option" not in options and compiling._ACCEPTED[("xla_cpu_no_such_option", True)] is False
+    assert "xla_cpu_no_such_option" not in options and compiling.ACCEPTED[("xla_cpu_no_such_option", True)] is False
     # the options kept compile and run a program, with the same numbers to rounding
     x = jnp.linspace(0.0, 3.0, 50)
     f = lambda x: jnp.cumsum(jnp.exp(jnp.sin(x) * 2.0)) / jnp.sum(x ** 2)  # noqa: E731

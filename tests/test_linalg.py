@@ -1,4 +1,4 @@
-"""npbrs.domains.linalg, the plain-XLA Cholesky, triangular solves, log determinant, inverse
+"""npbrs.domains.util.linalg, the plain-XLA Cholesky, triangular solves, log determinant, inverse
 and Gaussian log density, against NumPy's and SciPy's LAPACK routines: batched, ragged sizes
 from 1 to 40, float64 and float32; NaN for a matrix that is not positive definite (as
 jnp.linalg.cholesky); and the programs call no library kernel (the reason they exist)."""
@@ -12,7 +12,7 @@ import pytest
 import scipy.linalg
 import scipy.stats
 
-from npbrs.domains import linalg
+from npbrs.domains.util import linalg
 
 
 def spd(rng, *shape, scale=1.0):

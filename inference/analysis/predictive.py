@@ -30,8 +30,8 @@ import numpy as np
 
 from npbrs.models.bphmm import Hyper, end_gate, feature_predictive, predictive_log_likelihoods
 from npbrs.models.emissions import Emission, HMMData
-from npbrs.domains.compiling import jit
-from npbrs.domains.precision import float64_all
+from npbrs.domains.util.compiling import jit
+from npbrs.domains.util.precision import float64_all
 
 __all__ = ["HeldOut", "SkillProbabilities", "log_predictive", "pointwise_log_likelihood", "segment"]
 
@@ -317,4 +317,4 @@ def _summarise(moments: np.ndarray, num_samples: int, demos) -> HeldOut:
                    per_step_se=float(np.sqrt(np.sum(se ** 2)) / steps), num_steps=steps, num_draws=S)
 
 
-float64_all(globals())  # npbrs.domains.precision: float64 inside, the user's setting outside
+float64_all(globals())  # npbrs.domains.util.precision: float64 inside, the user's setting outside

@@ -15,7 +15,7 @@ from __future__ import annotations
 from typing import List
 
 import numpy as np
-from npbrs.domains.precision import float64_all
+from npbrs.domains.util.precision import float64_all
 
 __all__ = ["skill_policies", "skill_options", "skill_parameters", "skill_ends", "REWARDS"]
 
@@ -152,4 +152,4 @@ def skill_ends(result):
     return _relabelled_mean(result, "ends")
 
 
-float64_all(globals())  # npbrs.domains.precision: float64 inside, the user's setting outside
+float64_all(globals())  # npbrs.domains.util.precision: float64 inside, the user's setting outside

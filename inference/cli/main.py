@@ -18,7 +18,7 @@ import sys
 import warnings
 from typing import Optional
 
-from npbrs.domains.precision import float64_all
+from npbrs.domains.util.precision import float64_all
 
 from . import generate, reproduce, score
 from .arguments import add_world_arguments, at_least, command_error, device_count, load_world_mdp
@@ -384,4 +384,4 @@ if __name__ == "__main__":
     sys.exit(main())
 
 
-float64_all(globals())  # npbrs.domains.precision: float64 inside, the user's setting outside
+float64_all(globals())  # npbrs.domains.util.precision: float64 inside, the user's setting outside

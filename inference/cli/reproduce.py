@@ -37,7 +37,7 @@ from typing import Callable, Dict, Optional, Sequence
 
 import numpy as np
 
-from npbrs.domains.files import atomic_write
+from npbrs.domains.util.files import atomic_write
 
 from .arguments import at_least
 

@@ -84,7 +84,7 @@ def score_command(args) -> int:
 def segment_command(args) -> int:
     import numpy as np
 
-    from npbrs.domains.files import atomic_write
+    from npbrs.domains.util.files import atomic_write
 
     try:
         mdp, run, demos, options = _run_and_demos(args)

@@ -64,7 +64,7 @@ import math
 from dataclasses import dataclass, field
 from typing import Any, Dict, Optional, Union
 
-from npbrs.domains.files import atomic_write
+from npbrs.domains.util.files import atomic_write
 from npbrs.models.bphmm import Termination
 
 from ..sampler.options import check_moves

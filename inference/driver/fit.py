@@ -37,8 +37,8 @@ from npbrs.domains.demos import Demonstrations
 from npbrs.models.bphmm import Termination, switching_log_evidence
 from npbrs.models.emissions import Emission, HMMData, get_emission_class
 
-from npbrs.domains.compiling import jit
-from npbrs.domains.precision import float64_all
+from npbrs.domains.util.compiling import jit
+from npbrs.domains.util.precision import float64_all
 
 from ..sampler.kernel import BPHMMKernel, initial_skills, initial_window
 from ..sampler.options import MOVE_DEFAULTS
@@ -1387,4 +1387,4 @@ def _differences(a, b, prefix=""):
         yield prefix.rstrip(".")
 
 
-float64_all(globals())  # npbrs.domains.precision: float64 inside, the user's setting outside
+float64_all(globals())  # npbrs.domains.util.precision: float64 inside, the user's setting outside

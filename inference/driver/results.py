@@ -41,8 +41,8 @@ from typing import Dict, List, Optional
 
 import numpy as np
 
-from npbrs.domains.files import atomic_write
-from npbrs.domains.precision import float64_all
+from npbrs.domains.util.files import atomic_write
+from npbrs.domains.util.precision import float64_all
 
 from .config import ModelConfig
 
@@ -679,4 +679,4 @@ class FitResult:
         return "\n".join(lines)
 
 
-float64_all(globals())  # npbrs.domains.precision: float64 inside, the user's setting outside
+float64_all(globals())  # npbrs.domains.util.precision: float64 inside, the user's setting outside

@@ -27,8 +27,8 @@ import os
 
 import numpy as np
 
-from npbrs.domains.files import atomic_savez, atomic_write
-from npbrs.domains.precision import float64_all
+from npbrs.domains.util.files import atomic_savez, atomic_write
+from npbrs.domains.util.precision import float64_all
 
 from .results import NETCDF_ENGINE, FitResult
 
@@ -183,4 +183,4 @@ def restore_state(leaves, like, path="checkpoint"):
     return jax.tree_util.tree_unflatten(treedef, leaves)
 
 
-float64_all(globals())  # npbrs.domains.precision: float64 inside, the user's setting outside
+float64_all(globals())  # npbrs.domains.util.precision: float64 inside, the user's setting outside

@@ -16,7 +16,7 @@ two chains' sweeps on 2 cores, each in a batched LU of 127 x 127 matrices, waiti
 So with those jaxlibs, programs that call a library kernel (a ``custom_call`` in their lowered
 text) run at most cores - 1 at once, which leaves a pool thread free; on 2 cores that is one at
 a time. Programs without one run on every core: npbrs's own linear algebra is plain XLA code
-for that reason (:mod:`npbrs.domains.linalg`), so a fit with the reward or policy emission and
+for that reason (:mod:`npbrs.domains.util.linalg`), so a fit with the reward or policy emission and
 fit's defaults runs its chains side by side with any jaxlib. jaxlib 0.11.2 and later run a
 LAPACK batch on the calling thread. The rule counts npbrs's own threads: with an older jaxlib,
 programs that your other threads run at the same time count against the same pool.

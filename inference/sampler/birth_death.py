@@ -35,7 +35,7 @@ import jax.numpy as jnp
 from npbrs.models.mcmc import metropolis_accept, select
 from npbrs.models.bphmm import collapsed_feature_log_prob, hmm_parameters
 from npbrs.models.hmm import forward_filter
-from npbrs.domains.precision import float64_all
+from npbrs.domains.util.precision import float64_all
 
 from .state import MoveState
 
@@ -173,4 +173,4 @@ def birth_death(key, state: MoveState, emission, data, hyper, min_len: int = 10,
     return select(accept, new, state), info
 
 
-float64_all(globals())  # npbrs.domains.precision: float64 inside, the user's setting outside
+float64_all(globals())  # npbrs.domains.util.precision: float64 inside, the user's setting outside

@@ -64,7 +64,7 @@ import jax.numpy as jnp
 from npbrs.models.mcmc import select
 from npbrs.models.bphmm import collapsed_end_log_prob, collapsed_feature_log_prob, collapsed_sequence_log_prob
 
-from npbrs.domains.precision import float64_all
+from npbrs.domains.util.precision import float64_all
 
 from .split_merge import Allocation, allocate_block, allocated_steps, allocation, skill_counts, visiting_order
 from .state import MoveState
@@ -379,4 +379,4 @@ def greedy_trials(key_merge, key_split, state: MoveState, emission, data, hyper,
     return (state, jnp.sum(accepted & ~is_split, dtype=jnp.int32), jnp.sum(accepted & is_split, dtype=jnp.int32))
 
 
-float64_all(globals())  # npbrs.domains.precision: float64 inside, the user's setting outside
+float64_all(globals())  # npbrs.domains.util.precision: float64 inside, the user's setting outside

@@ -33,7 +33,7 @@ import numpy as np
 import numpyro.distributions as dist
 from numpyro.infer.mcmc import MCMCKernel
 
-from npbrs.domains.pytree import Pytree
+from npbrs.domains.util.pytree import Pytree
 from npbrs.models.bphmm import (Hyper, Termination, bphmm_model, collapsed_feature_log_prob,
                                 collapsed_transition_log_prob, end_counts, end_gate, eta_counts, eta_from_gammas,
                                 eta_gamma_shapes, hmm_parameters, log_joint_terms, log_marginal_likelihoods,
@@ -42,8 +42,8 @@ from npbrs.models.mcmc import metropolis_accept, select
 from npbrs.models.emissions import Emission, EmissionInfo, HMMData
 from npbrs.models.hmm import batch_backward_sample, batch_forward_filter
 
-from npbrs.domains.compiling import jit
-from npbrs.domains.precision import float64_all
+from npbrs.domains.util.compiling import jit
+from npbrs.domains.util.precision import float64_all
 
 from .birth_death import birth_death
 from .greedy import greedy_trials
@@ -674,4 +674,4 @@ def _init_state(kernel: BPHMMKernel, rng_key, z0, num_warmup, batched: bool):
     return kernel.initial_state(rng_key, z0, num_warmup)
 
 
-float64_all(globals())  # npbrs.domains.precision: float64 inside, the user's setting outside
+float64_all(globals())  # npbrs.domains.util.precision: float64 inside, the user's setting outside

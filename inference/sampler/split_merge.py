@@ -75,7 +75,7 @@ from npbrs.models.mcmc import metropolis_accept, select
 from npbrs.models.bphmm import (collapsed_feature_log_prob, eta_counts, eta_from_gammas, eta_gamma_shapes,
                                 hmm_parameters)
 from npbrs.models.hmm import NEG_LOG, batch_backward_sample, batch_forward_filter, viterbi
-from npbrs.domains.precision import float64_all
+from npbrs.domains.util.precision import float64_all
 
 from .state import MoveState
 
@@ -591,4 +591,4 @@ def split_merge(key, state: MoveState, emission, data, hyper, num_blocks: int = 
     return select(accept, proposal.state, state), info
 
 
-float64_all(globals())  # npbrs.domains.precision: float64 inside, the user's setting outside
+float64_all(globals())  # npbrs.domains.util.precision: float64 inside, the user's setting outside

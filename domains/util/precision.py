@@ -5,7 +5,7 @@ Metropolis ratios of nearly equal densities), but it never switches the whole pr
 importing npbrs leaves ``jax_enable_x64`` as the user set it. Its entry points run inside JAX's
 scoped switch instead, :func:`float64` below: ``fit``, the solvers, the IRL fits, the
 predictive functions, and every method of npbrs's pytree objects (MDPs, solvers, emissions,
-the sampler's kernel; see :mod:`npbrs.domains.pytree`). Programs compiled there are float64
+the sampler's kernel; see :mod:`npbrs.domains.util.pytree`). Programs compiled there are float64
 programs (the switch is part of JAX's compilation key).
 
 What they return is float64: NumPy arrays, or JAX arrays for the solvers and emissions (meant to

@@ -3,16 +3,15 @@
 XLA compiles a CPU program's kernels with LLVM at optimisation level 2 by default. npbrs's
 programs (a sampler sweep, an IRL fit, the predictive's draws) are large and are run a few
 hundred times, so compiling them is a large part of a fit: at level 1 a fit compiles about a
-sixth faster and samples no slower (``benchmarks/NOTES.md``, session 28; e.g. highway 16 x 500
-with 4 chains, 20 + 20 sweeps: 55 s against 64 s, 27 s of compiling against 32 s; its sweeps
-were no slower). Results agree with level 2's to rounding, not bit for bit (a log joint by about
+sixth faster and samples no slower (``benchmarks/NOTES.md``; e.g. highway 16 x 500 with 4
+chains, 20 + 20 sweeps: 55 s against 64 s, 27 s of compiling against 32 s; its sweeps were no
+slower). Results agree with level 2's to rounding, not bit for bit (a log joint by about
 1e-8 after 20 sweeps; the paper's tables' 40 fits found the same best draws).
 
 The programs a fit runs once (its initial state: ``jit(..., once=True)``) also take XLA's older
 CPU fusion emitters (:data:`ONCE_OPTIONS`, where the installed XLA has them), which compile them
 faster (a default labyrinth fit, 2 chains: 5-9 s less of about 90); the sweeps keep the newer
-emitters, under which the filters' loops run up to a third faster (``benchmarks/NOTES.md``,
-session 50).
+emitters, under which the filters' loops run up to a third faster (``benchmarks/NOTES.md``).
 
 These are per-program compile options (``jax.jit(..., compiler_options=...)``), so they change
 only npbrs's programs and leave the user's process alone. None is set
@@ -29,31 +28,40 @@ import os
 
 import jax
 
-__all__ = ["jit", "compiler_options", "OPTIMIZATION_LEVEL", "ONCE_OPTIONS"]
+__all__ = ["jit", "compiler_options", "accepted", "OPTIMIZATION_LEVEL", "ONCE_OPTIONS", "ACCEPTED"]
 
 OPTIMIZATION_LEVEL = 1
 _FLAG = "xla_backend_optimization_level"
 #: the CPU options of the programs a fit runs once (its initial state; ``jit(..., once=True)``):
 #: XLA's older fusion emitters compile them faster. The programs run many times (the sweeps)
-#: keep the newer ones, whose filter loops run up to a third faster (``benchmarks/NOTES.md``,
-#: session 50).
+#: keep the newer ones, whose filter loops run up to a third faster (``benchmarks/NOTES.md``).
 ONCE_OPTIONS = {"xla_cpu_use_fusion_emitters": False}
-# whether this process's XLA takes each of ONCE_OPTIONS (a name it does not know is an error at
-# compile time, and a newer jaxlib may drop one): asked once, by compiling a tiny program
-_ACCEPTED: dict = {}
+#: whether this process's XLA takes each compile option asked about, {(name, value): bool}, filled
+#: by :func:`accepted` (a name XLA does not know is an error at compile time, and a newer jaxlib
+#: may drop one of :data:`ONCE_OPTIONS`); replace it with an empty dict to ask again
+ACCEPTED: dict = {}
 
 
-def _accepted(name: str, value) -> bool:
-    if (name, value) not in _ACCEPTED:
+def accepted(name: str, value) -> bool:
+    """Whether the installed XLA takes the CPU compile option ``name=value``: asked once per
+    process, by compiling a tiny program with it, and remembered in :data:`ACCEPTED`.
+
+    Args:
+        name: an XLA compile option, e.g. ``"xla_cpu_use_fusion_emitters"``.
+        value: its value.
+    Returns:
+        True if a program compiled with it, False if XLA refused it.
+    """
+    if (name, value) not in ACCEPTED:
         import numpy as np
 
         try:
             x = jax.device_put(np.float32(0), jax.devices("cpu")[0])
             jax.jit(lambda x: x + 1, compiler_options={name: value}).lower(x).compile()
-            _ACCEPTED[name, value] = True
+            ACCEPTED[name, value] = True
         except Exception:  # (JaxRuntimeError "No such compile option", or a refused value)
-            _ACCEPTED[name, value] = False
-    return _ACCEPTED[name, value]
+            ACCEPTED[name, value] = False
+    return ACCEPTED[name, value]
 
 
 def compiler_options(backend: str | None = None, environ=None, once: bool = False) -> dict:
@@ -68,7 +76,7 @@ def compiler_options(backend: str | None = None, environ=None, once: bool = Fals
     options = {} if _FLAG in flags else {_FLAG: OPTIMIZATION_LEVEL}
     if once:
         options.update({name: value for name, value in ONCE_OPTIONS.items()
-                        if name not in flags and _accepted(name, value)})
+                        if name not in flags and accepted(name, value)})
     return options
 
 
