@@ -80,7 +80,7 @@ def test_a_wrapped_function_gets_the_options_at_the_top_and_none_when_nested(mon
 
 
 def test_fit_and_the_solvers_compile_through_it():
-    from npbrs.domains import solvers
+    from npbrs.domains.solvers import common as solvers
     from npbrs.inference.analysis import predictive
     from npbrs.inference.driver import fit
     from npbrs.inference.sampler import kernel

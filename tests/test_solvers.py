@@ -137,18 +137,18 @@ def test_the_solves_are_traced_once_per_shape_not_at_every_site(monkeypatch):
     differentiated, ran the Newton loop's Python 7 times and GMRES's 19 before the solves' traces
     were kept (``_soft_newton`` and ``_policy_solve`` are jitted), 4 and 10 after (a tiny fit: 63
     GMRES traces before, 34 after). The bounds leave a little room for JAX's own contexts."""
-    from npbrs.domains import solvers
+    from npbrs.domains.solvers import krylov, soft
 
     calls = {"backup": 0, "gmres": 0}
     # (the Newton loop's soft backups: two a trace, before the loop and in its body)
-    for name, key in (("_soft_backup", "backup"), ("_gmres", "gmres")):
-        original = getattr(solvers, name)
+    for module, name, key in ((soft, "_soft_backup", "backup"), (krylov, "_gmres", "gmres")):
+        original = getattr(module, name)
 
         def counted(*args, _original=original, _key=key, **kwargs):
             calls[_key] += 1
             return _original(*args, **kwargs)
 
-        monkeypatch.setattr(solvers, name, counted)
+        monkeypatch.setattr(module, name, counted)
     # (shapes no other test uses: the kept traces are per process)
     mdp, _ = random_mdp(3, S=13, A=2, D=3)
     solver = make_soft_solver(mdp)
@@ -180,7 +180,7 @@ def test_factored_next_value_operator_equals_successor_gather(name):
 
 @pytest.mark.parametrize("transpose", [False, True])
 def test_the_policy_operator_folds_shared_successors_and_equals_the_dense_matrix(transpose):
-    from npbrs.domains.solvers import _Columns, predecessors, successor_union
+    from npbrs.domains.solvers import Columns, predecessors, successor_union
 
     mdp, P = random_mdp(4, S=12, A=4, density=0.15)
     S, A, B = mdp.successors.shape
@@ -192,7 +192,7 @@ def test_the_policy_operator_folds_shared_successors_and_equals_the_dense_matrix
     np.testing.assert_array_equal(union[slot[a, b, s], s], mdp.successors[s, a, b])
     for state in range(S):
         assert set(union[:, state]) == set(mdp.successors[state][used[state]])
-    op = _Columns(mdp, "sparse")
+    op = Columns(mdp, "sparse")
     assert op._union is not None and op._union.shape[0] == union.shape[0] < A * B  # the folded form is used
     rng = np.random.default_rng(5)
     pi = rng.random((A, 3, S))
@@ -204,7 +204,7 @@ def test_the_policy_operator_folds_shared_successors_and_equals_the_dense_matrix
     np.testing.assert_allclose(folded, expected, atol=1e-13)
     # a denser MDP's fold would hold too many terms (distinct successors x (action, slot)):
     # it keeps the per-action form, as does an MDP whose actions share no successors
-    assert _Columns(random_mdp(4, S=12, A=4, density=0.4)[0], "sparse")._union is None
+    assert Columns(random_mdp(4, S=12, A=4, density=0.4)[0], "sparse")._union is None
     if transpose:
         # the transpose gathers over each state's predecessors; where a state has more than
         # max_in_degree of them (a hub) the operator keeps the scatter form, which agrees too
@@ -225,7 +225,7 @@ def test_float32_inner_solves_reach_the_float64_fixed_point_with_accurate_deriva
     to the tolerance and the step count grows by at most one; derivatives (their solves in
     float32 too, refined once in float64: at float32's 1e-5 alone an IRL gradient near its
     optimum was wrong by its own size) agree with float64's to 1e-9. Both operator forms: per action, and folded onto distinct successors."""
-    from npbrs.domains import solvers as solvers_module
+    from npbrs.domains.solvers.soft import FLOAT32_FROM_STATES
 
     if folded:
         mdp, P = random_mdp(4, S=12, A=4, density=0.15, gamma=0.95)
@@ -258,9 +258,9 @@ def test_float32_inner_solves_reach_the_float64_fixed_point_with_accurate_deriva
     # and reverse mode (the transposed solve) against the same difference of (V^2).sum()
     fd_loss = ((np.asarray(s64(R[1] + h * dr).V) ** 2).sum() - (np.asarray(s64(R[1] - h * dr).V) ** 2).sum()) / (2 * h)
     np.testing.assert_allclose(float(jnp.vdot(g[1], dr)), fd_loss, rtol=1e-4)
-    # "auto" is float32 from _FLOAT32_FROM_STATES states on, float64 below
+    # "auto" is float32 from FLOAT32_FROM_STATES states on, float64 below
     assert make_soft_solver(mdp).krylov_precision == "float64"
-    assert solvers_module._FLOAT32_FROM_STATES > mdp.num_states
+    assert FLOAT32_FROM_STATES > mdp.num_states
     with pytest.raises(ValueError, match="krylov_precision"):
         make_soft_solver(mdp, krylov_precision="half")
 
