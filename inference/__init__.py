@@ -3,7 +3,9 @@ files), ``analysis`` (metrics, diagnostics, prediction, skills, plots) and ``cli
 
 from .analysis.metrics import (confusion, hungarian_accuracy, hungarian_labelling, num_skills, num_switches,
                                paper_accuracy, paper_labelling)
-from .driver.fit import device_mesh, fit, make_emission
+from npbrs.models.emissions import make_emission
+from .driver.fit import fit, resolve_config
+from .driver.devices import device_mesh
 from .driver.results import ConvergenceWarning, FitResult
 from .driver.config import EmissionConfig, Hyperparameter, ModelConfig, PriorConfig, SamplerConfig
 from .driver.runs import load, load_mdp, save_mdp

@@ -21,20 +21,80 @@ then averages over).
 from __future__ import annotations
 
 import warnings
-from typing import Optional
+from typing import Dict, Optional
 
 import numpy as np
 from scipy.optimize import linear_sum_assignment
 
-from ..driver.results import LABEL_INVARIANT, FitResult
 
-__all__ = ["convergence", "relabel", "relabelled_draws", "skill_summary"]
+__all__ = ["convergence", "relabel", "relabelled_draws", "skill_summary", "LABEL_INVARIANT", "ConvergenceWarning",
+           "label_invariant_diagnostic", "unconverged", "convergence_warning", "summary"]
+
+
+
+class ConvergenceWarning(UserWarning):
+    """``fit``'s draws fail the label-invariant diagnostics (an R-hat above 1.05 or an ESS below
+    100: :meth:`FitResult.convergence_warning`). Silence it with
+    ``warnings.filterwarnings("ignore", category=npbrs.inference.ConvergenceWarning)``."""
+
+#: Scalars whose meaning does not depend on how skills are labelled: safe for R-hat and ESS
+#: across chains (skill labels switch between chains).
+LABEL_INVARIANT = ("log_joint", "num_skills", "num_switches")
+
+
+def label_invariant_diagnostic(stats: Dict[str, np.ndarray], which: str = "rhat") -> Dict[str, float]:
+    """ArviZ's rank-normalised split R-hat (``which="rhat"``) or bulk ESS (``"ess"``) of each
+    label-invariant scalar in ``stats`` ({name: (chains, draws)}): the numbers ``convergence``
+    (``az.summary``) shows; NaN where undefined (a constant scalar, chains that are each constant
+    at different values, fewer than 4 draws)."""
+    import logging
+    import warnings
+
+    from ..arviz_import import arviz
+
+    az = arviz()
+
+    if which not in ("rhat", "ess"):
+        raise ValueError(f"which must be 'rhat' or 'ess', got {which!r}")
+    fn = az.rhat if which == "rhat" else az.ess
+    logger = logging.getLogger("arviz")
+    level = logger.level
+    logger.setLevel(logging.ERROR)  # one chain: "shape validation failed" is expected
+    out = {}
+    try:
+        for name in LABEL_INVARIANT:
+            x = np.asarray(stats[name], dtype=np.float64)
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore")
+                value = float(fn(x)) if x.shape[1] >= 4 else float("nan")
+            out[name] = value if np.isfinite(value) else float("nan")
+    finally:
+        logger.setLevel(level)
+    return out
+def unconverged(stats: Dict[str, np.ndarray], rhat: Dict[str, float], ess: Optional[Dict[str, float]] = None,
+                target_rhat: float = 1.05, min_ess: float = 100.0):
+    """(failing, undefined): the label-invariant scalars in ``stats`` ({name: (chains, draws)})
+    that have not converged, and those of them whose diagnostics are undefined although they
+    vary (fewer than 4 draws a chain, chains each constant at a different value). A scalar
+    constant over every draw of every chain has converged; one that varies fails on an
+    undefined diagnostic, an R-hat above ``target_rhat`` or (where ``ess`` is given) an ESS
+    below ``min_ess``. ``rhat``, ``ess``: :func:`label_invariant_diagnostic`'s."""
+    failing, undefined = [], []
+    for name in LABEL_INVARIANT:
+        x = np.asarray(stats[name], float)
+        if x.size == 0 or np.ptp(x) == 0:
+            continue
+        values = [rhat[name]] + ([] if ess is None else [ess[name]])
+        if not np.all(np.isfinite(values)):
+            failing.append(name)
+            undefined.append(name)
+        elif rhat[name] > target_rhat or (ess is not None and ess[name] < min_ess):
+            failing.append(name)
+    return failing, undefined
 
 
 def _idata(result):
-    if isinstance(result, FitResult):
-        return result.to_arviz()
-    return result
+    return result.to_arviz() if hasattr(result, "to_arviz") else result
 
 
 def convergence(result, var_names=LABEL_INVARIANT):
@@ -65,7 +125,7 @@ def convergence(result, var_names=LABEL_INVARIANT):
         logger.setLevel(level)
 
 
-def _slot_params(result: FitResult, chain: int) -> np.ndarray:
+def _slot_params(result, chain: int) -> np.ndarray:
     """(K, P) each slot's parameters averaged over the chain's draws that use it (NaN if none)."""
     sites = sorted(result.skill_params)
     steps = np.asarray(result.samples["skill_steps"][chain])  # (D, K)
@@ -77,7 +137,7 @@ def _slot_params(result: FitResult, chain: int) -> np.ndarray:
     return means
 
 
-def relabel(result: FitResult, by: str = "segmentation") -> np.ndarray:
+def relabel(result, by: str = "segmentation") -> np.ndarray:
     """Match every chain's skill slots to the result's skills (0..num_skills-1).
 
     Args:
@@ -121,7 +181,7 @@ def relabel(result: FitResult, by: str = "segmentation") -> np.ndarray:
     return mapping
 
 
-def relabelled_draws(result: FitResult, site: str, by: str = "segmentation") -> np.ndarray:
+def relabelled_draws(result, site: str, by: str = "segmentation") -> np.ndarray:
     """Draws of a per-skill site in the result's skill labels, NaN where a chain's draw does not
     use that skill: (C, D, num_skills, ...)."""
     if site not in result.samples:
@@ -141,7 +201,7 @@ def relabelled_draws(result: FitResult, site: str, by: str = "segmentation") -> 
     return out
 
 
-def skill_summary(result: FitResult, site: Optional[str] = None, prob: float = 0.9, by: str = "segmentation",
+def skill_summary(result, site: Optional[str] = None, prob: float = 0.9, by: str = "segmentation",
                   names=None, top: Optional[int] = None):
     """Per-skill posterior summary of a parameter site, pooled over chains after relabelling.
 
@@ -199,3 +259,95 @@ def skill_summary(result: FitResult, site: Optional[str] = None, prob: float = 0
         return frame
     order = np.argsort(-np.nan_to_num(np.abs(columns["mean"]), nan=-1.0), axis=1, kind="stable")[:, :top]
     return frame.iloc[(np.arange(L)[:, None] * P + order).reshape(-1)]
+
+
+def convergence_warning(result, rhat: Optional[Dict[str, float]] = None, ess: Optional[Dict[str, float]] = None) -> str:
+    """Lines saying which label-invariant scalars have R-hat above 1.05 or ESS below 100, or
+    diagnostics that are undefined although the scalar varies (:func:`unconverged`), how
+    each chain's mean of them moved from the first to the second half of its draws (a
+    chain still drifting, or chains holding different levels), and what to do; "" when
+    none has. ``rhat``, ``ess``: the run's, where the caller has them already."""
+    rhat = result.rhat if rhat is None else rhat
+    ess = result.ess if ess is None else ess
+    bad, undefined = unconverged(result.stats, rhat, ess)
+    if not bad:
+        return ""
+    halves = []
+    for name in bad:
+        x = np.asarray(result.stats[name], float)
+        if x.ndim == 2 and x.shape[1] >= 2:
+            h = x.shape[1] // 2
+            fmt = ".1f" if name == "log_joint" else ".2f"
+            per_chain = " | ".join(f"{a:{fmt}} -> {b:{fmt}}" for a, b in zip(x[:, :h].mean(1), x[:, h:].mean(1)))
+            halves.append(f"{name} {per_chain}")
+    moved = ("\n  each chain's mean over the first -> the second half of its draws: " + "; ".join(halves)
+             if halves else "")
+    why = "R-hat above 1.05 or ESS below 100"
+    if undefined:
+        why += (f"; undefined for {', '.join(undefined)}, which varies: fewer than 4 draws a chain, or chains "
+                "each constant at a different value")
+    return (f"not converged: {', '.join(bad)} ({why}); run more sweeps "
+            f"(samples, warmup) or more chains before trusting the skills found{moved}\n  (a chain whose "
+            "halves differ is still moving: more warmup; chains steady at different levels sit in different "
+            "regions: more chains or sampling sweeps; a config with max_samples and time_budget samples on "
+            "until every R-hat is at most 1.05)")
+
+
+def summary(result) -> str:
+    """A run's text summary: skills, segment lengths, how the run went, label-invariant diagnostics.
+
+    Args:
+        result: a FitResult.
+    Returns:
+        the text, one line per item."""
+    lengths = [len(s) for s in result.segmentation]
+    switches = np.mean([np.sum(s[1:] != s[:-1]) for s in result.segmentation])
+    counts = np.bincount(np.concatenate(result.segmentation), minlength=result.num_skills)
+    lines = [f"{result.num_skills} skills in {len(lengths)} trajectories ({sum(lengths)} steps); "
+             f"{switches:.2f} switches per trajectory; best log joint {result.best_log_joint:.1f} (chain {result.best_chain})",
+             "steps per skill: " + ", ".join(f"{k}: {c}" for k, c in enumerate(counts))]
+    if "greedy_merges" in result.stats and "greedy_splits" in result.stats:
+        kept = [np.asarray(result.stats[n])[:, -1].tolist() for n in ("greedy_merges", "greedy_splits")]
+        if any(kept[0]) or any(kept[1]):
+            lines.append(f"warmup's greedy moves kept per chain: merges {kept[0]}, splits {kept[1]}")
+    if result.init_segmentation is not None:
+        used = len(np.unique(np.concatenate(result.init_segmentation)))
+        lines.append(f"started from a given segmentation ({used} skills)")
+    if result.run_length is not None:
+        r = result.run_length
+        why = {"converged": f"every label-invariant R-hat at most {r['target_rhat']}",
+               "max_samples": f"max_samples reached before every R-hat was at most {r['target_rhat']}",
+               "time_budget": f"the time budget ({r['time_budget']:g} s) spent before every R-hat was at most "
+                              f"{r['target_rhat']}"}.get(r["stopped"], r["stopped"])
+        lines.append(f"run length chosen by convergence: {r['samples']} sampling sweeps per chain ({why})")
+    if result.restart is not None and any(c != i for i, c in enumerate(result.restart["from"])):
+        r = result.restart
+        moved = [i for i, c in enumerate(r["from"]) if c != i]
+        best = r["from"][moved[0]]
+        behind = ", ".join(f"{r['scores'][best] - r['scores'][i]:.0f}" for i in moved)
+        lines.append(f"at warmup's end chain{'s' if len(moved) > 1 else ''} {', '.join(map(str, moved))} "
+                     f"continued from chain {best}'s state ({behind} nats behind it; restart_margin "
+                     f"{r['margin']:g})")
+    if result.truncation is not None:
+        t = result.truncation
+        models = t.get("switching") or [None] * len(t["max_skills"])  # (a run saved before it was kept)
+        both = len(set(models)) > 1
+        steps = "; ".join(f"{k} slots{f' ({m})' if both else ''}: {n} skills, every slot in use in {p:.0%} of "
+                          "the draws" for k, n, p, m in zip(t["max_skills"], t["skills"], t["saturated"], models))
+        lines.append(f"skill slots grew ({steps})")
+    if result.switching is not None:
+        c = result.switching
+        lines.append(f"switching chosen: {c['chosen']} (log Bayes factor of state-dependent ends over sticky "
+                     f"switching, given the sticky fit's skill sequences: {c['log_bayes_factor']:+.1f} nats; "
+                     f"state needs more than {c['margin']:g})")
+    rhat, ess = result.rhat, result.ess
+
+    def shown(value, fmt):
+        return format(value, fmt) if np.isfinite(value) else "undefined"
+
+    lines.append("label-invariant diagnostics (ArviZ): " + "; ".join(
+        f"{n} R-hat {shown(rhat[n], '.3f')} ESS {shown(ess[n], '.0f')}" for n in LABEL_INVARIANT))
+    warning = convergence_warning(result, rhat, ess)
+    if warning:
+        lines.append(warning)
+    return "\n".join(lines)

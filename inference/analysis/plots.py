@@ -302,7 +302,7 @@ def plot_trace(result, path) -> None:
     from matplotlib.figure import Figure
 
     from ..arviz_import import arviz
-    from ..driver.results import LABEL_INVARIANT
+    from .diagnostics import LABEL_INVARIANT
 
     az = arviz()
 

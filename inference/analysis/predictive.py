@@ -192,8 +192,8 @@ def _draw_moments(result, mdp, demos, idx, num_samples, seed, emission, leave_on
     of (chain, draw, log sum_m p_m (n,), log sum_m p_m p(z_t = k | ...)_m (n, T, K)) with p_m the
     trajectory's likelihood under sample m; ``own_features``: the draw's own skill sets (fitted
     trajectories) instead of the predictive."""
-    from ..driver.fit import make_emission
-    from ..driver.threads import on_threads, threads_for
+    from npbrs.models.emissions import make_emission
+    from ..threads import on_threads, threads_for
 
     result.check_mdp(mdp)
     demos.validate(mdp)
@@ -220,7 +220,7 @@ def _draw_moments(result, mdp, demos, idx, num_samples, seed, emission, leave_on
     # each draw's likelihood solves start from the values of the chain's previous draw (the
     # emission's cache; a chain's consecutive draws are close): the same likelihoods to the
     # solver's tolerance. So the chains are independent: their j-th draws run side by side, on
-    # the CPU's cores (npbrs.inference.driver.threads)
+    # the CPU's cores (npbrs.inference.threads)
     caches = [emission.init_cache(K)] * C
 
     def call(c, j):  # (program, its arguments, its options) of chain c's j-th draw

@@ -21,7 +21,7 @@ __all__ = ["skill_policies", "skill_options", "skill_parameters", "skill_ends", 
 
 
 def _emission_in(result, mdp, emission):
-    from ..driver.fit import make_emission
+    from npbrs.models.emissions import make_emission
 
     if emission is not None:
         return emission

@@ -26,7 +26,7 @@ from .arguments import add_world_arguments, at_least, command_error, device_coun
 __all__ = ["build_parser", "main", "compilation_cache_dir", "DEMO_CONFIG", "QUICK_DEMO_CONFIG"]
 
 #: The demo's model: the reward emission on 8 highway trajectories of 200 steps, sized to
-#: finish in a few minutes on two cores (measurements: ``benchmarks/NOTES.md``). ``--quick`` is
+#: finish in a few minutes on two cores (measurements: ``docs/speed.md``). ``--quick`` is
 #: a tiny run of the same pipeline (tests).
 DEMO_CONFIG = {"emission": {"name": "reward"}, "max_skills": 6, "prior": {"alpha": 1.0, "kappa": 20.0, "gamma": 1.0},
                "sampler": {"chains": 2, "warmup": 60, "samples": 60, "seed": 0, "init_window": 25}}
@@ -40,14 +40,14 @@ REPORT_TOP = 10
 
 
 def compilation_cache_dir(environ=None) -> Optional[str]:
-    """npbrs's compilation cache folder (:func:`npbrs.inference.driver.fit.compilation_cache_dir`)."""
-    from ..driver.fit import compilation_cache_dir as folder
+    """npbrs's compilation cache folder (:func:`npbrs.inference.driver.compiled.compilation_cache_dir`)."""
+    from ..driver.compiled import compilation_cache_dir as folder
 
     return folder(environ)
 
 
 def use_compilation_cache() -> Optional[str]:
-    from ..driver.fit import use_compilation_cache as use
+    from ..driver.compiled import use_compilation_cache as use
 
     return use()
 
@@ -121,7 +121,7 @@ def _load_world(args):
 
 
 def fit_command(args) -> int:
-    from ..driver.fit import fit
+    from ..driver.fit import fit, resolve_config
 
     use_compilation_cache()
     try:
@@ -141,13 +141,14 @@ def fit_command(args) -> int:
         print(f"resuming from {checkpoint}")
     try:
         with _summary_says_convergence():
-            result = fit(mdp, demos, args.config, emission=args.emission, max_skills=args.max_skills,
-                         num_chains=args.chains, num_samples=args.samples, num_warmup=args.warmup, seed=args.seed,
-                         progress_bar=not args.no_progress, checkpoint_path=checkpoint,
-                         checkpoint_every=args.checkpoint_every or None, resume=args.resume, init_segmentation=init,
-                         devices=args.devices, max_samples=args.max_samples, target_rhat=args.target_rhat,
-                         time_budget=args.time_budget, restart_margin=args.restart_margin, grow=args.grow,
-                         switching=args.switching)
+            config = resolve_config(args.config, emission=args.emission, max_skills=args.max_skills,
+                                    checkpoint_every=args.checkpoint_every or None, max_samples=args.max_samples,
+                                    target_rhat=args.target_rhat, time_budget=args.time_budget,
+                                    restart_margin=args.restart_margin, grow=args.grow or None,
+                                    switching=args.switching)
+            result = fit(mdp, demos, config, num_chains=args.chains, num_samples=args.samples,
+                         num_warmup=args.warmup, seed=args.seed, progress_bar=not args.no_progress,
+                         checkpoint_path=checkpoint, resume=args.resume, init_segmentation=init, devices=args.devices)
     except (OSError, ValueError) as e:  # a missing or unreadable --config among them
         message = str(e)
         if args.config and message.startswith("emission.options") and os.fspath(args.config) not in message:
@@ -160,7 +161,7 @@ def fit_command(args) -> int:
         return 130
     result.save(args.output)
     if checkpoint:
-        from ..driver.fit import state_stage_path
+        from ..driver.strategies import state_stage_path
 
         for path in (checkpoint, state_stage_path(checkpoint)):  # (switching="auto"'s state fit's too)
             if os.path.exists(path):

@@ -138,9 +138,11 @@ def _fit_method(method: str, domain, demos, setting: dict, seed: int):
         candidates = visited_states(demos, options.pop("max_candidates", None))
         emission = SubgoalEmission(domain.mdp, candidates=candidates, **options)
         options = None
-    result = fit(domain.mdp, demos, emission=emission, emission_options=options or None,
-                 num_chains=setting["chains"], num_warmup=setting["warmup"], num_samples=setting["samples"],
-                 max_skills=setting["max_skills"], seed=seed, progress_bar=False, **extra)
+    config = dict(extra, emission=emission, max_skills=setting["max_skills"])
+    if options:
+        config["emission_options"] = options
+    result = fit(domain.mdp, demos, config, num_chains=setting["chains"], num_warmup=setting["warmup"],
+                 num_samples=setting["samples"], seed=seed, progress_bar=False)
     return result, (emission if method == "subgoal" else None), time.perf_counter() - start
 
 

@@ -306,7 +306,7 @@ class PriorConfig:
         return out
 
 
-#: ``SamplerConfig.restart_margin``'s default, in nats (``benchmarks/NOTES.md``, sessions 33-34)
+#: ``SamplerConfig.restart_margin``'s default, in nats (``docs/design.md``)
 RESTART_MARGIN = 50.0
 
 
@@ -317,13 +317,13 @@ class SamplerConfig:
     chains, samples, warmup: number of chains and of sweeps per chain kept / discarded;
     seed: the random seed; chain_method: "auto" (the default: "threads" when JAX computes on
     the CPU and the run has several chains, on up to
-    ``npbrs.inference.driver.threads.max_threads`` threads, one of them the sequential chains;
+    ``npbrs.inference.threads.max_threads`` threads, one of them the sequential chains;
     else "vectorized"), "vectorized" (the
     chains batched in one program), "sequential" (one chain after another), "threads" (each
     chain's sweep its own program call, on up to ``max_threads`` threads at once: the same
     draws as "sequential") or "parallel"
     (the vectorized sweep with the chains spread over the local devices, ``jax.sharding``; see
-    ``fit``'s ``mesh``);
+    ``fit``'s ``devices``);
     init_skills, init_window: the initial segmentation (skills used, default the emission's
     ``initial_skills(max_skills)`` where it gives one (rewards of one weight per state: every
     slot), else (max_skills + 1) // 2; window length, default the emission's ``init_window`` where
@@ -356,6 +356,11 @@ class SamplerConfig:
     Chains within the margin keep their own states, so modes of comparable probability stay
     visible to R-hat. The result's ``restart`` records the scores and which chains moved.
     Needs at least 2 chains and a warmup.
+    checkpoint_every: sweeps between the checkpoints of a run given a checkpoint path (100).
+    grow: when every skill slot was in use in more than half of the sampling draws (the
+    truncation ``max_skills`` may be hiding skills), fit again with twice the slots, starting
+    from the run's best segmentation, until it is not so or 64 slots; the result's
+    ``truncation`` records each fit. Without it such a run warns. Not with checkpoints.
     """
 
     chains: int = 4
@@ -371,6 +376,8 @@ class SamplerConfig:
     target_rhat: float = 1.05
     time_budget: float = 0.0
     restart_margin: float = RESTART_MARGIN
+    checkpoint_every: int = 100
+    grow: bool = False
 
     def __post_init__(self):
         self.chains = _integer("sampler.chains", self.chains, 1)
@@ -402,6 +409,9 @@ class SamplerConfig:
                              f"{self.target_rhat}")
         self.time_budget = _number("sampler.time_budget", self.time_budget, minimum=0.0)
         self.restart_margin = _number("sampler.restart_margin", self.restart_margin, minimum=0.0)
+        self.checkpoint_every = _integer("sampler.checkpoint_every", self.checkpoint_every, 1)
+        if not isinstance(self.grow, bool):
+            raise ValueError(f"sampler.grow: expected true or false, got {_describe(self.grow)}")
 
     @classmethod
     def from_dict(cls, data) -> "SamplerConfig":

@@ -44,6 +44,8 @@ import numpy as np
 from npbrs.domains.util.files import atomic_write
 from npbrs.domains.util.precision import float64_all
 
+from ..analysis.diagnostics import (LABEL_INVARIANT, ConvergenceWarning, convergence_warning,
+                                     label_invariant_diagnostic, summary, unconverged)
 from .config import ModelConfig
 
 #: ``fit``'s draws entry counting each step's skill slots over the sampling sweeps (C, N, T, K)
@@ -51,67 +53,6 @@ STEP_COUNTS = "step_skill_counts"
 
 __all__ = ["FitResult", "ConvergenceWarning", "LABEL_INVARIANT", "label_invariant_diagnostic", "unconverged", "RUN_FORMAT",
            "RUN_VERSION", "NETCDF_ENGINE", "trajectory_rows"]
-
-
-class ConvergenceWarning(UserWarning):
-    """``fit``'s draws fail the label-invariant diagnostics (an R-hat above 1.05 or an ESS below
-    100: :meth:`FitResult.convergence_warning`). Silence it with
-    ``warnings.filterwarnings("ignore", category=npbrs.inference.ConvergenceWarning)``."""
-
-#: Scalars whose meaning does not depend on how skills are labelled: safe for R-hat and ESS
-#: across chains (skill labels switch between chains).
-LABEL_INVARIANT = ("log_joint", "num_skills", "num_switches")
-
-
-def label_invariant_diagnostic(stats: Dict[str, np.ndarray], which: str = "rhat") -> Dict[str, float]:
-    """ArviZ's rank-normalised split R-hat (``which="rhat"``) or bulk ESS (``"ess"``) of each
-    label-invariant scalar in ``stats`` ({name: (chains, draws)}): the numbers ``convergence``
-    (``az.summary``) shows; NaN where undefined (a constant scalar, chains that are each constant
-    at different values, fewer than 4 draws)."""
-    import logging
-    import warnings
-
-    from ..arviz_import import arviz
-
-    az = arviz()
-
-    if which not in ("rhat", "ess"):
-        raise ValueError(f"which must be 'rhat' or 'ess', got {which!r}")
-    fn = az.rhat if which == "rhat" else az.ess
-    logger = logging.getLogger("arviz")
-    level = logger.level
-    logger.setLevel(logging.ERROR)  # one chain: "shape validation failed" is expected
-    out = {}
-    try:
-        for name in LABEL_INVARIANT:
-            x = np.asarray(stats[name], dtype=np.float64)
-            with warnings.catch_warnings():
-                warnings.simplefilter("ignore")
-                value = float(fn(x)) if x.shape[1] >= 4 else float("nan")
-            out[name] = value if np.isfinite(value) else float("nan")
-    finally:
-        logger.setLevel(level)
-    return out
-def unconverged(stats: Dict[str, np.ndarray], rhat: Dict[str, float], ess: Optional[Dict[str, float]] = None,
-                target_rhat: float = 1.05, min_ess: float = 100.0):
-    """(failing, undefined): the label-invariant scalars in ``stats`` ({name: (chains, draws)})
-    that have not converged, and those of them whose diagnostics are undefined although they
-    vary (fewer than 4 draws a chain, chains each constant at a different value). A scalar
-    constant over every draw of every chain has converged; one that varies fails on an
-    undefined diagnostic, an R-hat above ``target_rhat`` or (where ``ess`` is given) an ESS
-    below ``min_ess``. ``rhat``, ``ess``: :func:`label_invariant_diagnostic`'s."""
-    failing, undefined = [], []
-    for name in LABEL_INVARIANT:
-        x = np.asarray(stats[name], float)
-        if x.size == 0 or np.ptp(x) == 0:
-            continue
-        values = [rhat[name]] + ([] if ess is None else [ess[name]])
-        if not np.all(np.isfinite(values)):
-            failing.append(name)
-            undefined.append(name)
-        elif rhat[name] > target_rhat or (ess is not None and ess[name] < min_ess):
-            failing.append(name)
-    return failing, undefined
 
 
 #: The ArviZ form's format name and version (``constant_data`` attributes), and the netCDF engine.
@@ -377,35 +318,9 @@ class FitResult:
 
     def convergence_warning(self, rhat: Optional[Dict[str, float]] = None,
                             ess: Optional[Dict[str, float]] = None) -> str:
-        """Lines saying which label-invariant scalars have R-hat above 1.05 or ESS below 100, or
-        diagnostics that are undefined although the scalar varies (:func:`unconverged`), how
-        each chain's mean of them moved from the first to the second half of its draws (a
-        chain still drifting, or chains holding different levels), and what to do; "" when
-        none has. ``rhat``, ``ess``: the run's, where the caller has them already."""
-        rhat = self.rhat if rhat is None else rhat
-        ess = self.ess if ess is None else ess
-        bad, undefined = unconverged(self.stats, rhat, ess)
-        if not bad:
-            return ""
-        halves = []
-        for name in bad:
-            x = np.asarray(self.stats[name], float)
-            if x.ndim == 2 and x.shape[1] >= 2:
-                h = x.shape[1] // 2
-                fmt = ".1f" if name == "log_joint" else ".2f"
-                per_chain = " | ".join(f"{a:{fmt}} -> {b:{fmt}}" for a, b in zip(x[:, :h].mean(1), x[:, h:].mean(1)))
-                halves.append(f"{name} {per_chain}")
-        moved = ("\n  each chain's mean over the first -> the second half of its draws: " + "; ".join(halves)
-                 if halves else "")
-        why = "R-hat above 1.05 or ESS below 100"
-        if undefined:
-            why += (f"; undefined for {', '.join(undefined)}, which varies: fewer than 4 draws a chain, or chains "
-                    "each constant at a different value")
-        return (f"not converged: {', '.join(bad)} ({why}); run more sweeps "
-                f"(samples, warmup) or more chains before trusting the skills found{moved}\n  (a chain whose "
-                "halves differ is still moving: more warmup; chains steady at different levels sit in different "
-                "regions: more chains or sampling sweeps; fit(..., max_samples=N, time_budget=SECONDS) samples on "
-                "until every R-hat is at most 1.05)")
+        """What :func:`npbrs.inference.analysis.diagnostics.convergence_warning` says of this run
+        ("" when it has converged); ``rhat``, ``ess``: the run's, where the caller has them."""
+        return convergence_warning(self, rhat, ess)
 
     def check_mdp(self, mdp) -> None:
         """Raise ValueError unless ``mdp`` is the MDP the run was fitted in (when the run knows it)."""
@@ -472,7 +387,7 @@ class FitResult:
         quantity as ``segment(mdp)`` up to Monte Carlo error; ``segment`` recomputes it from a
         subset of the draws, averaging each draw's smoothed probabilities (the transition
         weights integrated out), which is the less noisy of the two when a run has few draws
-        (``benchmarks/NOTES.md``, session 35), and costs a forward-backward pass per draw and
+        (``docs/design.md``), and costs a forward-backward pass per draw and
         importance sample."""
         from ..analysis.diagnostics import relabel
         from ..analysis.predictive import SkillProbabilities
@@ -625,58 +540,8 @@ class FitResult:
                    step_skill_counts=np.asarray(const[STEP_COUNTS].values) if STEP_COUNTS in const else None)
 
     def summary(self) -> str:
-        """A short text summary: skills, segment lengths, diagnostics."""
-        lengths = [len(s) for s in self.segmentation]
-        switches = np.mean([np.sum(s[1:] != s[:-1]) for s in self.segmentation])
-        counts = np.bincount(np.concatenate(self.segmentation), minlength=self.num_skills)
-        lines = [f"{self.num_skills} skills in {len(lengths)} trajectories ({sum(lengths)} steps); "
-                 f"{switches:.2f} switches per trajectory; best log joint {self.best_log_joint:.1f} (chain {self.best_chain})",
-                 "steps per skill: " + ", ".join(f"{k}: {c}" for k, c in enumerate(counts))]
-        if "greedy_merges" in self.stats and "greedy_splits" in self.stats:
-            kept = [np.asarray(self.stats[n])[:, -1].tolist() for n in ("greedy_merges", "greedy_splits")]
-            if any(kept[0]) or any(kept[1]):
-                lines.append(f"warmup's greedy moves kept per chain: merges {kept[0]}, splits {kept[1]}")
-        if self.init_segmentation is not None:
-            used = len(np.unique(np.concatenate(self.init_segmentation)))
-            lines.append(f"started from a given segmentation ({used} skills)")
-        if self.run_length is not None:
-            r = self.run_length
-            why = {"converged": f"every label-invariant R-hat at most {r['target_rhat']}",
-                   "max_samples": f"max_samples reached before every R-hat was at most {r['target_rhat']}",
-                   "time_budget": f"the time budget ({r['time_budget']:g} s) spent before every R-hat was at most "
-                                  f"{r['target_rhat']}"}.get(r["stopped"], r["stopped"])
-            lines.append(f"run length chosen by convergence: {r['samples']} sampling sweeps per chain ({why})")
-        if self.restart is not None and any(c != i for i, c in enumerate(self.restart["from"])):
-            r = self.restart
-            moved = [i for i, c in enumerate(r["from"]) if c != i]
-            best = r["from"][moved[0]]
-            behind = ", ".join(f"{r['scores'][best] - r['scores'][i]:.0f}" for i in moved)
-            lines.append(f"at warmup's end chain{'s' if len(moved) > 1 else ''} {', '.join(map(str, moved))} "
-                         f"continued from chain {best}'s state ({behind} nats behind it; restart_margin "
-                         f"{r['margin']:g})")
-        if self.truncation is not None:
-            t = self.truncation
-            models = t.get("switching") or [None] * len(t["max_skills"])  # (a run saved before it was kept)
-            both = len(set(models)) > 1
-            steps = "; ".join(f"{k} slots{f' ({m})' if both else ''}: {n} skills, every slot in use in {p:.0%} of "
-                              "the draws" for k, n, p, m in zip(t["max_skills"], t["skills"], t["saturated"], models))
-            lines.append(f"skill slots grew ({steps})")
-        if self.switching is not None:
-            c = self.switching
-            lines.append(f"switching chosen: {c['chosen']} (log Bayes factor of state-dependent ends over sticky "
-                         f"switching, given the sticky fit's skill sequences: {c['log_bayes_factor']:+.1f} nats; "
-                         f"state needs more than {c['margin']:g})")
-        rhat, ess = self.rhat, self.ess
-
-        def shown(value, fmt):
-            return format(value, fmt) if np.isfinite(value) else "undefined"
-
-        lines.append("label-invariant diagnostics (ArviZ): " + "; ".join(
-            f"{n} R-hat {shown(rhat[n], '.3f')} ESS {shown(ess[n], '.0f')}" for n in LABEL_INVARIANT))
-        warning = self.convergence_warning(rhat, ess)
-        if warning:
-            lines.append(warning)
-        return "\n".join(lines)
-
+        """A short text summary: skills, segment lengths, how the run went, diagnostics
+        (:func:`npbrs.inference.analysis.diagnostics.summary`)."""
+        return summary(self)
 
 float64_all(globals())  # npbrs.domains.util.precision: float64 inside, the user's setting outside

@@ -32,7 +32,7 @@ from npbrs.domains.util.precision import float64_all
 
 from .results import NETCDF_ENGINE, FitResult
 
-__all__ = ["load_run", "load", "save_mdp", "load_mdp", "write_checkpoint", "read_checkpoint", "restore_state",
+__all__ = ["load_run", "load", "save_mdp", "load_mdp", "write_checkpoint", "read_checkpoint", "restore_state", "check_checkpoint", "checkpoint_config",
            "atomic_write"]
 
 CHECKPOINT_FORMAT, CHECKPOINT_VERSION = "npbrs-checkpoint", 1
@@ -181,6 +181,48 @@ def restore_state(leaves, like, path="checkpoint"):
             raise ValueError(f"{path}: sampler state array {i} has shape {a.shape} and dtype {a.dtype}, but this "
                              f"kernel expects {tuple(e.shape)} and {e.dtype}; it was written by a different sampler")
     return jax.tree_util.tree_unflatten(treedef, leaves)
+
+
+def checkpoint_config(cfg) -> dict:
+    """The part of a run's configuration a checkpoint must match to be resumed: everything but
+    how often checkpoints are written."""
+    data = cfg.to_dict()
+    data["sampler"] = {k: v for k, v in data["sampler"].items() if k != "checkpoint_every"}
+    return data
+
+
+def check_checkpoint(path, meta):
+    """The checkpoint at ``path`` as (leaves, draws, meta), refused (ValueError) unless it belongs
+    to the run described by ``meta`` (demonstrations, configuration, start, emission, sweeps)."""
+    leaves, draws, saved = read_checkpoint(path)
+    if saved.get("fingerprint") != meta["fingerprint"]:
+        raise ValueError(f"{path}: the checkpoint was written for other demonstrations (fingerprint "
+                         f"{str(saved.get('fingerprint'))[:12]}, these are {meta['fingerprint'][:12]})")
+    if saved.get("config") != meta["config"]:
+        ours, theirs = meta["config"], saved.get("config") or {}
+        diff = sorted(_differences(ours, theirs))
+        raise ValueError(f"{path}: the checkpoint was written with another configuration (differs in "
+                         f"{', '.join(diff) or 'its layout'})")
+    if saved.get("init") != meta["init"]:
+        started = {None: "random windows"}
+        raise ValueError(f"{path}: the checkpoint's chains started from "
+                         f"{started.get(saved.get('init'), 'another init_segmentation')}, not from "
+                         f"{started.get(meta['init'], 'this init_segmentation')}")
+    if saved.get("emission") != json.loads(json.dumps(meta["emission"])):
+        raise ValueError(f"{path}: the checkpoint was written with another emission ({saved.get('emission')})")
+    done = int(saved["sweeps_done"])
+    if not 0 <= done <= meta["total_sweeps"]:
+        raise ValueError(f"{path}: {done} sweeps done of {meta['total_sweeps']}")
+    return leaves, draws, saved
+
+
+def _differences(a, b, prefix=""):
+    if isinstance(a, dict) and isinstance(b, dict):
+        for k in set(a) | set(b):
+            yield from _differences(a.get(k), b.get(k), f"{prefix}{k}.")
+    elif a != b:
+        yield prefix.rstrip(".")
+
 
 
 float64_all(globals())  # npbrs.domains.util.precision: float64 inside, the user's setting outside

@@ -1,0 +1,138 @@
+"""Progress shown while a fit runs, and warnings that name the user's own call."""
+
+from __future__ import annotations
+
+import os
+import sys
+import time
+from typing import Optional
+
+import numpy as np
+
+__all__ = ["Progress", "latest_log_joint", "interactive", "user_stacklevel"]
+
+
+def user_stacklevel() -> int:
+    """``warnings.warn``'s stacklevel, called where the warning is raised, that names the first
+    frame outside npbrs: the user's own call of ``fit`` (however many of npbrs's functions and
+    wrappers lie between), not a line of npbrs's."""
+    import npbrs.domains
+    import npbrs.inference
+    import npbrs.models
+
+    roots = tuple(os.path.dirname(os.path.abspath(m.__file__)) + os.sep
+                  for m in (npbrs.domains, npbrs.models, npbrs.inference))
+    frame, level = sys._getframe(1), 1
+    while frame is not None and os.path.abspath(frame.f_code.co_filename).startswith(roots):
+        frame, level = frame.f_back, level + 1
+    return level
+
+
+
+class Progress:
+    """Sweeps done, shown while a fit runs.
+
+    The first sweep of a run compiles the sampler, so it is shown as "compiling" and left out
+    of the rate: the ETA comes from the sweeps after it. In a terminal or a notebook this is a
+    tqdm bar; when the output is not a terminal (a log file, CI), a plain line every
+    ``total / 10`` sweeps instead of carriage returns.
+    """
+
+    def __init__(self, total: int, initial: int, enabled: bool, stream=None, chains: int = 1, counted: int = 1):
+        """``chains``: the run's; ``counted``: the chains whose sweeps count one by one (``chains``
+        where they are swept in turn or on threads), 1 where a sweep moves every chain at once."""
+        self.total, self.n, self.enabled = int(total), int(initial), bool(enabled)
+        self.chains, self.counted = int(chains), int(counted)
+        self.stream = sys.stderr if stream is None else stream
+        self.phase, self.postfix = "compiling", ""
+        self.timed_from = None  # (time, sweeps) after the first sweep
+        self.bar = None
+        self.plain = self.enabled and not interactive(self.stream)
+        self.every = max(1, self.total // 10)
+        if self.enabled and not self.plain:
+            from tqdm.auto import tqdm
+
+            self.bar = tqdm(total=total, initial=initial, unit="sweep", dynamic_ncols=True, leave=True,
+                            smoothing=0, file=self.stream)
+            self.bar.set_description("compiling", refresh=True)
+        elif self.plain:
+            self._line(f"compiling the sampler (the first sweep); {self.total - self.n} sweeps to run"
+                       + (f" ({self.chains} chains' sweeps, counted one by one)" if self.counted > 1 else ""))
+
+    def _line(self, text):
+        print(f"npbrs fit: {text}", file=self.stream, flush=True)
+
+    def set_phase(self, phase: str):
+        self.phase = phase
+        if self.bar is not None and self.timed_from is not None:
+            self.bar.set_description(phase, refresh=False)
+
+    def set_postfix(self, text: str):
+        self.postfix = text
+        if self.bar is not None:
+            self.bar.set_postfix_str(text, refresh=False)
+
+    def update(self, k: int):
+        self.n += k
+        now = time.perf_counter()
+        if self.timed_from is None:  # the first sweep: compiled; time the rest from here
+            self.timed_from = (now, self.n)
+            if self.bar is not None:
+                self.bar.set_description(self.phase, refresh=False)
+                self.bar.update(k)
+                self.bar.initial, self.bar.start_t = self.bar.n, self.bar._time()
+            elif self.plain:
+                self._line(f"compiled; sweep {self.n}/{self.total} ({self.phase})")
+            return
+        if self.bar is not None:
+            self.bar.update(k)
+        elif self.plain and (self.n % self.every == 0 or self.n >= self.total):
+            t0, n0 = self.timed_from
+            rate = (now - t0) / max(self.n - n0, 1)
+            eta = rate * (self.total - self.n)
+            self._line(f"sweep {self.n}/{self.total} ({self.phase}), {rate:.2f} s per sweep, "
+                       f"about {eta:.0f} s left" + (f", {self.postfix}" if self.postfix else ""))
+
+    def extend(self, total: int):
+        """More sweeps to run than first planned (a run extended until convergence)."""
+        self.total = int(total)
+        self.every = max(1, self.total // 10)
+        if self.bar is not None:
+            self.bar.total = self.total
+            self.bar.refresh()
+
+    def close_done(self, sweeps: int, seconds: float):
+        """Close with the sweeps each chain has run and the run's wall time."""
+        each = f" of each of {self.chains} chains" if self.chains > 1 else ""
+        self.close(f"done: {sweeps} sweeps{each} in {seconds:.1f} s")
+
+    def close(self, message: str = ""):
+        if self.bar is not None:
+            self.bar.close()
+        elif self.plain and message:
+            self._line(message)
+        self.enabled = self.plain = False
+        self.bar = None
+
+
+def latest_log_joint(records) -> Optional[float]:
+    """The best chain's log joint after the sweep that gave ``records`` (a dict batched over
+    chains, or a list of one chain's each), for the progress line; None where the records have
+    none, or where their arrays live partly on other processes' devices (a multi-host run)."""
+    values = [r.get("log_joint") for r in (records if isinstance(records, list) else [records])]
+    if any(v is None or not getattr(v, "is_fully_addressable", True) for v in values):
+        return None
+    return float(max(np.max(np.asarray(v)) for v in values))
+
+
+def interactive(stream) -> bool:
+    """A terminal, or a notebook (where tqdm draws a widget)."""
+    try:
+        if stream.isatty():
+            return True
+    except (AttributeError, ValueError):
+        pass
+    ipython = sys.modules.get("IPython")  # a notebook kernel: IPython is loaded and runs a kernel app
+    shell = getattr(ipython, "get_ipython", lambda: None)() if ipython is not None else None
+    return shell is not None and "IPKernelApp" in getattr(shell, "config", {})
+
