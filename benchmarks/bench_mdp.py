@@ -134,7 +134,9 @@ def bench_domain(name, repeats, numpy_repeats, log=print):
     import jax.numpy as jnp
 
     from npbrs.domains import make_soft_solver
-    from npbrs.models.reward import PRIOR_SCALE, count_log_likelihood_and_grad, count_table, fit_reward
+    from npbrs.models.reward.irl import fit_reward
+    from npbrs.models.reward.likelihood import count_log_likelihood_and_grad, count_table
+    from npbrs.models.reward.prior import PRIOR_SCALE
 
     if name == "highway":
         from npbrs.domains.highway import highway as make

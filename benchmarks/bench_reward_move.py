@@ -2,7 +2,7 @@
 reward emission) and in a whole fit, against solving every slot, in the same process.
 
 The reward move's solves cost about their batch size times one skill's on MDPs with many
-(state, action) entries (``npbrs.models.reward_mala.BATCH_ENTRIES``): there the kernel
+(state, action) entries (``npbrs.models.reward.mala.BATCH_ENTRIES``): there the kernel
 solves only the active skills, ``chunk_size`` at a time. The reference run sets
 ``BATCH_ENTRIES`` so high that every slot is solved at once: the same draws for the active
 skills, up to the solver's tolerance.
@@ -56,10 +56,10 @@ def main(argv=None):
     from npbrs.domains import generate_demonstrations
     from npbrs.domains.registry import get_domain
     from npbrs.inference import fit
-    from npbrs.models import reward_mala
+    from npbrs.models.reward import mala as reward_mala
     from npbrs.inference.sampler.kernel import skill_weights
     from npbrs.models.emissions import HMMData
-    from npbrs.models.reward_emission import RewardEmission
+    from npbrs.models.reward.emission import RewardEmission
 
     default_entries = reward_mala.BATCH_ENTRIES
     settings = {"active only": default_entries, "every slot": 10 ** 12}

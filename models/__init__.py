@@ -6,9 +6,11 @@ from .emissions import EMISSIONS, Emission, HMMData, PolicyEmission, get_emissio
 from .bphmm import Hyper, bphmm_model
 from .subgoal import SubgoalEmission, visited_states
 from .autoregressive import AutoregressiveEmission
-from .reward_emission import RewardEmission, SingleRewardEmission
-from .reward import (PRIOR_SCALE, IRLFit, count_log_likelihood, count_log_likelihood_and_grad,
-                     count_log_likelihood_and_values, count_table,
-                     fisher_information, fit_reward, irl_fit, log_policy, log_posterior, log_prior, step_log_likelihoods)
-from . import mcmc, reward_mala  # reward_mala.init / reward_mala.build_kernel: the reward move
-from .reward_mala import RewardMALAInfo, RewardMALAState
+from .reward.emission import RewardEmission, SingleRewardEmission
+from .reward.prior import PRIOR_SCALE, log_prior
+from .reward.likelihood import (count_log_likelihood, count_log_likelihood_and_grad, count_log_likelihood_and_values,
+                                count_table, fisher_information, log_policy, log_posterior, step_log_likelihoods)
+from .reward.irl import IRLFit, fit_reward, irl_fit
+from . import mcmc
+from .reward import mala as reward_mala  # reward_mala.init / reward_mala.build_kernel: the reward move
+from .reward.mala import RewardMALAInfo, RewardMALAState

@@ -84,10 +84,10 @@ def test_fit_and_the_solvers_compile_through_it():
     from npbrs.inference.analysis import predictive
     from npbrs.inference.driver import fit
     from npbrs.inference.sampler import kernel
-    from npbrs.models import reward
+    from npbrs.models.reward import irl, likelihood
 
     for fn in (fit._sweep_batched, fit._sweep_one, fit._init_chains, kernel._init_state, solvers._solve_batch,
-               predictive._one_draw, predictive._one_draw_marginals, reward._FIT_JIT, reward._LL_AND_GRAD):
+               predictive._one_draw, predictive._one_draw_marginals, irl._FIT_JIT, likelihood._LL_AND_GRAD):
         assert isinstance(fn, compiling._Jit), fn
     # the initial state is the fit's program run once; the sweeps are run hundreds of times
     assert fit._init_chains._once and kernel._init_state._once

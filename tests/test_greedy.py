@@ -194,7 +194,7 @@ def test_reward_laplace_evidence_is_close_to_importance_sampling(scale_prior, pr
     weights = jax.nn.one_hot(jnp.asarray(z), 3) * data.mask[..., None]
     fits, log_ev = jax.jit(em.fit_evidence)(data, weights)  # compiled, not run op by op
     # importance sampling: q = N(fit, (2 * Laplace sd)^2) per skill
-    from npbrs.models.reward import fisher_information
+    from npbrs.models.reward.likelihood import fisher_information
 
     from numpyro.distributions import MultivariateNormal
 
@@ -361,7 +361,7 @@ def test_the_search_solves_looser_and_only_the_search(monkeypatch):
     from npbrs.domains.demos import generate_demonstrations
     from npbrs.inference import make_emission
     from npbrs.models.emissions import HMMData
-    from npbrs.models.reward_emission import RewardEmission
+    from npbrs.models.reward.emission import RewardEmission
 
     dom = gridworld(size=3)
     demos = generate_demonstrations(dom, num_trajectories=2, length=30, switch_prob=0.05, seed=1)

@@ -94,7 +94,7 @@ D, SCALE = 2, 1.0
 def reward_emission(P):
     """The reward emission on the MDP P with D random features, discount 0.8, theta ~ N(0, 1)."""
     from npbrs.domains import TabularMDP
-    from npbrs.models.reward_emission import RewardEmission
+    from npbrs.models.reward.emission import RewardEmission
 
     phi = np.random.default_rng(1).normal(size=(S, A, D))
     return RewardEmission(TabularMDP.from_dense(P, features=phi, discount=0.8), prior_scale=SCALE)
@@ -111,7 +111,7 @@ def reward_t_emission(P):
     """The reward emission of :func:`reward_emission` with a Student t prior of DF degrees of
     freedom and scale SCALE per weight."""
     from npbrs.domains import TabularMDP
-    from npbrs.models.reward_emission import RewardEmission
+    from npbrs.models.reward.emission import RewardEmission
 
     phi = np.random.default_rng(1).normal(size=(S, A, D))
     return RewardEmission(TabularMDP.from_dense(P, features=phi, discount=0.8), prior_scale=SCALE, prior_df=DF)

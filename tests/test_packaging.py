@@ -25,7 +25,7 @@ def test_the_wheel_installs_npbrs_subpackages_only(wheel, tmp_path):
     top = {n.split("/")[0] for n in names if not n.split("/")[0].endswith((".dist-info", ".data"))}
     assert top == {"npbrs"}, top
     for module in ("npbrs/domains/highway.py", "npbrs/domains/quadcopter.py", "npbrs/models/hmm.py",
-                   "npbrs/models/reward_emission.py", "npbrs/inference/sampler/kernel.py",
+                   "npbrs/models/reward/emission.py", "npbrs/inference/sampler/kernel.py",
                    "npbrs/inference/driver/fit.py", "npbrs/inference/analysis/metrics.py",
                    "npbrs/inference/cli/main.py"):
         assert module in names

@@ -4,9 +4,9 @@ import numpy as np
 import pytest
 
 from npbrs.domains import TabularMDP, greedy_policy, make_soft_solver
-from npbrs.models.reward import (count_log_likelihood, count_log_likelihood_and_grad, count_table,
-                                 fisher_information, fit_reward, irl_fit, log_policy, log_posterior,
-                                 step_log_likelihoods)
+from npbrs.models.reward.irl import fit_reward, irl_fit
+from npbrs.models.reward.likelihood import (count_log_likelihood, count_log_likelihood_and_grad, count_table,
+                                            fisher_information, log_policy, log_posterior, step_log_likelihoods)
 
 
 def random_mdp(seed, S=8, A=3, D=4, gamma=0.9):
@@ -222,7 +222,7 @@ def test_bad_input_names_the_problem(small):
 def test_noisy_expert_likelihood_and_gradient(small):
     """epsilon-noisy Boltzmann policy: the count log-likelihood is the mixture's, computed by
     hand from the Boltzmann policy, and its gradient equals central finite differences."""
-    from npbrs.models.reward import noisy_log_policy
+    from npbrs.models.reward.likelihood import noisy_log_policy
 
     _, solver, theta, counts = small
     eps_noise = 0.07

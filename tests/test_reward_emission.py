@@ -12,8 +12,8 @@ from emission_suite import check_emission
 from gridworld import gridworld
 from npbrs.domains import TabularMDP, generate_demonstrations
 from npbrs.models.emissions import HMMData
-from npbrs.models.reward import fisher_information
-from npbrs.models.reward_emission import RewardEmission
+from npbrs.models.reward.emission import RewardEmission
+from npbrs.models.reward.likelihood import fisher_information
 
 
 def test_reward_emission_follows_the_protocol():
@@ -61,7 +61,7 @@ def test_the_default_prior_scale_is_10_for_a_few_features_and_narrows_with_one_w
     from npbrs.domains.highway import FEATURE_NAMES as HIGHWAY_FEATURES
     from npbrs.domains.quadcopter import FEATURE_NAMES as QUADCOPTER_FEATURES
     from npbrs.domains.worlds import labyrinth_mdp, rooms_mdp
-    from npbrs.models.reward_emission import auto_prior_df, auto_prior_scale
+    from npbrs.models.reward.prior import auto_prior_df, auto_prior_scale
 
     # the paper's domains (4 and 3 features) keep a Gaussian of sigma 10, so their tables' draws are unchanged
     assert len(HIGHWAY_FEATURES) == 4 and len(QUADCOPTER_FEATURES) == 3
@@ -114,7 +114,7 @@ def test_the_default_prior_scale_is_10_for_a_few_features_and_narrows_with_one_w
 def test_the_student_t_priors_gradient_and_curvature_are_its_log_densitys_derivatives():
     """prior_grad and prior_curvature against central differences of log_prior (the curvature
     where the t's is above its floor, and the floor in its tails), for both priors."""
-    from npbrs.models.reward import log_prior, prior_curvature, prior_grad
+    from npbrs.models.reward.prior import log_prior, prior_curvature, prior_grad
 
     theta = jnp.array([[-4.0, -0.7, -0.1, 0.0, 0.3, 0.9, 2.5]])
     h = 1e-4
@@ -278,7 +278,7 @@ def test_start_at_the_fit_is_each_skills_posterior_mode():
     its conditional log-posterior vanishes (up to the fit's 20 L-BFGS steps; the default draw
     around it has gradients of order 100 here). Bad values are refused; the choice is part of the
     emission's description."""
-    from npbrs.models.reward import log_posterior
+    from npbrs.models.reward.likelihood import log_posterior
 
     dom = gridworld(size=3)
     demos = generate_demonstrations(dom, num_trajectories=4, length=40, switch_prob=0.05, seed=2)
@@ -346,10 +346,10 @@ def test_the_sweeps_likelihoods_are_backups_from_the_moves_values(scale_prior, m
     first pass solving only the skills with steps, and with the prior draws made after the
     move.)"""
     from npbrs.inference.sampler import BPHMMKernel
-    from npbrs.models import reward_mala
+    from npbrs.models.reward import mala
 
     if scale_prior is None:
-        monkeypatch.setattr(reward_mala, "BATCH_ENTRIES", 2 * 9 * 5)  # (9 states, 5 actions: chunks of 2)
+        monkeypatch.setattr(mala, "BATCH_ENTRIES", 2 * 9 * 5)  # (9 states, 5 actions: chunks of 2)
 
     dom = gridworld(size=3)
     demos = generate_demonstrations(dom, num_trajectories=3, length=20, seed=2)

@@ -101,7 +101,8 @@ import npbrs.domains, npbrs.models, npbrs.inference
 from gridworld import gridworld
 from npbrs.domains import generate_demonstrations, soft_value_iteration
 from npbrs.models.emissions import HMMData
-from npbrs.models.reward import count_table, irl_fit
+from npbrs.models.reward.irl import irl_fit
+from npbrs.models.reward.likelihood import count_table
 assert not jax.config.jax_enable_x64 and jnp.ones(1).dtype == jnp.float32, "importing npbrs changed jax_enable_x64"
 other = gridworld(slip=0.2)
 demos = generate_demonstrations(other, num_trajectories=10, length=64, switch_prob=0.05, seed=4)
@@ -124,7 +125,8 @@ def test_npbrs_computes_in_float64_without_switching_the_process_to_it(tmp_path)
     import sys
 
     from npbrs.domains import soft_value_iteration
-    from npbrs.models.reward import count_table, irl_fit
+    from npbrs.models.reward.irl import irl_fit
+    from npbrs.models.reward.likelihood import count_table
 
     kwargs = dict(emission="reward", num_chains=2, num_samples=3, num_warmup=3, max_skills=5, moves=NO_GREEDY,
                   progress_bar=False)

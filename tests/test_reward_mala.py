@@ -8,8 +8,8 @@ from scipy.optimize import brentq
 from scipy.special import expit
 
 from npbrs.domains import TabularMDP, make_soft_solver
-from npbrs.models.reward import irl_fit
-from npbrs.models.reward_mala import RewardMALAInfo, RewardMALAState, build_kernel, init
+from npbrs.models.reward.irl import irl_fit
+from npbrs.models.reward.mala import RewardMALAInfo, RewardMALAState, build_kernel, init
 
 
 def logistic_mdp(gamma=0.9):
@@ -145,7 +145,7 @@ def test_the_value_only_likelihood_is_the_posteriors_and_flags_a_failed_solve():
     """``count_log_likelihood_and_values`` (the magnitude move's density, no adjoint solve) is
     :func:`log_posterior`'s log-likelihood and values at any temperature and noise rate, and is
     not ok where the solve missed its tolerance."""
-    from npbrs.models.reward import count_log_likelihood_and_values, log_posterior
+    from npbrs.models.reward.likelihood import count_log_likelihood_and_values, log_posterior
 
     C = jnp.asarray([[[3.0, 7.0]], [[10.0, 2.0]]])
     theta = jnp.asarray([[0.3], [-1.2]])
@@ -168,15 +168,15 @@ def test_only_the_active_skills_move_each_as_in_a_step_of_all(chunk, monkeypatch
     module's batching threshold is set so; 2 puts an inactive skill in a chunk's tail, 4 pads
     past K) and each takes the same step as in a step of all K skills with the same key; the
     inactive skills keep their state. Under vmap two chains with 3 and 1 active skills."""
-    from npbrs.models import reward_mala
+    from npbrs.models.reward import mala
 
     rng = np.random.default_rng(0)
     S, A, D, K = 6, 3, 4, 5
     mdp = TabularMDP(successors=rng.integers(S, size=(S, A, 2)), probs=np.full((S, A, 2), 0.5),
                      features=rng.normal(size=(S, A, D)), discount=0.9)
     solver = make_soft_solver(mdp, tol=1e-12)
-    monkeypatch.setattr(reward_mala, "BATCH_ENTRIES", chunk * S * A)
-    assert reward_mala.chunk_size(solver, K) == chunk
+    monkeypatch.setattr(mala, "BATCH_ENTRIES", chunk * S * A)
+    assert mala.chunk_size(solver, K) == chunk
     scale = jnp.asarray([1.0, 2.0, 3.0, 1.5, 0.7])  # per skill: gathered with them
     theta = jnp.asarray(rng.normal(size=(2, K, D)))
     counts = jnp.asarray(rng.poisson(2.0, size=(2, K, S, A)).astype(float))
@@ -211,9 +211,9 @@ def test_the_emissions_one_loop_is_init_then_the_kernels_steps(monkeypatch):
     is ``log_posterior`` at theta for the active skills and the given values for the others.
     Temperature 1.5, epsilon 0.05, one skill inactive (never moved), skills solved one at a
     time."""
-    from npbrs.models import reward_mala
-    from npbrs.models.reward import log_posterior
-    from npbrs.models.reward_emission import RewardEmission
+    from npbrs.models.reward import mala
+    from npbrs.models.reward.emission import RewardEmission
+    from npbrs.models.reward.likelihood import log_posterior
 
     rng = np.random.default_rng(1)
     S, A, D, K = 6, 3, 4, 3
@@ -221,8 +221,8 @@ def test_the_emissions_one_loop_is_init_then_the_kernels_steps(monkeypatch):
                      features=rng.normal(size=(S, A, D)), discount=0.9)
     em = RewardEmission(mdp, prior_scale=2.0, temperature=1.5, epsilon=0.05, mala_steps=3,
                         solver_options={"tol": 1e-12})
-    monkeypatch.setattr(reward_mala, "BATCH_ENTRIES", S * A)
-    assert reward_mala.chunk_size(em.solver, K) == 1
+    monkeypatch.setattr(mala, "BATCH_ENTRIES", S * A)
+    assert mala.chunk_size(em.solver, K) == 1
     theta = jnp.asarray(rng.normal(size=(K, D)))
     counts = jnp.asarray(rng.poisson(2.0, size=(K, S, A)).astype(float)).at[1].set(0.0)
     active = jnp.sum(counts, axis=(1, 2)) > 0
@@ -248,7 +248,7 @@ def test_the_emissions_one_loop_is_init_then_the_kernels_steps(monkeypatch):
     assert float(start.log_density[1]) == 0.0 and np.all(np.asarray(start.V[1]) == np.asarray(cache["V"][1]))
     want_state, want_step, want_acc = jax.jit(by_hand)(key)
     theta_new, new_cache, acc, log_density = jax.jit(
-        lambda key: em._mala(key, theta, counts, cache, True, 2.0, active))(key)
+        lambda key: em.mala(key, theta, counts, cache, True, 2.0, active))(key)
     np.testing.assert_allclose(np.asarray(theta_new), np.asarray(want_state.theta), rtol=1e-12)
     np.testing.assert_allclose(np.asarray(log_density), np.asarray(want_state.log_density), rtol=1e-12)
     np.testing.assert_allclose(np.asarray(new_cache["log_step"]), np.asarray(want_step), rtol=1e-12)

@@ -1,11 +1,13 @@
-"""The reward (Boltzmann / maximum-entropy IRL) emission's numerics.
+"""The reward emission's likelihood: Boltzmann policies of linear rewards, count tables, the
+log-likelihoods of steps and their gradients, the Fisher information, and the one density of a
+skill's weights (:func:`log_posterior`).
 
 A skill is a reward r_k(s, a) = phi(s, a) . theta_k; its demonstrator acts with the Boltzmann
 policy pi_k(a | s) = exp(Q_k(s, a) - V_k(s)) of the soft Bellman equation of the rewards
 tau * r_k (tau: the demonstrator's inverse temperature, 1 by default), mixed with uniform actions
 at rate epsilon for a noisy expert. ``log_policy`` is the one place tau and epsilon enter, and
 ``log_posterior`` the one density of a skill's weights (the MALA move of
-:mod:`npbrs.models.reward_mala`, the IRL fits and the MAP update all use it). Because
+:mod:`npbrs.models.reward.mala`, the IRL fits and the MAP update all use it). Because
 
     sum_t w_t log pi(a_t | s_t) = sum_{s, a} C[s, a] log pi(a | s),
 
@@ -16,21 +18,6 @@ an (S, A) table; ``count_table`` builds it with one scatter-add.
 Gradients are implicit (see :mod:`npbrs.domains.solvers`): the soft fixed point is never
 unrolled, and the gradient of a log-likelihood costs one adjoint linear solve, batched over
 skills.
-
-Prior scale. Rewards are in nats per step (the Boltzmann temperature is folded into theta), so
-the prior's sigma says how deterministic a skill may be. The likelihood of an optimal (hence
-near-deterministic) demonstrator keeps growing along the direction of its reward: the data fix
-the direction and the prior fixes the scale. With 16 x 200 expert steps the MAP weights come out
-at 3-12 sigma on the highway and quadcopter domains (quadcopter skill A: sigma = 1 gives
-theta = (12.9, 0.15, -0.23), sigma = 10 gives (97, 0.5, -0.3), sigma = 100 gives (481, 1.0,
--0.4)), with the same optimal policies and held-out log-likelihoods of -0.35, -0.26 and -0.24
-nats per step (uniform: -1.39). The default sigma = 10 (``PRIOR_SCALE``) puts a decisive
-step (a one-sigma weight on a feature that differs by one between two actions) at e^10, about
-20000 : 1, which is as deterministic as demonstrations of an optimal agent look, while keeping
-Q-gaps at tens rather than hundreds of nats: a much wider prior gains almost no likelihood but
-makes every misassigned step cost hundreds of nats (extreme acceptance ratios for birth, death
-and split-merge moves) and MALA's steps (which scale with the smallest posterior standard
-deviation) relatively smaller.
 """
 
 from __future__ import annotations
@@ -41,17 +28,14 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..domains.solvers import SoftSolver, make_soft_solver
+from npbrs.domains.solvers import SoftSolver, make_soft_solver
 from npbrs.domains.util.compiling import jit
 from npbrs.domains.util.precision import float64_all
+from .prior import PRIOR_SCALE, log_prior, prior_grad
 
-__all__ = ["PRIOR_SCALE", "count_table", "log_policy", "step_log_likelihoods", "count_log_likelihood",
-           "count_log_likelihood_and_values",
-           "count_log_likelihood_and_grad", "fisher_information", "log_prior", "prior_grad", "prior_curvature", "check_prior_df",
-           "log_posterior", "Posterior", "irl_fit",
-           "fit_reward", "IRLFit", "as_solver"]
-
-PRIOR_SCALE = 10.0
+__all__ = ["count_table", "log_policy", "step_log_likelihoods", "count_log_likelihood",
+           "count_log_likelihood_and_values", "count_log_likelihood_and_grad", "fisher_information",
+           "log_posterior", "Posterior", "as_solver"]
 
 
 # --------------------------------------------------------------------------- checking
@@ -216,52 +200,6 @@ def count_log_likelihood(solver: SoftSolver, theta, counts, v0=None) -> jax.Arra
     return jnp.sum(jnp.asarray(counts, jnp.float64) * log_pi, axis=(-2, -1))
 
 
-def log_prior(theta, prior_scale=PRIOR_SCALE, prior_df=None) -> jax.Array:
-    """log Normal(theta; 0, prior_scale^2 I) summed over features, () or (K,); with ``prior_df``
-    nu (a Python float), each weight's prior is instead a Student t of nu degrees of freedom and
-    scale ``prior_scale`` (the Gaussian's scale mixture over sigma^2 ~ InvGamma(nu/2, nu s^2/2)):
-    a heavy-tailed, sparsity-favouring prior, for one weight per state."""
-    import numpyro.distributions as dist
-
-    theta = jnp.asarray(theta, jnp.float64)
-    if prior_df is None:
-        return jnp.sum(dist.Normal(0.0, prior_scale).log_prob(theta), axis=-1)
-    return jnp.sum(dist.StudentT(float(prior_df), 0.0, prior_scale).log_prob(theta), axis=-1)
-
-
-def check_prior_df(prior_df):
-    """``prior_df`` as :func:`log_prior` takes it: None (the Gaussian) or a positive float; a
-    ValueError naming it otherwise."""
-    if prior_df is None:
-        return None
-    if isinstance(prior_df, (bool, str)) or not (np.ndim(prior_df) == 0 and np.isfinite(prior_df) and prior_df > 0):
-        raise ValueError(f"prior_df must be None (a Gaussian prior) or a positive number, got {prior_df!r}")
-    return float(prior_df)
-
-
-def prior_grad(theta, prior_scale=PRIOR_SCALE, prior_df=None) -> jax.Array:
-    """The gradient of :func:`log_prior` in theta (the shape of theta; ``prior_scale`` broadcast
-    against it)."""
-    if prior_df is None:
-        return -theta / prior_scale ** 2
-    nu = float(prior_df)
-    return -(nu + 1.0) * theta / (nu * prior_scale ** 2 + theta ** 2)
-
-
-def prior_curvature(theta, prior_scale=PRIOR_SCALE, prior_df=None) -> jax.Array:
-    """Minus the second derivative of :func:`log_prior` per weight (the shape of theta), the
-    prior's part of a Laplace precision and of the MALA preconditioner: 1 / sigma^2 for the
-    Gaussian; for the Student t, (nu + 1)(nu s^2 - theta^2) / (nu s^2 + theta^2)^2, negative in
-    its tails, floored at a hundredth of its value at 0 (a stand-in that keeps the precision
-    positive; the moves themselves stay exact)."""
-    theta = jnp.asarray(theta, jnp.float64)
-    if prior_df is None:
-        return jnp.broadcast_to(1.0 / jnp.asarray(prior_scale, jnp.float64) ** 2, theta.shape)
-    nu, s2 = float(prior_df), jnp.asarray(prior_scale, jnp.float64) ** 2
-    peak = (nu + 1.0) / (nu * s2)
-    return jnp.maximum((nu + 1.0) * (nu * s2 - theta ** 2) / (nu * s2 + theta ** 2) ** 2, 0.01 * peak)
-
-
 def noisy_log_policy(log_pi, epsilon: float = 0.0):
     """log((1 - epsilon) pi(a | s) + epsilon / A): a Boltzmann policy that acts uniformly at
     random with probability epsilon (a noisy expert). epsilon = 0 returns ``log_pi``."""
@@ -405,218 +343,6 @@ def fisher_information(solver: SoftSolver, theta, counts, v0=None, temperature: 
     n = jnp.sum(counts, axis=-1)
     mean = jnp.einsum("ksa,ksad->ksd", pi, J)
     return jnp.einsum("ks,ksa,ksad,ksae->kde", n, pi, J, J) - jnp.einsum("ks,ksd,kse->kde", n, mean, mean)
-
-
-# ----------------------------------------------------------------------------- IRL fit
-class IRLFit(NamedTuple):
-    """Result of :func:`irl_fit`.
-
-    theta: (D,) or (K, D) maximum a posteriori reward weights.
-    log_lik: () or (K,) count log-likelihood at theta (without the prior).
-    """
-
-    theta: jax.Array
-    log_lik: jax.Array
-
-
-def _two_loop(g, S_hist, Y_hist, rho, count, newest, history):
-    """L-BFGS directions -H g of K problems from circular histories (K, history, D), masked to
-    their first ``count`` (K,) entries, newest at ``newest`` (K,)."""
-    ks = jnp.arange(g.shape[0])
-    q = g
-    alphas = jnp.zeros(rho.shape, g.dtype)
-
-    def first(i, c):
-        q, alphas = c
-        j = (newest - i) % history
-        a = jnp.where(i < count, rho[ks, j] * jnp.sum(S_hist[ks, j] * q, -1), 0.0)
-        return q - a[:, None] * Y_hist[ks, j], alphas.at[ks, j].set(a)
-
-    q, alphas = jax.lax.fori_loop(0, history, first, (q, alphas))
-    y_new = Y_hist[ks, newest]
-    yy = jnp.sum(y_new * y_new, -1)
-    scale = jnp.where(count > 0, 1.0 / (rho[ks, newest] * jnp.where(yy > 0, yy, 1.0)), 1.0)
-    z = scale[:, None] * q
-
-    def second(i, z):
-        age = history - 1 - i
-        j = (newest - age) % history
-        b = rho[ks, j] * jnp.sum(Y_hist[ks, j] * z, -1)
-        return z + jnp.where(age < count, alphas[ks, j] - b, 0.0)[:, None] * S_hist[ks, j]
-
-    return -jax.lax.fori_loop(0, history, second, z)
-
-
-def fit_reward(solver: SoftSolver, counts, theta0, v0, prior_scale=PRIOR_SCALE, num_steps: int = 30,
-               history: int = 10, max_backtracks: int = 10, epsilon: float = 0.0, temperature: float = 1.0,
-               prior_df=None):
-    """The jit-able core of :func:`irl_fit` for K skills: static shapes, no input checks.
-
-    L-BFGS with a backtracking (Armijo) line search on the negative :func:`log_posterior` of
-    every skill, all skills in lock-step: each iteration evaluates the objective once per skill
-    (its start, a trial step or a backtrack) by one batched solve and one batched adjoint solve,
-    every solve warm-started from the skill's last accepted values. So the program holds a
-    single copy of the solver and no loop counter is per-skill. A skill stops after
-    ``num_steps`` steps, or earlier once the predicted decrease is below the objective's
-    accuracy (ten times the solver's relative tolerance), or after two failed line searches in
-    a row (the first one resets its history and tries the scaled gradient).
-
-    Args:
-        solver: a SoftSolver.
-        counts: (K, S, A); theta0: (K, D); v0: (K, S); prior_scale: scalar or (K,).
-        num_steps: L-BFGS steps; history: L-BFGS memory; max_backtracks: halvings per line search.
-        epsilon: the noisy expert's random-action probability (:func:`noisy_log_policy`).
-        temperature: the demonstrator's inverse temperature tau (:func:`log_policy`).
-        prior_df: None, or the Student t prior's degrees of freedom (:func:`log_prior`).
-    Returns:
-        (theta (K, D), log_lik (K,), V (K, S), norm of the log-posterior's gradient (K,),
-        number of value-and-gradient evaluations (K,)).
-    """
-    K, D = theta0.shape
-    scale = jnp.broadcast_to(jnp.asarray(prior_scale, jnp.float64), (K,))
-    noise = max(10.0 * solver.tol, 1e-13)  # relative accuracy of the objective
-    # (a Student t's: one over the square root of its curvature at 0)
-    step_scale = scale if prior_df is None else 1.0 / jnp.sqrt(prior_curvature(jnp.zeros(K), scale, prior_df))
-
-    def objective(theta, v):
-        post = log_posterior(solver, theta, counts, v, scale, temperature, epsilon, prior_df)
-        return -post.log_density, -post.grad, post.log_lik, post.V
-
-    def direction(g, Sh, Yh, rho, count, newest):
-        d = _two_loop(g, Sh, Yh, rho, count, newest, history)
-        gnorm = jnp.linalg.norm(g, axis=-1, keepdims=True)
-        # before any curvature pair, or if the quasi-Newton direction is not a descent
-        # direction: the Newton step of the prior alone (sigma^2 g; the likelihood only adds
-        # curvature), at most one prior scale long (a Student t's: its curvature's at 0)
-        fallback = -g * jnp.minimum(step_scale[:, None] ** 2, step_scale[:, None] / jnp.where(gnorm > 0, gnorm, 1.0))
-        ok = (count > 0) & (jnp.sum(g * d, -1) < 0)
-        return jnp.where(ok[:, None], d, fallback)
-
-    def shrink(alpha, f_new, f, slope):
-        """The next trial step of a backtracking line search after ``alpha`` failed: the
-        minimiser of the quadratic through f, the slope and f_new, safeguarded to [0.1, 0.5]
-        alpha (Nocedal and Wright, section 3.5). A first step of the prior's scale from near
-        an optimum (a warm-started refit) overshoots by orders of magnitude: halving alone
-        spent all of its backtracks there and failed."""
-        curvature = f_new - f - slope * alpha
-        quad = -slope * alpha ** 2 / (2.0 * jnp.where(curvature > 0, curvature, 1.0))
-        quad = jnp.where(jnp.isfinite(f_new) & (curvature > 0), quad, 0.1 * alpha)
-        return jnp.clip(quad, 0.1 * alpha, 0.5 * alpha)
-
-    def cond(c):
-        return jnp.any(~c["done"])
-
-    def body(c):
-        live = ~c["done"]
-        first = c["evals"] == 0
-        trial = jnp.where(live[:, None], c["theta"] + c["alpha"][:, None] * c["d"], c["theta"])
-        f_new, g_new, ll_new, V_new = objective(trial, c["V"])
-        slope = jnp.sum(c["g"] * c["d"], -1)
-        armijo = jnp.isfinite(f_new) & (f_new <= c["f"] + 1e-4 * c["alpha"] * slope)
-        exhausted = c["backtracks"] >= max_backtracks
-        accept = live & (first | armijo)
-        done_step = live & (first | armijo | exhausted)  # move on to a new direction
-        failed = live & exhausted & ~accept
-        # curvature pair of an accepted step
-        s_vec = c["alpha"][:, None] * c["d"]
-        y_vec = g_new - c["g"]
-        sy = jnp.sum(s_vec * y_vec, -1)
-        store = accept & ~first & (sy > 1e-10 * jnp.linalg.norm(s_vec, axis=-1) * jnp.linalg.norm(y_vec, axis=-1))
-        slot = jnp.where(store, (c["newest"] + 1) % history, c["newest"])
-        ks = jnp.arange(K)
-        Sh = jnp.where(store[:, None, None], c["S"].at[ks, slot].set(s_vec), c["S"])
-        Yh = jnp.where(store[:, None, None], c["Y"].at[ks, slot].set(y_vec), c["Y"])
-        rho = jnp.where(store[:, None], c["rho"].at[ks, slot].set(1.0 / jnp.where(sy != 0, sy, 1.0)), c["rho"])
-        count = jnp.where(store, jnp.minimum(c["count"] + 1, history), c["count"])
-        count = jnp.where(failed, 0, count)  # a failed line search forgets the history
-        pick = lambda new, old: jnp.where(accept.reshape(accept.shape + (1,) * (new.ndim - 1)), new, old)
-        theta, f, g, ll, V = (pick(trial, c["theta"]), pick(f_new, c["f"]), pick(g_new, c["g"]),
-                              pick(ll_new, c["ll"]), pick(V_new, c["V"]))
-        d = jnp.where(done_step[:, None], direction(g, Sh, Yh, rho, count, slot), c["d"])
-        steps = c["steps"] + (done_step & ~first)
-        failures = jnp.where(failed, c["failures"] + 1, jnp.where(accept, 0, c["failures"]))
-        # nothing left to gain that the solver's tolerance would not hide
-        converged = done_step & (jnp.abs(jnp.sum(g * d, -1)) <= noise * (1.0 + jnp.abs(f)))
-        done = c["done"] | (steps >= num_steps) | (failures >= 2) | converged
-        return dict(theta=theta, f=f, g=g, ll=ll, V=V, S=Sh, Y=Yh, rho=rho, count=count, newest=slot, d=d,
-                    alpha=jnp.where(done_step, 1.0, shrink(c["alpha"], f_new, c["f"], slope)),
-                    backtracks=jnp.where(done_step, 0, c["backtracks"] + live), steps=steps,
-                    evals=c["evals"] + live, failures=failures, done=done)
-
-    zeros_i = jnp.zeros(K, jnp.int32)
-    init = dict(theta=theta0, f=jnp.full(K, jnp.inf), g=jnp.zeros((K, D)), ll=jnp.zeros(K), V=v0,
-                S=jnp.zeros((K, history, D)), Y=jnp.zeros((K, history, D)), rho=jnp.zeros((K, history)),
-                count=zeros_i, newest=jnp.full(K, history - 1, jnp.int32), d=jnp.zeros((K, D)), alpha=jnp.zeros(K),
-                backtracks=zeros_i, steps=zeros_i, evals=zeros_i, failures=zeros_i,
-                done=jnp.full(K, num_steps <= 0))
-    if num_steps <= 0:
-        f, g, ll, V = objective(theta0, v0)
-        return theta0, ll, V, jnp.linalg.norm(g, axis=-1), jnp.ones(K, jnp.int32)
-    c = jax.lax.while_loop(cond, body, init)
-    return c["theta"], c["ll"], c["V"], jnp.linalg.norm(c["g"], axis=-1), c["evals"]
-
-
-def irl_fit(solver, counts, theta0=None, *, prior_scale=PRIOR_SCALE, num_steps: int = 30, v0=None,
-            history: int = 10, temperature: float = 1.0, epsilon: float = 0.0, prior_df=None) -> IRLFit:
-    """Maximum a posteriori maximum-entropy IRL: argmax_theta sum C log pi_theta + log N(theta; 0, sigma^2 I)
-    (or a Student t prior per weight, ``prior_df``).
-
-    A fixed number of L-BFGS steps with a backtracking line search, every soft solve
-    warm-started from the previous one; pure and jit-able with static shapes (``fit_reward``
-    is the same without input checks), batched over skills.
-
-    Args:
-        solver: a SoftSolver or a TabularMDP.
-        counts: (S, A) or (K, S, A) weighted counts of the skill's steps (:func:`count_table`).
-        theta0: optional starting weights (D,) or (K, D) (zeros by default): warm-start from a
-            previous fit.
-        prior_scale: sigma of the Gaussian prior (see the module docstring for the default).
-        num_steps: L-BFGS steps.
-        v0: optional warm start of the soft values (K, S) (or (S,)).
-        history: L-BFGS memory.
-        temperature: the demonstrator's inverse temperature tau (policies of tau * phi . theta).
-        epsilon: the noisy expert's random-action probability (:func:`noisy_log_policy`).
-        prior_df: None (the Gaussian prior), or the degrees of freedom of a Student t prior of
-            scale ``prior_scale`` on each weight (:func:`log_prior`).
-    Returns:
-        IRLFit(theta (D,) or (K, D), log_lik () or (K,)).
-    """
-    solver = as_solver(solver)
-    S, D = solver.num_states, solver.num_features
-    if _is_concrete(counts):
-        _check_counts(counts, S, solver.num_actions)
-    _check_prior_scale(prior_scale)
-    if int(num_steps) < 0 or int(history) < 1:
-        raise ValueError(f"num_steps must be >= 0 and history >= 1, got {num_steps}, {history}")
-    counts = jnp.asarray(counts, jnp.float64)
-    single = counts.ndim == 2
-    C = counts[None] if single else counts
-    K = C.shape[0]
-    if theta0 is None:
-        theta0 = jnp.zeros((K, D))
-    else:
-        if _is_concrete(theta0):
-            _check_theta(theta0, D)
-        theta0 = jnp.broadcast_to(jnp.asarray(theta0, jnp.float64), (K, D))
-    if v0 is None:
-        v0 = jnp.zeros((K, S))
-    else:
-        v0 = jnp.broadcast_to(jnp.asarray(v0, jnp.float64), (K, S))
-    for name, value in [("temperature", temperature), ("epsilon", epsilon)]:
-        if not np.isfinite(value) or value < 0 or (name == "temperature" and value == 0) or \
-                (name == "epsilon" and value >= 1):
-            raise ValueError(f"{name} must be {'positive' if name == 'temperature' else 'in [0, 1)'}, got {value!r}")
-    theta, ll, *_ = _fit_jit(solver, C, theta0, v0, prior_scale, int(num_steps), int(history), float(epsilon),
-                             float(temperature), check_prior_df(prior_df))
-    return IRLFit(theta[0], ll[0]) if single else IRLFit(theta, ll)
-
-
-def _fit_jit(solver, counts, theta0, v0, prior_scale, num_steps, history, epsilon=0.0, temperature=1.0, prior_df=None):
-    return _FIT_JIT(solver, counts, theta0, v0, jnp.asarray(prior_scale, jnp.float64), num_steps, history, 10,
-                    epsilon, temperature, prior_df)
-
-
-_FIT_JIT = jit(fit_reward, static_argnums=(5, 6, 7, 8, 10))  # temperature is traced
 
 
 float64_all(globals())  # npbrs.domains.util.precision: float64 inside, the user's setting outside

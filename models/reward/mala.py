@@ -4,7 +4,7 @@ The target is each skill's conditional posterior given its steps' count table,
 
     p(theta_k | C_k) ∝ exp(sum_{s,a} C_k[s, a] log pi_k(a | s)) N(theta_k; 0, sigma_k^2 I),
 
-the one density :func:`npbrs.models.reward.log_posterior` (temperature and epsilon enter there).
+the one density :func:`npbrs.models.reward.likelihood.log_posterior` (temperature and epsilon enter there).
 One step proposes, for all skills at once,
 
     theta' = theta + (eps^2 / 2) M^-1 grad log p(theta) + eps M^-1/2 xi,
@@ -18,7 +18,7 @@ theta, or the iteration cap) is rejected, so no proposal is accepted on a wrong 
 
 Blackjax-style: ``init`` makes the state, ``build_kernel`` returns
 ``kernel(rng_key, state, counts, step_size, inverse_mass=None) -> (state, info)``; both are pure
-and jit-able with static shapes. The reward emission (:mod:`npbrs.models.reward_emission`) runs
+and jit-able with static shapes. The reward emission (:mod:`npbrs.models.reward.emission`) runs
 this kernel and adds only the warmup tuning (the step size per skill and the preconditioner
 M^-1 from the Fisher information).
 """
@@ -31,8 +31,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .mcmc import metropolis_accept, select
-from .reward import PRIOR_SCALE, Posterior, as_solver, check_prior_df, log_posterior
+from ..mcmc import metropolis_accept, select
+from .likelihood import Posterior, as_solver, log_posterior
+from .prior import PRIOR_SCALE, check_prior_df
 from npbrs.domains.util.compiling import jit
 from npbrs.domains.util.precision import float64_all
 
@@ -137,7 +138,7 @@ def init(solver, theta, counts, prior_scale=PRIOR_SCALE, v0=None, *, temperature
         prior_scale: sigma of the Gaussian prior, scalar or (K,).
         v0: optional (K, S) warm start of the first solve.
         prior_df: None, or the degrees of freedom of a Student t prior of scale ``prior_scale``
-            on each weight (:func:`npbrs.models.reward.log_prior`).
+            on each weight (:func:`npbrs.models.reward.prior.log_prior`).
         temperature, epsilon: the demonstrator's inverse temperature and random-action rate.
         active: optional (K,) bool, the skills to solve (see :func:`build_kernel`); the others
             get log_density 0 and gradient 0, and keep v0.
