@@ -24,10 +24,10 @@ An emission model supplies everything that depends on what a skill *is*:
 - optionally ``tune(params, cache, data, weights) -> cache`` with an integer attribute
   ``tune_every``: expensive warmup-only tuning of the move (e.g. a preconditioner), which the
   sampler runs before ``update`` in the first warmup sweep and every ``tune_every`` warmup
-  sweeps after it, never in the sampling sweeps. An ``update`` that takes a keyword ``tune``
-  (a bool, shared by vectorised chains) is passed it instead, true in those sweeps, and tunes
-  itself there (the reward emission: where its move's first pass has solved what the tuning
-  needs).
+  sweeps after it, never in the sampling sweeps. An emission that declares
+  ``tunes_in_update`` has its ``update`` passed a keyword ``tune`` (a bool, shared by vectorised
+  chains) instead, true in those sweeps, and tunes itself there (the reward emission: where its
+  move's first pass has solved what the tuning needs).
 - ``redraw_unused`` (an integer class attribute, 1 by default): the sweeps between the prior
   redraws of unused skills' parameters that ``fit`` asks the sampler for
   (``moves["redraw_unused"]``: in between they are kept, also an exact move); more than 1 where a
@@ -43,7 +43,8 @@ An emission model supplies everything that depends on what a skill *is*:
   skill slots the emission needs (unsegmented IRL: 1), which ``fit`` then uses.
 
 Every optional hook has its "absent" value on :class:`Emission`, so the sampler and ``fit`` read
-them as attributes.
+them as attributes. What an emission's methods accept beyond the protocol is declared by the
+capability flags of :class:`Emission`, never read from their signatures.
 
 A new emission model implements this protocol and registers itself with
 :func:`register_emission`; the sampler needs no change.
@@ -114,7 +115,23 @@ def bucket_size(n: int) -> int:
 
 
 class Emission(Pytree):
-    """Base class of emission models (see the module docstring for the protocol)."""
+    """Base class of emission models (see the module docstring for the protocol).
+
+    Capabilities, declared as class attributes (False here; an emission that has one sets it, and
+    a test checks each registered emission's flags against its methods):
+
+    - ``tunes_in_update``: ``update`` takes a keyword ``tune`` (a bool shared by vectorised
+      chains) and does the work of ``tune`` itself where it is true; the sampler then passes it
+      instead of calling ``tune`` before ``update``.
+    - ``solves_in_update``: ``update`` takes ``redraw_unused`` and returns a cache from which
+      ``log_likelihoods(..., solved=True)`` needs no fresh evaluation (below).
+    - ``fits_without_evidence``: ``fit_evidence`` takes ``with_evidence`` (a bool, or a traced
+      one): where false only the fits are needed and the evidences may be anything (NaN), so
+      their cost can be skipped. Without it the greedy moves never pass ``with_evidence``.
+    - ``fits_with_likelihoods``: ``fit_evidence`` takes ``with_likelihoods`` (a Python bool) and,
+      when true, returns the fits' per-step log-likelihoods (N, T, M) third, cheaper than
+      ``log_likelihoods`` would. Without it the greedy moves call ``log_likelihoods``.
+    """
 
     name: str = "emission"
     #: the sweeps between prior redraws of unused skills' parameters that ``fit`` asks for
@@ -132,6 +149,12 @@ class Emission(Pytree):
     #: ``tune_every`` warmup sweeps (None: none)
     tune: Optional[Callable] = None
     tune_every: int = 1
+    #: ``update`` takes ``tune`` (see the class docstring)
+    tunes_in_update: bool = False
+    #: ``fit_evidence`` takes ``with_evidence`` (see the class docstring)
+    fits_without_evidence: bool = False
+    #: ``fit_evidence`` takes ``with_likelihoods`` (see the class docstring)
+    fits_with_likelihoods: bool = False
 
     def initial_skills(self, max_skills: int) -> Optional[int]:
         """The initial segmentation's number of skills for ``max_skills`` slots (None: the
@@ -183,19 +206,15 @@ class Emission(Pytree):
     def supports_split_merge(cls) -> bool:
         return cls.fit_point is not Emission.fit_point
 
-    def fit_evidence(self, data: HMMData, weights, init=None, with_evidence=True):
+    def fit_evidence(self, data: HMMData, weights, init=None):
         """Point estimates (M, ...) of M skills' parameters from weighted steps ``weights``
         (N, T, M) and the log evidence (M,) of each skill's steps, log of the integral of
         p(steps | params) p0(params) over the parameters (exact, or e.g. a Laplace
         approximation at the estimate); ``init`` (M, ...) may start an iterative fit. Used by
         the warmup's greedy merges and splits (a split's allocation fits by it too); optional.
-        ``with_evidence`` (a bool or a traced one; optional in an implementation, the greedy
-        moves pass it only where it is taken): where false the caller needs the estimates only,
-        and the log evidences may be anything (e.g. NaN, skipping their cost). An
-        implementation may also take ``with_likelihoods`` (a Python bool): then, when true, it
-        returns the estimates' per-step log-likelihoods (N, T, M) third, where it has them
-        cheaper than ``log_likelihoods`` would (the reward emission: from its fits' soft values,
-        no solve); the greedy moves ask for them where it is taken."""
+        An implementation may also take ``with_evidence`` and ``with_likelihoods``, declared by
+        ``fits_without_evidence`` and ``fits_with_likelihoods`` (see the class docstring); the
+        greedy moves pass each only where it is declared."""
         raise NotImplementedError(f"the {self.name!r} emission has no fit_evidence (needed by greedy merges)")
 
     @classmethod
@@ -293,6 +312,9 @@ class PolicyEmission(Emission):
         num_states, num_actions: sizes of the tabular MDP.
         concentration: the symmetric Dirichlet parameter c.
     """
+
+    # ``fit_evidence`` takes ``with_evidence`` (and computes the exact evidences anyway: cheap)
+    fits_without_evidence = True
 
     def __init__(self, num_states: int, num_actions: int, concentration: float = 0.5):
         if num_states < 1 or num_actions < 1:

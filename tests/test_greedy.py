@@ -281,7 +281,9 @@ def test_a_lumped_pair_is_split_and_a_true_skill_is_not():
     assert bool(out_info.possible) and not bool(out_info.accepted), float(out_info.gain)
     assert _tree_equal(out, state)
 
-    class WithoutFlag(PolicyEmission):  # an emission written before ``with_evidence``
+    class WithoutFlag(PolicyEmission):  # an emission whose fit_evidence does not take ``with_evidence``
+        fits_without_evidence = False
+
         def fit_evidence(self, data, weights, init=None):
             return PolicyEmission.fit_evidence(self, data, weights, init)
 

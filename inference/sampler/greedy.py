@@ -55,7 +55,6 @@ parameters (and with state-dependent ends the ends' means and the ends). Since e
 
 from __future__ import annotations
 
-import inspect
 from typing import NamedTuple
 
 import jax
@@ -267,13 +266,12 @@ def _run_trial(trial: _Trial, state: MoveState, emission, data, hyper):
 
 def _fit_evidence(emission, data, weights, init, with_evidence):
     """``emission.fit_evidence`` and the fits' likelihoods (N, T, M): (fits, log evidences,
-    likelihoods). It is told when only the fits are needed if it takes ``with_evidence`` (an
-    emission written without it computes its evidences always), and asked for the likelihoods
-    if it takes ``with_likelihoods`` (the reward emission's come from its fits' soft values);
+    likelihoods). It is told when only the fits are needed if it declares ``fits_without_evidence``
+    (an emission without it computes its evidences always), and asked for the likelihoods if it
+    declares ``fits_with_likelihoods`` (the reward emission's come from its fits' soft values);
     otherwise they are the fits' ``log_likelihoods``."""
-    taken = inspect.signature(emission.fit_evidence).parameters
-    kwargs = {"with_evidence": with_evidence} if "with_evidence" in taken else {}
-    if "with_likelihoods" in taken:
+    kwargs = {"with_evidence": with_evidence} if emission.fits_without_evidence else {}
+    if emission.fits_with_likelihoods:
         return emission.fit_evidence(data, weights, init, with_likelihoods=True, **kwargs)
     fits, log_ev = emission.fit_evidence(data, weights, init, **kwargs)
     lik, _ = emission.log_likelihoods(fits, data, emission.init_cache(weights.shape[-1]))

@@ -22,8 +22,6 @@ Every density used here is one of the model's own (``npbrs.models.bphmm``).
 
 from __future__ import annotations
 
-import inspect
-
 from functools import partial
 from typing import Any, Dict, NamedTuple, Optional
 
@@ -590,7 +588,7 @@ class BPHMMKernel(MCMCKernel, Pytree):
         if tune is not None:
             every = int(self.emission.tune_every)
             tune_now = (step < num_warmup) & (step % every == 0)
-            if "tune" in inspect.signature(self.emission.update).parameters:
+            if self.emission.tunes_in_update:
                 tuned = {"tune": tune_now}  # (the update tunes itself where it has what tuning needs)
             else:
                 cache = jax.lax.cond(tune_now, lambda c: tune(params, c, self.data, weights), lambda c: c, cache)

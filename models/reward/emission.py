@@ -261,6 +261,12 @@ class RewardEmission(RewardMoves, RewardEvidence, RewardPrior, Emission):
     # sweeps between prior redraws of unused skills in ``fit`` (a redraw's likelihoods are cold
     # solves: on the highway they took half of a sweep when redrawn every sweep)
     redraw_unused = 5
+    # ``update`` takes ``tune`` and refreshes the preconditioner after its first pass (no solve)
+    tunes_in_update = True
+    # ``fit_evidence`` takes ``with_evidence`` (false: fits only, no Fisher information) and
+    # ``with_likelihoods`` (the fits' per-step log-likelihoods from their own soft values)
+    fits_without_evidence = True
+    fits_with_likelihoods = True
 
     def initial_skills(self, max_skills: int):
         """``fit``'s number of skills in the initial segmentation: every slot (``max_skills``)
