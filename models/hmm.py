@@ -38,7 +38,8 @@ import jax.numpy as jnp
 from npbrs.domains.util.precision import float64_all
 
 __all__ = ["NEG_LOG", "forward_filter", "backward_sample", "smooth", "path_log_prob", "viterbi", "batch_forward_filter",
-           "batch_backward_sample", "batch_smooth", "batch_viterbi", "transition_counts", "initial_counts"]
+           "batch_backward_sample", "batch_smooth", "batch_viterbi", "transition_counts", "initial_counts",
+           "inverse_transform"]
 
 # Stands in for log 0. exp(NEG_LOG) is exactly 0 in float32 and float64, and sums of a few of
 # them stay far from overflow; any real log-likelihood is far above it.
@@ -93,7 +94,7 @@ def _gated_trans(log_trans, log_end, log_stay):
     """The step's (K, K) gated log transition matrix log[(1 - g) I + g pi]: every column of
     :func:`_gated_column` at once, the same values to the bit. (Its rule written for the whole
     matrix, the diagonal selected by a mask: the columns mapped one by one, or the diagonal set by
-    one scatter, made the gated Viterbi 12-20% slower: benchmarks/NOTES.md, session 49.)"""
+    one scatter, made the gated Viterbi 12-20% slower.)"""
     K = log_trans.shape[-1]
     ended = log_end[:, None] + log_trans
     diagonal = jnp.logaddexp(jnp.diagonal(ended), log_stay)
@@ -159,7 +160,7 @@ def forward_filter(log_init, log_trans, log_lik, mask=None, active=None, gate=No
     predictions at exp(-708) in absolute terms). Otherwise the recursion agrees with the
     log-space one to rounding (about 1e-13 in the log marginal over 500 steps), at less than
     half its cost: a 500-step marginal of 400 trajectories and 8 skills takes 11 ms where the
-    log-space one took 24-28 ms (``benchmarks/NOTES.md``).
+    log-space one took 24-28 ms.
     """
     log_lik = jnp.asarray(log_lik)
     T, K = log_lik.shape
@@ -230,7 +231,7 @@ def backward_sample(key, log_trans, log_alpha, mask=None, active=None, gate=None
 
     # every step's uniform at once, outside the scan: one per step, by inverse transform (the
     # Gumbel-max trick needs K random numbers a step, and generating them was two thirds of the
-    # pass: benchmarks/NOTES.md, session 49)
+    # pass)
     uniforms = jax.vmap(lambda t: jax.random.uniform(jax.random.fold_in(key, t), (), log_alpha.dtype))(jnp.arange(T))
 
     ends = _gate_logs(gate, T, K, log_alpha.dtype) if gate is not None else ()
@@ -242,7 +243,7 @@ def backward_sample(key, log_trans, log_alpha, mask=None, active=None, gate=None
         # the column z_next of the next step's (gated) transition matrix
         into = log_trans[:, zn] if gate is None else _gated_column(log_trans, *gate_t, zn)
         to_next = jnp.where(z_next >= 0, into, 0.0)
-        z = _inverse_transform(filt + to_next, u)
+        z = inverse_transform(filt + to_next, u)
         z = jnp.where(real, z, jnp.int32(-1))
         return jnp.where(real, z, z_next), z
 
@@ -250,11 +251,17 @@ def backward_sample(key, log_trans, log_alpha, mask=None, active=None, gate=None
     return z
 
 
-def _inverse_transform(logits, u):
-    """The index (int32) drawn with probabilities proportional to exp(logits) (K,), by inverse
-    transform from one uniform u in [0, 1): the first index whose cumulative weight exceeds u
-    times the total (an index of zero weight never is). Where rounding leaves none above (u
-    within 2^-52 of 1), the heaviest index."""
+def inverse_transform(logits, u) -> jax.Array:
+    """A categorical draw by inverse transform from one uniform: the first index whose cumulative
+    weight exceeds u times the total (an index of zero weight never does). Where rounding leaves
+    none above (u within 2^-52 of 1), the heaviest index. The backward sampler's draw of each step.
+
+    Args:
+        logits: (K,) unnormalised log-probabilities (NEG_LOG or -inf for weight 0).
+        u: a uniform in [0, 1), scalar.
+    Returns:
+        () int32, the index drawn with probability proportional to exp(logits).
+    """
     w = jnp.exp(logits - jnp.max(logits))
     c = jnp.cumsum(w)
     above = c > u * c[-1]

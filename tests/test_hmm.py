@@ -441,15 +441,15 @@ def test_the_backward_samplers_inverse_transform_gives_each_index_its_probabilit
     """Each step's draw (one uniform by inverse transform): over a grid of n uniforms the share
     of each index is its probability to within 1/n, an index of zero weight (an inactive skill,
     NEG_LOG, or -inf) is never drawn, not even at u = 0, and u next to 1 draws a real index."""
-    from npbrs.models.hmm import _inverse_transform
+    from npbrs.models.hmm import inverse_transform
 
     logits = jnp.array([NEG_LOG, np.log(0.2), -np.inf, np.log(0.5), np.log(0.3), NEG_LOG]) + 3.0
     n = 20_000
     u = (np.arange(n) + 0.5) / n
-    draws = np.asarray(jax.vmap(_inverse_transform, in_axes=(None, 0))(logits, u))
+    draws = np.asarray(jax.vmap(inverse_transform, in_axes=(None, 0))(logits, u))
     share = np.bincount(draws, minlength=6) / n
     np.testing.assert_allclose(share, [0, 0.2, 0, 0.5, 0.3, 0], atol=1.5 / n)
     # the first and the last index with weight at the ends of [0, 1); past them (rounding) the heaviest
-    assert int(_inverse_transform(logits, 0.0)) == 1
-    assert int(_inverse_transform(logits, 1.0 - 2.0 ** -53)) == 4
-    assert int(_inverse_transform(logits, 1.0)) == 3
+    assert int(inverse_transform(logits, 0.0)) == 1
+    assert int(inverse_transform(logits, 1.0 - 2.0 ** -53)) == 4
+    assert int(inverse_transform(logits, 1.0)) == 3

@@ -73,8 +73,8 @@ class RewardEmission(RewardMoves, RewardEvidence, RewardPrior, Emission):
             "calibrated" labelled the four rooms as well (4 chains, fit seeds 0-3: 0.860 against
             0.863) but found worse regions on the labyrinth (held-out -0.920 against -0.899 on
             fit seed 1, its chains' log joint 400-500 nats lower): "laplace"'s Occam penalty of
-            about 0.3 nats per weight left to the prior helped there (``benchmarks/NOTES.md``: a
-            Student t prior per reward weight).
+            about 0.3 nats per weight left to the prior helped there (``docs/design.md``: priors
+            for many reward weights).
         temperature: inverse temperature tau of the Boltzmann policy, pi ~ exp(tau Q); the
             rewards are tau * phi . theta (tau = 1: folded into theta).
         discount: the discount of the skills' soft value iteration (default: the MDP's).
@@ -99,8 +99,7 @@ class RewardEmission(RewardMoves, RewardEvidence, RewardPrior, Emission):
             preconditioner's Fisher information. The reward move and every likelihood the
             sampler keeps use the solver's own tolerance (1e-10 unless ``solver_options`` says
             otherwise); a looser one of the solver's wins here too. At 1e-6 a second tiny
-            highway fit took 4.2 s instead of 5.4 s, with the same skills
-            (``benchmarks/NOTES.md``: the search's solves at 1e-6).
+            highway fit took 4.2 s instead of 5.4 s, with the same skills.
         epsilon: probability that the demonstrator acts uniformly at random instead of by the
             skill's Boltzmann policy (a noisy expert): pi = (1 - eps) Boltzmann + eps / A. A few
             actions that no reward explains then cost log(eps / A) each instead of opening a
@@ -274,8 +273,8 @@ class RewardEmission(RewardMoves, RewardEvidence, RewardPrior, Emission):
         the slots) otherwise. With one weight per state, a start with fewer skills than the data
         hold lumps goals into one skill, and the lump is a mode of its own that no split leaves
         (rooms, fit seeds 0-7: one-to-one 0.907 from every slot against 0.843 from half;
-        ``benchmarks/NOTES.md``: rooms' lumped pair is a second mode); the greedy merges remove
-        the extra skills."""
+        ``docs/design.md``: starts for a reward weight per state); the greedy merges remove the
+        extra skills."""
         return int(max_skills) if self.num_features > START_FIT_FEATURES else None
 
     @property

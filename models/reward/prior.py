@@ -41,7 +41,7 @@ PRIOR_SCALE = 10.0
 # prior_scale="auto" (the default): sigma = AUTO_SCALE for up to AUTO_SCALE_FEATURES weights (the
 # paper's domains: 3 and 4 features), and beyond them sigma^2 D held at AUTO_SCALE^2 x
 # AUTO_SCALE_FEATURES (sigma = 20 / sqrt(D)): one weight per state wants a far narrower prior
-# (benchmarks/NOTES.md, "The reward prior's scale for one weight per state")
+# (docs/design.md, "Priors for many reward weights")
 AUTO_SCALE, AUTO_SCALE_FEATURES = 10.0, 4
 # start="auto" starts each skill at its IRL fit when the reward has more weights than this (one
 # weight per state: a draw around the fit in that many dimensions lands far below it), and draws
@@ -111,7 +111,7 @@ def auto_prior_df(num_features: int):
     (Gaussian: 0.906; the true model's Viterbi 0.953); from ``fit``'s start (4 chains, fit
     seeds 0-3) 0.863 against 0.790, and held-out -1.198 nats per step against the Gaussian's
     -1.216 (the oracle -1.169), at the same cost; the grid scores as before and the labyrinth's
-    held-out within 0.005 of before (``benchmarks/NOTES.md``: a Student t prior per reward weight)."""
+    held-out within 0.005 of before (``docs/design.md``: priors for many reward weights)."""
     D = int(num_features)
     if D < 1:
         raise ValueError(f"num_features must be at least 1, got {num_features!r}")
@@ -125,7 +125,7 @@ def auto_prior_scale(num_features: int) -> float:
 
     With one weight per state, a skill's Occam factor grows with its prior variance per
     visited state: at sigma 10 the four-room world's true skills lose to lumped multi-goal
-    rewards along every path of single moves, at sigma 1-2 they do not (``benchmarks/NOTES.md``)."""
+    rewards along every path of single moves, at sigma 1-2 they do not (``docs/design.md``)."""
     D = int(num_features)
     if D < 1:
         raise ValueError(f"num_features must be at least 1, got {num_features!r}")
