@@ -209,9 +209,9 @@ def _release_compiled_programs(request):
     use, or when they are not released: the crash would otherwise come back silently."""
     yield
     held = map_count()
-    fit_module = sys.modules.get("npbrs.inference.driver.fit")  # (the package's ``fit`` is the function)
-    if fit_module is not None:
-        fit_module._COMPILED.clear()
+    compiled = sys.modules.get("npbrs.inference.driver.compiled")
+    if compiled is not None:
+        compiled.clear_compiled()
     jax.clear_caches()
     gc.collect()
     _return_freed_memory()

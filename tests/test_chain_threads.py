@@ -15,37 +15,37 @@ import pytest
 
 from gridworld import ragged_policy_problem
 from npbrs.inference import fit
-from npbrs.inference.driver import fit as fit_module
-from npbrs.inference.driver.fit import _chain_method
-from npbrs.inference.driver import threads as threads_module
-from npbrs.inference.driver.threads import on_threads
+from npbrs.inference.driver import chains as chains_module, compiled as compiled_module
+from npbrs.inference.driver.chains import choose_chain_method
+from npbrs.inference import threads as threads_module
+from npbrs.inference.threads import on_threads
 
 MDP, DEMOS = ragged_policy_problem(correct=0.8)
 # test_skill_probabilities.py's settings (the greedy moves off: their compilation is not what this tests)
-KW = dict(emission="policy", num_chains=2, num_warmup=6, max_skills=3, seed=5, progress_bar=False,
-          moves={"greedy_merge": 0, "greedy_split": 0})
+CONFIG = dict(emission="policy", max_skills=3, moves={"greedy_merge": 0, "greedy_split": 0})
+KW = dict(num_chains=2, num_warmup=6, seed=5, progress_bar=False)
 
 
 def two_cores(monkeypatch):
     # two threads even on one core (with a jaxlib whose LAPACK kernels block XLA's pool, too:
     # this model's programs call no library kernel, checked below)
-    monkeypatch.setattr(fit_module, "cores", lambda: 2)
+    monkeypatch.setattr(chains_module, "cores", lambda: 2)
     monkeypatch.setattr(threads_module, "cores", lambda: 2)
 
 
 def test_threads_give_the_sequential_draws_bit_for_bit(monkeypatch):
     two_cores(monkeypatch)
     calls = []
-    monkeypatch.setattr(fit_module, "on_threads", lambda *a: calls.append(a[2]) or on_threads(*a))
-    threads = fit(MDP, DEMOS, num_samples=4, chain_method="threads", **KW)
+    monkeypatch.setattr(chains_module, "on_threads", lambda *a: calls.append(a[2]) or on_threads(*a))
+    threads = fit(MDP, DEMOS, dict(CONFIG, chain_method="threads"), num_samples=4, **KW)
     assert calls and set(calls) == {2}  # every sweep on two threads
-    sequential = fit(MDP, DEMOS, num_samples=4, chain_method="sequential", **KW)
+    sequential = fit(MDP, DEMOS, dict(CONFIG, chain_method="sequential"), num_samples=4, **KW)
     assert threads.config["sampler"]["chain_method"] == "threads"
     assert threads.equals(dataclasses.replace(sequential, config=threads.config))
     np.testing.assert_array_equal(threads.step_skill_counts, sequential.step_skill_counts)
     assert not np.array_equal(threads.stats["log_joint"][0], threads.stats["log_joint"][1])  # two chains
     # the default ("auto") is the threads on this CPU
-    default = fit(MDP, DEMOS, num_samples=4, **KW)
+    default = fit(MDP, DEMOS, CONFIG, num_samples=4, **KW)
     assert default.config["sampler"]["chain_method"] == "auto"
     assert default.equals(dataclasses.replace(threads, config=default.config))
 
@@ -78,22 +78,22 @@ def test_the_calls_run_at_the_same_time_in_float64_and_raise_their_errors():
 
 
 def test_auto_picks_threads_on_the_cpu_else_vectorized(monkeypatch):
-    monkeypatch.setattr(fit_module, "cores", lambda: 2)
-    assert _chain_method("auto", 2, None, None) == ("sequential", None, 2)
-    assert _chain_method("auto", 4, None, None) == ("sequential", None, 2)  # as many threads as cores
-    assert _chain_method("threads", 4, None, None) == ("sequential", None, 2)
-    assert _chain_method("auto", 1, None, None) == ("sequential", None, 1)
-    assert _chain_method("vectorized", 4, None, None) == ("vectorized", None, 1)
-    monkeypatch.setattr(fit_module, "cores", lambda: 8)
-    assert _chain_method("auto", 4, None, None) == ("sequential", None, 4)
-    monkeypatch.setattr(fit_module, "cores", lambda: 1)  # (one thread: the sequential chains)
-    assert _chain_method("auto", 4, None, None) == ("sequential", None, 1)
-    assert _chain_method("threads", 4, None, None) == ("sequential", None, 1)
-    monkeypatch.setattr(fit_module, "cores", lambda: 2)
-    monkeypatch.setattr(fit_module.jax, "default_backend", lambda: "gpu")  # an accelerator: one batched program
-    assert _chain_method("auto", 4, None, None) == ("vectorized", None, 1)
+    monkeypatch.setattr(chains_module, "cores", lambda: 2)
+    assert choose_chain_method("auto", 2, None, None) == ("sequential", None, 2)
+    assert choose_chain_method("auto", 4, None, None) == ("sequential", None, 2)  # as many threads as cores
+    assert choose_chain_method("threads", 4, None, None) == ("sequential", None, 2)
+    assert choose_chain_method("auto", 1, None, None) == ("sequential", None, 1)
+    assert choose_chain_method("vectorized", 4, None, None) == ("vectorized", None, 1)
+    monkeypatch.setattr(chains_module, "cores", lambda: 8)
+    assert choose_chain_method("auto", 4, None, None) == ("sequential", None, 4)
+    monkeypatch.setattr(chains_module, "cores", lambda: 1)  # (one thread: the sequential chains)
+    assert choose_chain_method("auto", 4, None, None) == ("sequential", None, 1)
+    assert choose_chain_method("threads", 4, None, None) == ("sequential", None, 1)
+    monkeypatch.setattr(chains_module, "cores", lambda: 2)
+    monkeypatch.setattr(chains_module.jax, "default_backend", lambda: "gpu")  # an accelerator: one batched program
+    assert choose_chain_method("auto", 4, None, None) == ("vectorized", None, 1)
     with pytest.raises(ValueError, match="chain_method='threads'.*mesh or devices"):
-        _chain_method("threads", 4, None, 1)
+        choose_chain_method("threads", 4, None, 1)
 
 
 def test_the_sweep_compiles_once_beside_the_initial_state(monkeypatch):
@@ -106,13 +106,13 @@ def test_the_sweep_compiles_once_beside_the_initial_state(monkeypatch):
     where = []
 
     def listen(event, duration, fun_name="", **_):
-        if event == BACKEND_COMPILE_EVENT and "_sweep_one" in fun_name:
+        if event == BACKEND_COMPILE_EVENT and "sweep_one" in fun_name:
             where.append(threading.current_thread().name)
 
     jax.monitoring.register_event_duration_secs_listener(listen)
     try:
         # (max_skills 2: shapes no other test's fit has, so this process has not compiled them)
-        fit(MDP, DEMOS, num_samples=2, **{**KW, "max_skills": 2})
+        fit(MDP, DEMOS, dict(CONFIG, max_skills=2), num_samples=2, **KW)
     finally:
         jax.monitoring.unregister_event_duration_listener(listen)
     assert where == ["npbrs-compile-sweep"]
@@ -124,23 +124,23 @@ def test_these_programs_call_no_lapack_kernel_and_the_version_rule(monkeypatch):
     call no library kernel at all. And which jaxlibs have the hazard (before 0.11.2)."""
     import jax.numpy as jnp
 
-    from npbrs.inference.driver.fit import _init_chains, _sweep_one
-    from npbrs.inference.driver.threads import lapack_blocks_pool, max_threads
+    from npbrs.inference.driver.compiled import init_chains, sweep_one
+    from npbrs.inference.threads import lapack_blocks_pool, max_threads
 
     texts = []
-    real = fit_module._Compiled.compile_sweep_beside_init
+    real = compiled_module.Compiled.compile_sweep_beside_init
 
     def lowered(self, method, keys, num_warmup, z0=None):
         with jax.enable_x64(True):
-            traced = _init_chains.trace(self.kernel, keys[0], z0, jnp.int32(num_warmup))
+            traced = init_chains.trace(self.kernel, keys[0], z0, jnp.int32(num_warmup))
             state = jax.tree.map(lambda a: jax.ShapeDtypeStruct(a.shape, a.dtype), traced.out_info)
             texts.append(traced.lower().as_text())
-            texts.append(_sweep_one.lower(self.kernel, self.hyper_names, state,
+            texts.append(sweep_one.lower(self.kernel, self.hyper_names, state,
                                           jax.ShapeDtypeStruct((), jnp.bool_)).as_text())
         return real(self, method, keys, num_warmup, z0)
 
-    monkeypatch.setattr(fit_module._Compiled, "compile_sweep_beside_init", lowered)
-    fit(MDP, DEMOS, num_samples=1, chain_method="sequential", **KW)
+    monkeypatch.setattr(compiled_module.Compiled, "compile_sweep_beside_init", lowered)
+    fit(MDP, DEMOS, dict(CONFIG, chain_method="sequential"), num_samples=1, **KW)
     assert len(texts) == 2 and all("func.func public @main" in t for t in texts)
     assert [re.findall(r"custom_call @(\w+)", t) for t in texts] == [[], []]
     for version, hazard in (("0.10.2", True), ("0.11.1", True), ("0.11.2", False), ("0.12.0.1", False),
@@ -153,21 +153,21 @@ class _Lowered(Exception):
     """Raised where a fit would start compiling: its init's and sweep's lowered text."""
 
 
-def _program_texts(monkeypatch, *args, **kwargs) -> list:
-    """The lowered text of a sequential fit's init and sweep (fit(*args, **kwargs)), without
-    compiling either."""
-    from npbrs.inference.driver.fit import _init_chains, _sweep_one
+def _program_texts(monkeypatch, mdp, demos, config, **kwargs) -> list:
+    """The lowered text of a sequential fit's init and sweep (fit(mdp, demos, config with
+    sequential chains, **kwargs)), without compiling either."""
+    from npbrs.inference.driver.compiled import init_chains, sweep_one
 
     def lowered(self, method, keys, num_warmup, z0=None):
         with jax.enable_x64(True):
-            traced = _init_chains.trace(self.kernel, keys[0], z0, jnp.int32(num_warmup))
+            traced = init_chains.trace(self.kernel, keys[0], z0, jnp.int32(num_warmup))
             state = jax.tree.map(lambda a: jax.ShapeDtypeStruct(a.shape, a.dtype), traced.out_info)
-            raise _Lowered([traced.lower().as_text(), _sweep_one.lower(
+            raise _Lowered([traced.lower().as_text(), sweep_one.lower(
                 self.kernel, self.hyper_names, state, jax.ShapeDtypeStruct((), jnp.bool_)).as_text()])
 
-    monkeypatch.setattr(fit_module._Compiled, "compile_sweep_beside_init", lowered)
+    monkeypatch.setattr(compiled_module.Compiled, "compile_sweep_beside_init", lowered)
     with pytest.raises(_Lowered) as got:
-        fit(*args, chain_method="sequential", progress_bar=False, **kwargs)
+        fit(mdp, demos, dict(config, chain_method="sequential"), progress_bar=False, **kwargs)
     texts = got.value.args[0]
     assert len(texts) == 2 and all("func.func public @main" in t for t in texts)
     return texts
@@ -189,17 +189,17 @@ def test_the_reward_emissions_programs_call_no_library_kernel(monkeypatch):
     rng = np.random.default_rng(0)
     per_state = Demonstrations(rng.integers(0, 15, (3, 10)), rng.integers(0, 4, (3, 10)))
     for mdp, demos in ((dom.mdp, few), (one_hot, per_state)):
-        texts = _program_texts(monkeypatch, mdp, demos, emission="reward", num_chains=2, num_warmup=4,
-                               num_samples=2, max_skills=3)
+        texts = _program_texts(monkeypatch, mdp, demos, {"emission": "reward", "max_skills": 3}, num_chains=2,
+                               num_warmup=4, num_samples=2)
         assert [re.findall(r"custom_call @(\w+)", t) for t in texts] == [[], []], mdp.name
 
 
 def test_a_program_that_calls_a_library_kernel_runs_one_at_a_time_on_two_cores(monkeypatch):
-    """The rule that keeps jaxlib < 0.11.2 from hanging (npbrs.inference.driver.threads): on two
+    """The rule that keeps jaxlib < 0.11.2 from hanging (npbrs.inference.threads): on two
     cores, programs whose text calls a library kernel run one at a time, the others two at once;
     a fit asks about its init's and its sweep's programs. It failed with the threads taken
     from the core count alone."""
-    from npbrs.inference.driver.threads import calls_library_kernel, max_threads, threads_for
+    from npbrs.inference.threads import calls_library_kernel, max_threads, threads_for
 
     two_cores(monkeypatch)
     monkeypatch.setattr(threads_module, "lapack_blocks_pool", lambda: True)
@@ -212,7 +212,8 @@ def test_a_program_that_calls_a_library_kernel_runs_one_at_a_time_on_two_cores(m
 
     monkeypatch.setattr(threads_module, "lapack_blocks_pool", lambda: True)
     asked, used = [], []
-    monkeypatch.setattr(fit_module, "on_threads", lambda *a: used.append(a[2]) or on_threads(*a))
+    for module in (chains_module, compiled_module):  # (the chains' sweeps and their initial states)
+        monkeypatch.setattr(module, "on_threads", lambda *a: used.append(a[2]) or on_threads(*a))
     for calls in (False, True):
         def check(program, calls=calls):
             asked.append(re.search(r"module @jit_(\w+)", program.as_text()).group(1))
@@ -220,14 +221,14 @@ def test_a_program_that_calls_a_library_kernel_runs_one_at_a_time_on_two_cores(m
 
         monkeypatch.setattr(threads_module, "calls_library_kernel", check)
         asked.clear(), used.clear()
-        fit(MDP, DEMOS, num_samples=2, chain_method="threads", **KW)
-        assert asked == ["_init_chains", "_sweep_one"]  # each program asked about once
+        fit(MDP, DEMOS, dict(CONFIG, chain_method="threads"), num_samples=2, **KW)
+        assert asked == ["init_chains", "sweep_one"]  # each program asked about once
         assert used and set(used) == {1 if calls else 2}
 
 
 @pytest.fixture(scope="module")
 def run():
-    return fit(MDP, DEMOS, num_samples=4, **KW)
+    return fit(MDP, DEMOS, CONFIG, num_samples=4, **KW)
 
 
 def test_the_predictive_runs_the_chains_draws_side_by_side_with_the_same_results(run, monkeypatch):

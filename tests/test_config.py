@@ -2,7 +2,6 @@
 is named in the error, and a user's registered emission fits through the config by name."""
 
 import dataclasses
-import importlib
 
 import numpy as np
 import pytest
@@ -13,7 +12,8 @@ from npbrs.inference import EmissionConfig, Hyperparameter, ModelConfig, PriorCo
 from npbrs.inference import hungarian_accuracy
 from npbrs.models.emissions import EMISSIONS, PolicyEmission, register_emission
 
-fit_module = importlib.import_module("npbrs.inference.driver.fit")  # the module, not the function it exports
+from npbrs.inference.driver import compiled as compiled_module
+from npbrs.inference.driver.fit import OPTIONS, resolve_config
 
 VARIANT = """
 max_skills = 5
@@ -82,7 +82,7 @@ def test_the_initial_windows_are_the_emissions_unless_the_configuration_sets_the
     from gridworld import gridworld
 
     from npbrs.inference import make_emission
-    from npbrs.inference.driver.fit import default_moves
+    from npbrs.inference.driver.compiled import default_moves
     from npbrs.inference.sampler.kernel import initial_window
 
     dom = gridworld(size=5)  # 25 states
@@ -108,7 +108,7 @@ def test_the_initial_skills_are_every_slot_for_one_weight_per_state_unless_the_c
     from gridworld import gridworld
 
     from npbrs.inference import make_emission
-    from npbrs.inference.driver.fit import default_moves
+    from npbrs.inference.driver.compiled import default_moves
     from npbrs.inference.sampler.kernel import BPHMMKernel, initial_skills
     from npbrs.models.emissions import HMMData
 
@@ -234,8 +234,8 @@ def no_compilation(monkeypatch):
     def refuse(*args, **kwargs):
         raise AssertionError("compiled before validating the input")
 
-    monkeypatch.setattr(fit_module._Compiled, "init", refuse)
-    monkeypatch.setattr(fit_module._Compiled, "step", refuse)
+    monkeypatch.setattr(compiled_module.Compiled, "init", refuse)
+    monkeypatch.setattr(compiled_module.Compiled, "step", refuse)
 
 
 @pytest.mark.parametrize("change, message", [
@@ -247,7 +247,9 @@ def no_compilation(monkeypatch):
     (dict(init_skills=5), "sampler.init_skills: 5 exceeds max_skills"),
     (dict(hyperpriors={"kappa": (1.0,)}), "prior.kappa: a hyperprior is"),
     (dict(moves={"birth_death": -1}), "sampler.moves.birth_death"),
-    (dict(checkpoint_every=5), "checkpoint_every given without checkpoint_path"),
+    (dict(checkpoint_every=0), "sampler.checkpoint_every: expected an integer >= 1"),
+    (dict(grow=1), "sampler.grow: expected true or false"),
+    (dict(kappaa=1.0), "config: unknown option 'kappaa'"),
     (dict(init_segmentation=[np.zeros(20, int)] * 2), "init_segmentation has 2 trajectories, the demonstrations 3"),
     (dict(init_segmentation=[np.zeros(20, int)] * 2 + [np.zeros(19, int)]),
      r"init_segmentation\[2\] has shape \(19,\); trajectory 2 has 20 steps"),
@@ -260,8 +262,9 @@ def test_bad_input_is_a_value_error_before_compilation(no_compilation, change, m
     mdp, demos = small_problem()
     kwargs = dict(config=TOY, progress_bar=False)
     kwargs.update(change)
+    options = {k: kwargs.pop(k) for k in list(kwargs) if k in OPTIONS or k == "kappaa"}
     with pytest.raises(ValueError, match=message):
-        fit(mdp, demos, **kwargs)
+        fit(mdp, demos, resolve_config(kwargs.pop("config"), **options) if options else kwargs.pop("config"), **kwargs)
 
 
 def test_demonstrations_outside_the_mdp_are_a_value_error_before_compilation(no_compilation):
@@ -276,7 +279,7 @@ def test_fit_starts_from_a_given_segmentation(tmp_path):
     truth = [(np.arange(20) // 7 + i) % 3 for i in range(3)]  # the skill (preferred action) of each step
     labels = [7 * t - 2 for t in truth]  # any integers: relabelled in order of value
     result = fit(mdp, demos, TOY, num_warmup=0, num_samples=1, init_segmentation=labels, progress_bar=False)
-    start = fit_module._COMPILED[next(reversed(fit_module._COMPILED))].kernel
+    start = compiled_module.kept_compiled()[-1].kernel
     z0 = start.check_segmentation(labels)
     np.testing.assert_array_equal(z0[:, :20], np.stack(truth))
     # one sweep from the true segmentation keeps it (three well-separated action skills; a step
@@ -323,12 +326,12 @@ def test_progress_with_several_chains_says_what_it_counts():
     the counted total, or one without the chains.)"""
     import io
 
-    from npbrs.inference.driver.fit import _Progress
+    from npbrs.inference.driver.progress import Progress
 
     for chains, counted, first in ((4, 4, "; 40 sweeps to run (4 chains' sweeps, counted one by one)"),
                                    (4, 1, "; 10 sweeps to run"), (1, 1, "; 10 sweeps to run")):
         out = io.StringIO()  # (not a terminal: plain lines)
-        bar = _Progress(10 * counted, 0, True, stream=out, chains=chains, counted=counted)
+        bar = Progress(10 * counted, 0, True, stream=out, chains=chains, counted=counted)
         for _ in range(10):
             bar.update(counted)
         bar.close_done(10, 1.3)

@@ -138,8 +138,9 @@ def test_greedy_merges_run_only_in_warmup_and_remove_a_copy_gibbs_keeps():
     assert merged.any() and np.all(np.asarray(out.num_skills)[merged] == 3)
     np.testing.assert_array_equal(out.greedy_idle, np.where(merged, 0, np.asarray(mixed.greedy_idle) + 1))
     # ... and fit's sequential driver, which sweeps one chain at a time, does the same
-    from npbrs.inference.driver.fit import _Chains, _Compiled
-    chains = _Chains(_Compiled(greedy, ()), "sequential", mixed)
+    from npbrs.inference.driver.chains import Chains
+    from npbrs.inference.driver.compiled import Compiled
+    chains = Chains(Compiled(greedy, ()), "sequential", mixed)
     chains.advance()
     assert _tree_close(chains.state(), out)
     # once all have stopped, a sweep is the Gibbs sweep
@@ -315,7 +316,6 @@ def test_a_lumped_pair_is_split_and_a_true_skill_is_not():
 
 
 def test_fit_runs_greedy_merges_by_default_where_the_emission_supports_them():
-    import importlib
 
     from gridworld import gridworld
 
@@ -323,15 +323,15 @@ def test_fit_runs_greedy_merges_by_default_where_the_emission_supports_them():
     from npbrs.inference import ModelConfig, fit
     from npbrs.models.autoregressive import AutoregressiveEmission
 
-    fit_module = importlib.import_module("npbrs.inference.driver.fit")
+    from npbrs.inference.driver import compiled as compiled_module
     dom = gridworld(size=3)
     demos = generate_demonstrations(dom, num_trajectories=2, length=12, seed=0)
-    result = fit(dom.mdp, demos, emission="policy", num_chains=1, num_warmup=2, num_samples=1, max_skills=3,
+    result = fit(dom.mdp, demos, {"emission": "policy", "max_skills": 3}, num_chains=1, num_warmup=2, num_samples=1,
                  progress_bar=False)
     # recorded in the run
     assert result.config["sampler"]["moves"] == {"greedy_merge": 1, "greedy_split": 1, "greedy_from": 0.75}
     policy = PolicyEmission(9, 5)
-    moves = lambda cfg, em=policy: fit_module.default_moves(cfg, em).sampler.moves  # noqa: E731
+    moves = lambda cfg, em=policy: compiled_module.default_moves(cfg, em).sampler.moves  # noqa: E731
     assert moves(ModelConfig.from_dict({"sampler": {"moves": {"greedy_merge": 0}}})) == {
         "greedy_merge": 0, "greedy_split": 1, "greedy_from": 0.75}
     assert moves(ModelConfig.from_dict({"sampler": {"moves": {"birth_death": 1}}})) == {
@@ -346,7 +346,7 @@ def test_fit_runs_greedy_merges_by_default_where_the_emission_supports_them():
     # (an emission without fit_evidence: no greedy moves; the windows and the starting skills are
     # the only defaults left open)
     cfg = ModelConfig.from_dict({"sampler": {"init_window": 25, "init_skills": 4}})
-    assert fit_module.default_moves(cfg, AutoregressiveEmission.__new__(AutoregressiveEmission)) is cfg
+    assert compiled_module.default_moves(cfg, AutoregressiveEmission.__new__(AutoregressiveEmission)) is cfg
 
 
 def test_the_search_solves_looser_and_only_the_search(monkeypatch):

@@ -8,9 +8,10 @@ import pytest
 
 from gridworld import ragged_policy_problem
 from npbrs.inference import ConvergenceWarning, fit, load
-from npbrs.inference.driver.fit import saturation
+from npbrs.inference.driver.strategies import saturation
 
-KW = dict(emission="policy", num_chains=2, num_warmup=4, num_samples=4, seed=3, kappa=5.0, progress_bar=False)
+CONFIG = dict(emission="policy", kappa=5.0)
+KW = dict(num_chains=2, num_warmup=4, num_samples=4, seed=3, progress_bar=False)
 
 
 @pytest.fixture(scope="module")
@@ -21,14 +22,14 @@ def problem():
 def test_a_saturated_truncation_grows_and_the_refit_is_a_fit_with_more_slots(problem, tmp_path):
     mdp, demos = problem
     with pytest.warns(UserWarning, match=r"all 2 skill slots were in use in 100% .* max_skills=4 or with grow=True") as seen:
-        small = fit(mdp, demos, max_skills=2, **KW)
+        small = fit(mdp, demos, dict(CONFIG, max_skills=2), **KW)
     # the warning names the user's call, not a line of npbrs
     assert [w.filename for w in seen if "skill slots" in str(w.message)] == [__file__]
     assert saturation(small) == (2, 1.0) and small.truncation is None
-    grown = fit(mdp, demos, max_skills=2, grow=True, **KW)
+    grown = fit(mdp, demos, dict(CONFIG, max_skills=2, grow=True), **KW)
     # the two-slot fit is the warned one; the refit has 4 slots, starts from its segmentation
     # and is exactly what fit gives with those settings
-    direct = fit(mdp, demos, max_skills=4, init_segmentation=small.segmentation, **KW)
+    direct = fit(mdp, demos, dict(CONFIG, max_skills=4), init_segmentation=small.segmentation, **KW)
     assert grown.truncation["max_skills"] == [2, 4] and grown.truncation["skills"][0] == 2
     assert grown.truncation["saturated"][0] == 1.0 and grown.truncation["saturated"][1] <= 0.5
     assert grown.truncation["switching"] == ["sticky", "sticky"] and grown.switching["chosen"] == "sticky"
@@ -47,9 +48,9 @@ def test_a_saturated_truncation_grows_and_the_refit_is_a_fit_with_more_slots(pro
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         warnings.simplefilter("ignore", ConvergenceWarning)
-        assert fit(mdp, demos, max_skills=4, grow=True, **KW).truncation is None
+        assert fit(mdp, demos, dict(CONFIG, max_skills=4, grow=True), **KW).truncation is None
     with pytest.raises(ValueError, match="grow"):
-        fit(mdp, demos, max_skills=2, grow=True, checkpoint_path=tmp_path / "c.nc", **KW)
+        fit(mdp, demos, dict(CONFIG, max_skills=2, grow=True), checkpoint_path=tmp_path / "c.nc", **KW)
 
 
 def test_under_auto_the_state_fit_starts_from_the_grown_sticky_fit_and_the_record_keeps_both(problem, monkeypatch):
@@ -58,13 +59,14 @@ def test_under_auto_the_state_fit_starts_from_the_grown_sticky_fit_and_the_recor
     ``truncation`` records every fit in turn, the sticky ones first. (The margin is lowered so
     that this small problem chooses state. Checked to fail: the record not carried into the
     state fit, whose result then said nothing of the growth.)"""
-    import npbrs.inference.driver.fit as fitting
+    import npbrs.inference.driver.strategies as strategies
 
     mdp, demos = problem
-    monkeypatch.setattr(fitting, "SWITCHING_MARGIN", -1e9)
+    monkeypatch.setattr(strategies, "SWITCHING_MARGIN", -1e9)
     # (the sticky fits stop at the decision, after a quarter of their sampling sweeps)
-    sticky = fit(mdp, demos, max_skills=2, grow=True, switching="sticky", **dict(KW, num_samples=KW["num_samples"] // 4))
-    result = fit(mdp, demos, max_skills=2, grow=True, **KW)
+    sticky = fit(mdp, demos, dict(CONFIG, max_skills=2, grow=True, switching="sticky"),
+                 **dict(KW, num_samples=KW["num_samples"] // 4))
+    result = fit(mdp, demos, dict(CONFIG, max_skills=2, grow=True), **KW)
     assert result.switching["chosen"] == "state" and result.config["prior"]["switching"] == "state"
     assert result.config["max_skills"] == 4
     for a, b in zip(result.init_segmentation, sticky.segmentation):

@@ -11,7 +11,8 @@ import pytest
 from gridworld import ragged_policy_problem
 from npbrs.inference import fit, load
 from npbrs.inference.driver.config import SamplerConfig
-from npbrs.inference.driver.fit import _Chains, _Compiled, _restart_lagging, _warmup_scores
+from npbrs.inference.driver.chains import Chains, restart_lagging, warmup_scores
+from npbrs.inference.driver.compiled import Compiled
 from npbrs.inference.sampler import BPHMMKernel
 from npbrs.models.emissions import PolicyEmission
 from test_kernel import planted_policy_data
@@ -28,14 +29,14 @@ def _same(a, b):
 
 def test_the_score_is_the_mean_log_joint_of_warmups_last_tenth():
     log_joint = np.arange(2 * 25, dtype=float).reshape(2, 25) ** 2
-    np.testing.assert_allclose(_warmup_scores(log_joint), [(23 ** 2 + 24 ** 2) / 2, (48 ** 2 + 49 ** 2) / 2])
-    np.testing.assert_allclose(_warmup_scores(log_joint[:, :7]), log_joint[:, 6])  # at least the last sweep
+    np.testing.assert_allclose(warmup_scores(log_joint), [(23 ** 2 + 24 ** 2) / 2, (48 ** 2 + 49 ** 2) / 2])
+    np.testing.assert_allclose(warmup_scores(log_joint[:, :7]), log_joint[:, 6])  # at least the last sweep
 
 
 def test_chains_beyond_the_margin_take_the_best_chains_state_and_keep_their_keys():
     data, z_true = planted_policy_data(seed=1, N=6, T=40)
     kernel = BPHMMKernel(PolicyEmission(4, 3), data, max_skills=5)
-    compiled = _Compiled(kernel, ())
+    compiled = Compiled(kernel, ())
     keys = jax.random.split(jax.random.PRNGKey(2), 3)
     # chain 0 starts at the planted segmentation, chains 1 and 2 from random windows
     planted = compiled.init(keys, 4, jnp.asarray(np.where(np.asarray(data.mask), z_true, -1)))
@@ -43,8 +44,8 @@ def test_chains_beyond_the_margin_take_the_best_chains_state_and_keep_their_keys
     state = jax.tree.map(lambda a, b: np.concatenate([a[:1], b[1:]]), planted, windows)
     scores = [-100.0, -130.0, -200.0]  # chain 1 within a margin of 50, chain 2 beyond it
     for method in ("vectorized", "sequential"):
-        chains = _Chains(compiled, method, jax.tree.map(jnp.asarray, state))
-        record = _restart_lagging(chains, scores, 50.0)
+        chains = Chains(compiled, method, jax.tree.map(jnp.asarray, state))
+        record = restart_lagging(chains, scores, 50.0)
         out = chains.state()
         assert record == {"margin": 50.0, "scores": scores, "from": [0, 1, 0]}, (method, record)
         for c, source in enumerate(record["from"]):
@@ -54,32 +55,32 @@ def test_chains_beyond_the_margin_take_the_best_chains_state_and_keep_their_keys
     # score is not finite lags a finite best
     for margin, values, expected in ((101.0, scores, [0, 1, 2]), (50.0, [np.nan] * 3, [0, 1, 2]),
                                      (50.0, [np.nan, -5.0, -10.0], [1, 1, 2])):
-        chains = _Chains(compiled, "vectorized", jax.tree.map(jnp.asarray, state))
-        assert _restart_lagging(chains, values, margin)["from"] == expected
+        chains = Chains(compiled, "vectorized", jax.tree.map(jnp.asarray, state))
+        assert restart_lagging(chains, values, margin)["from"] == expected
         if expected == [0, 1, 2]:
             assert _same(chains.state(), state)
 
 
 MDP, DEMOS = ragged_policy_problem(correct=0.8)
 # (the greedy moves off: their compilation is not what this tests)
-KW = dict(emission="policy", num_chains=2, num_warmup=6, num_samples=4, max_skills=3, seed=5, progress_bar=False,
-          moves={"greedy_merge": 0, "greedy_split": 0})
+CONFIG = dict(emission="policy", max_skills=3, moves={"greedy_merge": 0, "greedy_split": 0})
+KW = dict(num_chains=2, num_warmup=6, num_samples=4, seed=5, progress_bar=False)
 
 
 def test_a_fit_restarts_a_lagging_chain_at_warmups_end_and_records_it(tmp_path):
     for bad in (-1.0, float("nan"), "wide", True):
         with pytest.raises(ValueError, match="restart_margin"):
             SamplerConfig(restart_margin=bad)
-    off = fit(MDP, DEMOS, restart_margin=0, **KW)
+    off = fit(MDP, DEMOS, dict(CONFIG, restart_margin=0), **KW)
     assert off.restart is None
-    assert fit(MDP, DEMOS, num_chains=1, **{k: v for k, v in KW.items() if k != "num_chains"}).restart is None
+    assert fit(MDP, DEMOS, CONFIG, **dict(KW, num_chains=1)).restart is None
     assert SamplerConfig().restart_margin == 50.0  # on by default
     # every chain behind the best moves (a margin of ~0); none moves at a huge margin
     # the restart reads the scores the sweeps record and moves states on the host: a run that
     # restarts compiles nothing that the run without restarts has not compiled
-    tight, compiles = _compiling(fit, MDP, DEMOS, restart_margin=1e-9, **KW)
+    tight, compiles = _compiling(fit, MDP, DEMOS, dict(CONFIG, restart_margin=1e-9), **KW)
     assert compiles == [], f"the restart compiled {len(compiles)} programs ({sum(compiles):.2f} s)"
-    loose = fit(MDP, DEMOS, restart_margin=1e9, **KW)
+    loose = fit(MDP, DEMOS, dict(CONFIG, restart_margin=1e9), **KW)
     assert loose.restart["from"] == [0, 1] and loose.restart["scores"] == tight.restart["scores"]
     for name, v in off.stats.items():  # nothing moved: the run without the check's draws
         np.testing.assert_array_equal(loose.stats[name], v)
@@ -104,6 +105,6 @@ def test_a_fit_restarts_a_lagging_chain_at_warmups_end_and_records_it(tmp_path):
     tight.save(path)
     again = load(path)
     assert again.restart == tight.restart and again.equals(tight)
-    sequential = fit(MDP, DEMOS, restart_margin=1e-9, chain_method="sequential", **KW)
+    sequential = fit(MDP, DEMOS, dict(CONFIG, restart_margin=1e-9, chain_method="sequential"), **KW)
     assert sequential.restart["from"] == tight.restart["from"]
     np.testing.assert_allclose(sequential.restart["scores"], scores, rtol=1e-9)

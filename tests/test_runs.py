@@ -2,7 +2,6 @@
 draws of an uninterrupted run; a saved run loads back equal; nothing half-written is left."""
 
 import dataclasses
-import importlib
 import json
 import os
 import shutil
@@ -15,10 +14,10 @@ import pytest
 
 from npbrs.domains.demos import Demonstrations
 from npbrs.domains.mdp import TabularMDP
-from npbrs.inference import ModelConfig, fit, load, load_mdp, save_mdp
+from npbrs.inference import ModelConfig, fit, load, load_mdp, resolve_config, save_mdp
 from npbrs.inference.driver.runs import atomic_write, read_checkpoint
 
-fit_module = importlib.import_module("npbrs.inference.driver.fit")
+from npbrs.inference.driver.compiled import Compiled
 
 CONFIG = """
 max_skills = 3
@@ -136,8 +135,8 @@ def no_compilation(monkeypatch):
     def refuse(*args, **kwargs):
         raise AssertionError("compiled before checking the checkpoint")
 
-    monkeypatch.setattr(fit_module._Compiled, "init", refuse)
-    monkeypatch.setattr(fit_module._Compiled, "step", refuse)
+    monkeypatch.setattr(Compiled, "init", refuse)
+    monkeypatch.setattr(Compiled, "step", refuse)
 
 
 def test_resume_refuses_a_checkpoint_of_other_demonstrations_config_or_start(workdir, killed, no_compilation):
@@ -146,7 +145,7 @@ def test_resume_refuses_a_checkpoint_of_other_demonstrations_config_or_start(wor
     with pytest.raises(ValueError, match="sampler.seed"):
         fit(mdp, demos, workdir / "model.toml", seed=12, checkpoint_path=path, resume=True, progress_bar=False)
     with pytest.raises(ValueError, match="prior.kappa"):
-        fit(mdp, demos, workdir / "model.toml", kappa=3.0, checkpoint_path=path, resume=True, progress_bar=False)
+        fit(mdp, demos, resolve_config(workdir / "model.toml", kappa=3.0), checkpoint_path=path, resume=True, progress_bar=False)
     other = Demonstrations(demos.states, [np.zeros_like(a) for a in demos.actions])
     with pytest.raises(ValueError, match="other demonstrations"):
         fit(mdp, other, workdir / "model.toml", checkpoint_path=path, resume=True, progress_bar=False)

@@ -91,10 +91,10 @@ def test_auto_switching_refits_from_the_sticky_fit_and_records_why(tmp_path):
     round; the state fit started from its own random windows; the decision after all the
     sampling sweeps.)"""
     from npbrs.inference import load
-    from npbrs.inference.driver.fit import SWITCHING_MARGIN, switching_evidence
+    from npbrs.inference.driver.strategies import SWITCHING_MARGIN, switching_evidence
 
     world, result = default_fit("labyrinth")
-    sticky = fit(world.mdp, world.demos, switching="sticky", **dict(SETTINGS, num_samples=SETTINGS["num_samples"] // 4))
+    sticky = fit(world.mdp, world.demos, {"switching": "sticky"}, **dict(SETTINGS, num_samples=SETTINGS["num_samples"] // 4))
     assert sticky.switching is None and sticky.config["prior"]["switching"] == "sticky"
     evidence = switching_evidence(sticky, world.mdp, world.demos, sticky.model_config.prior)
     assert evidence["log_bayes_factor"] > SWITCHING_MARGIN
@@ -117,7 +117,7 @@ def test_auto_switching_that_stays_sticky_draws_what_the_sticky_fit_draws():
     sweep drawn and dropped at the decision.)"""
     world, result = default_fit("rooms")
     assert result.switching["chosen"] == "sticky"
-    sticky = fit(world.mdp, world.demos, switching="sticky", **SETTINGS)
+    sticky = fit(world.mdp, world.demos, {"switching": "sticky"}, **SETTINGS)
     assert sticky.switching is None
     assert result.equals(dataclasses.replace(sticky, switching=result.switching))
 
@@ -129,7 +129,7 @@ def test_auto_switching_resumes_its_state_fit_from_its_own_checkpoint(tmp_path, 
     the interrupted one's. (``fit`` keeps a finished run's checkpoints, as it does one's; ``npbrs
     fit`` removes both once it has saved the run.)"""
     import npbrs.inference.driver.runs as runs
-    from npbrs.inference.driver.fit import state_stage_path
+    from npbrs.inference.driver.strategies import state_stage_path
 
     world, whole = default_fit("labyrinth")
     path = tmp_path / "run.checkpoint.npz"
@@ -146,12 +146,12 @@ def test_auto_switching_resumes_its_state_fit_from_its_own_checkpoint(tmp_path, 
 
     monkeypatch.setattr(runs, "write_checkpoint", failing)
     with pytest.raises(OSError, match="disk full"):
-        fit(world.mdp, world.demos, checkpoint_path=path, checkpoint_every=10, **SETTINGS)
+        fit(world.mdp, world.demos, {"checkpoint_every": 10}, checkpoint_path=path, **SETTINGS)
     assert path.exists() and os.path.exists(stage)  # (the sticky fit's, stopped at the decision, and the state fit's)
     with pytest.raises(ValueError, match="interrupted run"):
         fit(world.mdp, world.demos, checkpoint_path=path, **SETTINGS)
     monkeypatch.setattr(runs, "write_checkpoint", write)
-    resumed = fit(world.mdp, world.demos, checkpoint_path=path, checkpoint_every=10, resume=True, **SETTINGS)
+    resumed = fit(world.mdp, world.demos, {"checkpoint_every": 10}, checkpoint_path=path, resume=True, **SETTINGS)
     assert resumed.equals(whole) and resumed.switching == whole.switching
 
 
@@ -160,7 +160,7 @@ def test_a_sticky_auto_fit_resumed_after_its_decision_keeps_it(tmp_path, monkeyp
     failed checkpoint write) and resumed, it does not decide again on more draws (no evidence
     is computed): it ends equal to the uninterrupted run, its switching record included.
     (Checked to fail: the decision not read back from the checkpoint.)"""
-    import npbrs.inference.driver.fit as fitting
+    import npbrs.inference.driver.strategies as strategies
     import npbrs.inference.driver.runs as runs
 
     world, whole = default_fit("rooms")
@@ -176,10 +176,10 @@ def test_a_sticky_auto_fit_resumed_after_its_decision_keeps_it(tmp_path, monkeyp
 
     monkeypatch.setattr(runs, "write_checkpoint", failing)
     with pytest.raises(OSError, match="disk full"):
-        fit(world.mdp, world.demos, checkpoint_path=path, checkpoint_every=10, **SETTINGS)
+        fit(world.mdp, world.demos, {"checkpoint_every": 10}, checkpoint_path=path, **SETTINGS)
     monkeypatch.setattr(runs, "write_checkpoint", write)
-    evidence, scored = fitting.switching_evidence, []
-    monkeypatch.setattr(fitting, "switching_evidence", lambda *a: scored.append(1) or evidence(*a))
-    resumed = fit(world.mdp, world.demos, checkpoint_path=path, checkpoint_every=10, resume=True, **SETTINGS)
+    evidence, scored = strategies.switching_evidence, []
+    monkeypatch.setattr(strategies, "switching_evidence", lambda *a: scored.append(1) or evidence(*a))
+    resumed = fit(world.mdp, world.demos, {"checkpoint_every": 10}, checkpoint_path=path, resume=True, **SETTINGS)
     assert not scored and resumed.switching["chosen"] == "sticky"
     assert resumed.equals(whole) and resumed.switching == whole.switching

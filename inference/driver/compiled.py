@@ -34,7 +34,7 @@ from .config import ModelConfig
 from .devices import constrain, pad_trajectories, place_kernel
 
 __all__ = ["Compiled", "compiled_kernel", "default_moves", "compilation_cache_dir", "use_compilation_cache",
-           "mdp_key", "init_chains", "sweep_one", "sweep_batched", "strong", "to_host", "DEFAULT_GREEDY_TRIALS",
+           "mdp_key", "init_chains", "sweep_one", "sweep_batched", "clear_compiled", "kept_compiled", "strong", "to_host", "DEFAULT_GREEDY_TRIALS",
            "DEFAULT_STICKY_PHASE"]
 
 
@@ -308,3 +308,14 @@ def default_moves(cfg: ModelConfig, emission: Emission) -> ModelConfig:
 # float64 inside, the user's setting outside (npbrs.domains.util.precision)
 compilation_cache_dir, use_compilation_cache = float64(compilation_cache_dir), float64(use_compilation_cache)
 default_moves = float64(default_moves)
+
+
+def clear_compiled() -> None:
+    """Forget the kernels kept between fits (:func:`compiled_kernel`'s cache), so that their
+    compiled programs can be released (e.g. with ``jax.clear_caches()``)."""
+    _COMPILED.clear()
+
+
+def kept_compiled() -> list:
+    """The compiled kernels kept between fits (:class:`Compiled`), the most recently used last."""
+    return list(_COMPILED.values())

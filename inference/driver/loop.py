@@ -125,7 +125,7 @@ def run_fit(mdp, demos, cfg: ModelConfig, emission: Optional[Emission] = None, *
     # a run length chosen by convergence: from W + S sweeps on, a block at a time up to W + max_samples
     extend = sampler.max_samples > S
     block, cap = max(S // 2, 1), W + (sampler.max_samples if extend else S)
-    meta = {"config": runs.checkpoint_config(cfg), "emission": em.describe(), "fingerprint": demos.fingerprint(),
+    meta = {"config": runs.recorded_config(cfg), "emission": em.describe(), "fingerprint": demos.fingerprint(),
             "seed": sampler.seed, "num_chains": C, "total_sweeps": cap,
             "init": None if z0 is None else hashlib.sha256(z0.tobytes()).hexdigest()}
     keys = jax.random.split(jax.random.PRNGKey(sampler.seed), C)
@@ -205,7 +205,7 @@ def run_fit(mdp, demos, cfg: ModelConfig, emission: Optional[Emission] = None, *
         kept = dict(draws)
         warmup = {k[len("warmup_"):]: kept.pop(k) for k in list(kept) if k.startswith("warmup_")}
         result = FitResult.from_states(
-            chains.state(), kept, demos, config=cfg.to_dict(), emission=em.describe(),
+            chains.state(), kept, demos, config=runs.recorded_config(cfg), emission=em.describe(),
             feature_names=tuple(getattr(mdp, "feature_names", ())), wall_time=wall + time.perf_counter() - start,
             sample_names=compiled.hyper_names, init_segmentation=z0,
             mdp_fingerprint=mdp.fingerprint() if hasattr(mdp, "fingerprint") else "", warmup_stats=warmup or None,

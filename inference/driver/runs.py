@@ -32,8 +32,8 @@ from npbrs.domains.util.precision import float64_all
 
 from .results import NETCDF_ENGINE, FitResult
 
-__all__ = ["load_run", "load", "save_mdp", "load_mdp", "write_checkpoint", "read_checkpoint", "restore_state", "check_checkpoint", "checkpoint_config",
-           "atomic_write"]
+__all__ = ["load_run", "load", "save_mdp", "load_mdp", "write_checkpoint", "read_checkpoint", "restore_state", "check_checkpoint",
+           "recorded_config", "atomic_write"]
 
 CHECKPOINT_FORMAT, CHECKPOINT_VERSION = "npbrs-checkpoint", 1
 
@@ -183,9 +183,9 @@ def restore_state(leaves, like, path="checkpoint"):
     return jax.tree_util.tree_unflatten(treedef, leaves)
 
 
-def checkpoint_config(cfg) -> dict:
-    """The part of a run's configuration a checkpoint must match to be resumed: everything but
-    how often checkpoints are written."""
+def recorded_config(cfg) -> dict:
+    """The configuration a run records (its result's ``config``) and a checkpoint must match to
+    be resumed: all of ``cfg`` but how often checkpoints are written."""
     data = cfg.to_dict()
     data["sampler"] = {k: v for k, v in data["sampler"].items() if k != "checkpoint_every"}
     return data
