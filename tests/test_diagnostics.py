@@ -137,8 +137,8 @@ def run():
     # (the problem and settings of test_restart.py and test_skill_probabilities.py, so that the
     # test session's compilation cache holds the sampler already, where a worker ran those first)
     mdp, demos = ragged_policy_problem(correct=0.8)
-    return fit(mdp, demos, emission="policy", num_chains=2, num_warmup=6, num_samples=30, max_skills=3, seed=5,
-               progress_bar=False, moves={"greedy_merge": 0, "greedy_split": 0})
+    return fit(mdp, demos, {"emission": "policy", "max_skills": 3, "moves": {"greedy_merge": 0, "greedy_split": 0}},
+               num_chains=2, num_warmup=6, num_samples=30, seed=5, progress_bar=False)
 
 
 def test_convergence_reports_rhat_and_ess_of_the_label_invariant_scalars(run):

@@ -138,12 +138,12 @@ def test_vectorized_and_sequential_chains_give_the_same_draws():
 def test_fit_sweeps_a_single_chain_unbatched():
     """One chain runs the sequential (unbatched) sweep, whose draws the test above holds to the
     vectorised ones: a batch of one traced every batching rule for nothing (1.5-2.5 s a fit)."""
-    from npbrs.inference.driver.fit import _chain_method
+    from npbrs.inference.driver.chains import choose_chain_method
 
-    assert _chain_method("vectorized", 1, None, None) == ("sequential", None, 1)
-    assert _chain_method("parallel", 1, None, None)[0] == "sequential"
-    assert _chain_method("vectorized", 2, None, None) == ("vectorized", None, 1)
-    assert _chain_method("auto", 1, None, None) == ("sequential", None, 1)
+    assert choose_chain_method("vectorized", 1, None, None) == ("sequential", None, 1)
+    assert choose_chain_method("parallel", 1, None, None)[0] == "sequential"
+    assert choose_chain_method("vectorized", 2, None, None) == ("vectorized", None, 1)
+    assert choose_chain_method("auto", 1, None, None) == ("sequential", None, 1)
 
 
 def test_init_from_a_segmentation_starts_every_chain_there():

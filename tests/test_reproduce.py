@@ -36,7 +36,8 @@ def oracle_fit(monkeypatch):
     calls = []
     domain = get_domain("highway")
 
-    def fake(mdp, demos, config=None, *, emission=None, max_skills=None, seed=None, **kwargs):
+    def fake(mdp, demos, config=None, *, seed=None, **kwargs):
+        emission, max_skills = config["emission"], config["max_skills"]
         name = emission if isinstance(emission, str) else emission.name
         calls.append((name, seed, max_skills))
         true = [np.asarray(z) for z in demos.skills]
@@ -154,14 +155,14 @@ def test_a_methods_switching_setting_reaches_its_fit_and_the_record(oracle_fit, 
     module = sys.modules["npbrs.inference.driver.fit"]
     inner, seen = module.fit, []
 
-    def spy(*args, **kwargs):
-        seen.append(kwargs)
-        return inner(*args, **kwargs)
+    def spy(mdp, demos, config=None, **kwargs):
+        seen.append(config)
+        return inner(mdp, demos, config, **kwargs)
 
     monkeypatch.setattr(module, "fit", spy)
     result = reproduce("highway", 30, runs=1, methods=["npbrs"], settings={"npbrs": {"switching": "state"}},
                        progress=False)
-    assert [k.get("switching") for k in seen] == ["state"]
+    assert [config.get("switching") for config in seen] == ["state"]
     assert result["settings"]["npbrs"]["switching"] == "state"
 
 
@@ -218,14 +219,14 @@ def test_the_quick_reproduction_runs_the_real_samplers(tmp_path):
 def test_the_table_says_which_switching_model_each_methods_fits_chose():
     """Runs whose fits chose their switching model ("auto") are counted by choice, with the
     range of log Bayes factors; runs that fixed the model add no line."""
-    from npbrs.inference.cli.reproduce import _switching_lines
+    from npbrs.inference.cli.reproduce import switching_lines
 
     made = [{"chosen": c, "log_bayes_factor": f, "margin": 10.0, "sticky": 0.0, "state": f}
             for c, f in (("sticky", -12.5), ("state", 33.0), ("sticky", -4.0))]
     result = {"methods": ["npbrs", "irl"],
               "per_run": [{"methods": {"npbrs": {"switching": m}, "irl": {"switching": None}}} for m in made]}
-    lines = _switching_lines(result)
+    lines = switching_lines(result)
     assert lines[-1] == ("- NPBRS: sticky in 2, state in 1 of 3 runs (log Bayes factors of state ends over sticky "
                          "switching -12.5 to +33.0 nats; state needs more than 10)")
     assert not any("IRL" in line for line in lines)
-    assert _switching_lines({"methods": ["irl"], "per_run": result["per_run"]}) == []
+    assert switching_lines({"methods": ["irl"], "per_run": result["per_run"]}) == []

@@ -8,13 +8,14 @@ import pytest
 
 from gridworld import ragged_policy_problem
 from npbrs.inference import fit, load
-from npbrs.inference.driver.results import LABEL_INVARIANT
+from npbrs.inference.analysis.diagnostics import LABEL_INVARIANT
 
 
 MDP, DEMOS = ragged_policy_problem(correct=0.8)
 # (the greedy moves off: their compilation is not what this tests)
-KW = dict(emission="policy", num_chains=2, num_warmup=4, num_samples=4, max_skills=3, seed=3, progress_bar=False,
-          moves={"greedy_merge": 0, "greedy_split": 0})
+CONFIG = {"emission": "policy", "max_skills": 3, "moves": {"greedy_merge": 0, "greedy_split": 0}}
+KW = dict(num_chains=2, num_warmup=4, num_samples=4, seed=3, progress_bar=False)
+EXTENDED = {**CONFIG, "max_samples": 60, "target_rhat": 1.1}
 
 
 def converged(stats, n, target):
@@ -33,7 +34,7 @@ def test_a_run_extends_until_the_label_invariant_rhat_reaches_its_target(tmp_pat
     # three does, the rest keep an extra skill in one chain)
     kw = {**KW, "seed": 1, "num_warmup": 10}
     checkpoint = tmp_path / "run.ckpt.npz"
-    result = fit(MDP, DEMOS, max_samples=60, target_rhat=1.1, checkpoint_path=checkpoint, **kw)
+    result = fit(MDP, DEMOS, EXTENDED, checkpoint_path=checkpoint, **kw)
     run = result.run_length
     n = run["samples"]
     assert np.shape(result.stats["log_joint"]) == (2, n)
@@ -46,7 +47,7 @@ def test_a_run_extends_until_the_label_invariant_rhat_reaches_its_target(tmp_pat
                                [float(az.rhat(np.asarray(result.stats[k], np.float64))) for k in LABEL_INVARIANT],
                                equal_nan=True)
     # the extension only adds sweeps: a fixed-length run with the same seed made the first ones
-    fixed = fit(MDP, DEMOS, **kw)
+    fixed = fit(MDP, DEMOS, CONFIG, **kw)
     assert fixed.run_length is None
     for name, v in fixed.stats.items():
         np.testing.assert_array_equal(result.stats[name][:, :4], v)
@@ -59,25 +60,26 @@ def test_a_run_extends_until_the_label_invariant_rhat_reaches_its_target(tmp_pat
     assert again.run_length == run and again.equals(result)
     assert "run length chosen by convergence" in result.summary()
     # resumed from its last checkpoint (after the extension), the run is over: the same result
-    resumed = fit(MDP, DEMOS, max_samples=60, target_rhat=1.1, checkpoint_path=checkpoint, resume=True, **kw)
+    resumed = fit(MDP, DEMOS, EXTENDED, checkpoint_path=checkpoint, resume=True, **kw)
     assert resumed.equals(result)
 
 
 def test_an_unreachable_target_stops_at_max_samples_or_the_time_budget():
-    result = fit(MDP, DEMOS, max_samples=8, target_rhat=1.0 + 1e-12, **KW)
+    unreachable = {**CONFIG, "max_samples": 8, "target_rhat": 1.0 + 1e-12}
+    result = fit(MDP, DEMOS, unreachable, **KW)
     assert result.run_length["stopped"] == "max_samples" and result.run_length["samples"] == 8
     assert "max_samples reached" in result.summary()
-    spent = fit(MDP, DEMOS, max_samples=8, target_rhat=1.0 + 1e-12, time_budget=1e-9, **KW)
+    spent = fit(MDP, DEMOS, {**unreachable, "time_budget": 1e-9}, **KW)
     assert spent.run_length["stopped"] == "time_budget" and spent.run_length["samples"] == 4
 
 
-@pytest.mark.parametrize("options, message", [
-    (dict(max_samples=3), "below sampler.samples"),
-    (dict(max_samples=8, num_chains=1), "at least 2 chains"),
-    (dict(max_samples=8, target_rhat=1.0), "above 1"),
-    (dict(max_samples=8, time_budget=-1.0), "time_budget"),
-    (dict(max_samples=8, target_rhat=float("nan")), "target_rhat"),
+@pytest.mark.parametrize("options, run, message", [
+    (dict(max_samples=3), {}, "below sampler.samples"),
+    (dict(max_samples=8), dict(num_chains=1), "at least 2 chains"),
+    (dict(max_samples=8, target_rhat=1.0), {}, "above 1"),
+    (dict(max_samples=8, time_budget=-1.0), {}, "time_budget"),
+    (dict(max_samples=8, target_rhat=float("nan")), {}, "target_rhat"),
 ])
-def test_bad_run_length_options_are_refused_naming_them(options, message):
+def test_bad_run_length_options_are_refused_naming_them(options, run, message):
     with pytest.raises(ValueError, match=message):
-        fit(MDP, DEMOS, **{**KW, **options})
+        fit(MDP, DEMOS, {**CONFIG, **options}, **{**KW, **run})

@@ -12,8 +12,8 @@ from npbrs.inference.analysis.diagnostics import relabel
 
 MDP, DEMOS = ragged_policy_problem(correct=0.8)
 # (the greedy moves off: their compilation is not what this tests)
-KW = dict(emission="policy", num_chains=2, num_warmup=6, max_skills=3, seed=5, progress_bar=False,
-          moves={"greedy_merge": 0, "greedy_split": 0})
+CONFIG = {"emission": "policy", "max_skills": 3, "moves": {"greedy_merge": 0, "greedy_split": 0}}
+KW = dict(num_chains=2, num_warmup=6, seed=5, progress_bar=False)
 
 
 @pytest.mark.parametrize("method", ["vectorized", "sequential"])
@@ -21,7 +21,7 @@ def test_one_sampling_sweep_counts_exactly_its_skill_sequences(method):
     """With one sampling sweep, a chain's counts are its (only, hence best) draw's skill
     sequences, one-hot, zero on padding; the probabilities are the chains' mapped labels
     averaged."""
-    result = fit(MDP, DEMOS, num_samples=1, chain_method=method, **KW)
+    result = fit(MDP, DEMOS, {**CONFIG, "chain_method": method}, num_samples=1, **KW)
     counts = result.step_skill_counts
     C, K = 2, 3
     N, T = len(DEMOS.lengths), int(max(DEMOS.lengths))
@@ -42,7 +42,7 @@ def test_one_sampling_sweep_counts_exactly_its_skill_sequences(method):
 def test_the_counts_agree_with_segment_and_label_the_planted_skills(tmp_path, monkeypatch):
     # (both estimates are Monte Carlo ones: mean gap 0.006, largest 0.053; 0.032 and 0.26 while
     # segment weighted each draw by the fitted trajectory's likelihood again, counting it twice)
-    result = fit(MDP, DEMOS, num_samples=600, **KW)
+    result = fit(MDP, DEMOS, CONFIG, num_samples=600, **KW)
     counts = result.step_skill_counts
     # every sampling sweep counts each real step once per chain, and nothing else
     total = counts.sum(-1)
@@ -83,7 +83,7 @@ def test_the_counts_agree_with_segment_and_label_the_planted_skills(tmp_path, mo
 
 
 def test_a_bucketed_run_counts_only_the_demonstrations_steps():
-    result = fit(MDP, DEMOS, num_samples=3, bucket=True, **KW)
+    result = fit(MDP, DEMOS, {**CONFIG, "bucket": True}, num_samples=3, **KW)
     N, T = len(DEMOS.lengths), int(max(DEMOS.lengths))
     assert result.step_skill_counts.shape == (2, N, T, 3)
     assert int(result.step_skill_counts.sum()) == 2 * 3 * sum(DEMOS.lengths)

@@ -41,8 +41,9 @@ from npbrs.domains.util.files import atomic_write
 
 from .arguments import at_least
 
-__all__ = ["reproduce", "default_settings", "run_segmentation", "format_markdown", "save_json", "load_json", "add_parser",
-           "reproduce_command", "METHODS", "SEGMENTATIONS", "EMISSIONS", "ROWS", "COLUMNS", "PAPER", "QUICK_DATA"]
+__all__ = ["reproduce", "default_settings", "run_segmentation", "format_markdown", "switching_lines", "save_json",
+           "load_json", "add_parser", "reproduce_command", "METHODS", "SEGMENTATIONS", "EMISSIONS", "ROWS", "COLUMNS",
+           "PAPER", "QUICK_DATA"]
 
 #: How a run's segmentation is read off its posterior (see :func:`reproduce`).
 SEGMENTATIONS = ("marginal", "best")
@@ -394,9 +395,10 @@ def _best_draw_lines(result: dict, columns) -> list:
     return lines
 
 
-def _switching_lines(result: dict) -> list:
-    """Which switching model ``fit``'s "auto" chose in each method's runs, and the log Bayes
-    factors of state-dependent ends it decided by (nothing for runs that fixed the model)."""
+def switching_lines(result: dict) -> list:
+    """The Markdown lines saying which switching model ``fit``'s "auto" chose in each method's
+    runs of a reproduction ``result``, and the log Bayes factors of state-dependent ends it
+    decided by (nothing for runs that fixed the model)."""
     lines = []
     for method in result["methods"]:
         made = [r["methods"][method]["switching"] for r in result.get("per_run", [])
@@ -442,7 +444,7 @@ def format_markdown(result: dict) -> str:
         for t in result["targets"]:
             mark = {True: "met", False: "NOT met", None: "not measured"}[t["met"]]
             lines.append(f"- {t['target']}: {mark}" + (f" ({t['value']})" if t["value"] is not None else ""))
-    lines += _switching_lines(result)
+    lines += switching_lines(result)
     lines += ["", "Settings (per run; chains x (warmup + samples) sweeps):", "",
               "| method | emission | chains | warmup | samples | max skills | other |",
               "|---|---|---:|---:|---:|---:|---|"]
