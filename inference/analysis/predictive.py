@@ -33,7 +33,8 @@ from npbrs.models.emissions import Emission, HMMData
 from npbrs.domains.util.compiling import jit
 from npbrs.domains.util.precision import float64_all
 
-__all__ = ["HeldOut", "SkillProbabilities", "log_predictive", "pointwise_log_likelihood", "segment"]
+__all__ = ["HeldOut", "SkillProbabilities", "log_predictive", "pointwise_log_likelihood", "segment",
+           "skill_probabilities"]
 
 _NOT_PARAMS = ("features", "skill_steps", "alpha", "kappa", "gamma", "ends", "end_mean")
 
@@ -315,6 +316,42 @@ def _summarise(moments: np.ndarray, num_samples: int, demos) -> HeldOut:
     steps = int(np.sum(demos.lengths))
     return HeldOut(per_trajectory=log_p, per_trajectory_se=se, per_step=float(log_p.sum() / steps),
                    per_step_se=float(np.sqrt(np.sum(se ** 2)) / steps), num_steps=steps, num_draws=S)
+
+
+def skill_probabilities(result) -> SkillProbabilities:
+    """Each fitted step's posterior skill probabilities from the sampler's own draws: the share
+    of the sampling sweeps, over every chain, in which the step was in each of the run's skills
+    (every chain's slots mapped to them by :func:`npbrs.inference.analysis.diagnostics.relabel`);
+    no MDP and no computation beyond that count. The same quantity as ``segment(result, mdp)`` up
+    to Monte Carlo error; ``segment`` recomputes it from a subset of the draws, averaging each
+    draw's smoothed probabilities (the transition weights integrated out), which is the less
+    noisy of the two when a run has few draws (``docs/design.md``), and costs a forward-backward
+    pass per draw and importance sample.
+
+    Args:
+        result: a FitResult that kept its per-step counts (``step_skill_counts``).
+    Returns:
+        a :class:`SkillProbabilities`: ``probs`` per trajectory (T, L) (a row sums to below 1
+        where some draws put the step in a slot matched to none of the run's skills) and
+        ``labels``, each step's most probable skill, the segmentation that labels the most steps
+        right in expectation.
+    """
+    from .diagnostics import relabel
+
+    if result.step_skill_counts is None:
+        raise ValueError("this run kept no per-step skill counts (saved before they were kept); use "
+                         "segment(mdp) instead")
+    counts = np.asarray(result.step_skill_counts)
+    C, N, T, K = counts.shape
+    mapping = relabel(result)
+    probs = np.zeros((N, T, result.num_skills))
+    for c in range(C):
+        for k in range(K):
+            if mapping[c, k] >= 0:
+                probs[..., mapping[c, k]] += counts[c, ..., k]
+    probs /= C * result.num_draws
+    rows = [probs[i, :m] for i, m in enumerate(len(s) for s in result.segmentation)]
+    return SkillProbabilities(probs=rows, labels=[np.argmax(r, axis=-1) for r in rows])
 
 
 float64_all(globals())  # npbrs.domains.util.precision: float64 inside, the user's setting outside

@@ -375,37 +375,11 @@ class FitResult:
         return log_predictive(self, mdp, demos, **options)
 
     def skill_probabilities(self):
-        """Each fitted step's posterior skill probabilities from the sampler's own draws: the
-        share of the sampling sweeps, over every chain, in which the step was in each of the run's
-        skills (every chain's slots mapped to them by
-        :func:`npbrs.inference.analysis.diagnostics.relabel`); no MDP and no computation beyond
-        that count. A :class:`~npbrs.inference.analysis.predictive.SkillProbabilities`: ``probs``
-        per trajectory (T, L) (a row sums to below 1 where some draws put the step in a slot
-        matched to none of the run's skills) and ``labels``, each step's most probable skill,
-        the segmentation that labels the most steps right in expectation (a single draw's,
-        ``segmentation``, keeps the jitter of its boundaries and short excursions). The same
-        quantity as ``segment(mdp)`` up to Monte Carlo error; ``segment`` recomputes it from a
-        subset of the draws, averaging each draw's smoothed probabilities (the transition
-        weights integrated out), which is the less noisy of the two when a run has few draws
-        (``docs/design.md``), and costs a forward-backward pass per draw and
-        importance sample."""
-        from ..analysis.diagnostics import relabel
-        from ..analysis.predictive import SkillProbabilities
+        """Each fitted step's posterior skill probabilities counted over the sampler's own draws
+        (:func:`npbrs.inference.analysis.predictive.skill_probabilities`)."""
+        from ..analysis.predictive import skill_probabilities
 
-        if self.step_skill_counts is None:
-            raise ValueError("this run kept no per-step skill counts (saved before they were kept); use "
-                             "segment(mdp) instead")
-        counts = np.asarray(self.step_skill_counts)
-        C, N, T, K = counts.shape
-        mapping = relabel(self)
-        probs = np.zeros((N, T, self.num_skills))
-        for c in range(C):
-            for k in range(K):
-                if mapping[c, k] >= 0:
-                    probs[..., mapping[c, k]] += counts[c, ..., k]
-        probs /= C * self.num_draws
-        rows = [probs[i, :m] for i, m in enumerate(len(s) for s in self.segmentation)]
-        return SkillProbabilities(probs=rows, labels=[np.argmax(r, axis=-1) for r in rows])
+        return skill_probabilities(self)
 
     def segment(self, mdp, demos=None, **options):
         """Posterior probabilities of this run's skills at every step of new demonstrations (or,
