@@ -5,7 +5,7 @@ density given its Cholesky factor; batched over leading axes.
 Why not ``jnp.linalg``: on the CPU those lower to LAPACK kernels (XLA custom calls). In jaxlib
 before 0.11.2 a LAPACK kernel splits a batch over XLA's intra-op thread pool and blocks until
 the parts are done, so programs that run side by side on every core can hang
-(:mod:`npbrs.inference.driver.threads`). The matrices here are a reward's D x D posterior
+(:mod:`npbrs.inference.threads`). The matrices here are a reward's D x D posterior
 precision (D features: a few, or one per state, ~10^2) and GMRES's m x m triangular factor (m
 tens), where a loop over the columns costs next to nothing, so npbrs's fits keep their programs
 free of library kernels and run their chains on every core. Each routine is a ``fori_loop``
