@@ -11,3 +11,4 @@ from .highway import HighwayEnv, highway  # registers npbrs/Highway-v0
 from .quadcopter import QuadcopterEnv, quadcopter  # registers npbrs/Quadcopter-v0
 from .experts import policy_return, policy_values, q_learning
 from .control import evaluate_control, expert_control, replay, skill_policies
+from .options import Option, OptionRun, estimate_options, run_option

@@ -93,6 +93,8 @@ class AutoregressiveEmission(Emission):
         s0: inverse-Wishart scale s0 I.
     """
 
+    likelihood_of = "states"  # (a density of the state vectors, not a probability of actions)
+
     def __init__(self, state_vectors, v0: float = 10.0, nu0=None, s0: float = 1.0):
         y = np.asarray(state_vectors, dtype=np.float64)
         if y.ndim == 1:

@@ -134,6 +134,10 @@ class Emission(Pytree):
     """
 
     name: str = "emission"
+    #: what the likelihood is a probability of: "actions" (of the actions given the states, as
+    #: a policy) or "states" (a density of the states' vectors): only runs of the same kind can
+    #: be ranked by their likelihoods (``npbrs compare``)
+    likelihood_of: str = "actions"
     #: the sweeps between prior redraws of unused skills' parameters that ``fit`` asks for
     redraw_unused: int = 1
     #: whether ``update`` takes ``redraw_unused`` (a bool shared by vectorised chains: the skills

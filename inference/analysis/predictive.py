@@ -21,6 +21,7 @@ reduce the posterior's own sampling error, which this does not report.)
 
 from __future__ import annotations
 
+import warnings
 from functools import partial
 from typing import NamedTuple, Optional
 
@@ -33,7 +34,7 @@ from npbrs.models.emissions import Emission, HMMData
 from npbrs.domains.util.compiling import jit
 from npbrs.domains.util.precision import float64_all
 
-__all__ = ["HeldOut", "SkillProbabilities", "log_predictive", "pointwise_log_likelihood", "segment",
+__all__ = ["HeldOut", "SkillProbabilities", "log_predictive", "pointwise_log_likelihood", "segment", "fitted_trajectories",
            "skill_probabilities"]
 
 _NOT_PARAMS = ("features", "skill_steps", "alpha", "kappa", "gamma", "ends", "end_mean")
@@ -75,6 +76,16 @@ def _draw_indices(num_chains: int, num_draws_run: int, num_draws: int) -> np.nda
     return np.unique(np.linspace(0, num_draws_run - 1, per_chain).round().astype(int))
 
 
+def fitted_trajectories(result, demos) -> int:
+    """How many of ``demos``' trajectories (states and actions) are among those ``result`` was
+    fitted to (0 when the run does not hold its demonstrations)."""
+    if result.demos is None:
+        return 0
+    key = lambda s, a: (np.asarray(s, np.int64).tobytes(), np.asarray(a, np.int64).tobytes())  # noqa: E731
+    known = {key(s, a) for s, a in zip(result.demos.states, result.demos.actions)}
+    return sum(key(s, a) in known for s, a in zip(demos.states, demos.actions))
+
+
 def log_predictive(result, mdp, demos, *, num_samples: int = 64, num_draws: int = 100, seed: int = 0,
                    emission: Optional[Emission] = None) -> HeldOut:
     """The posterior predictive log-likelihood of demonstrations that were not in the fit.
@@ -97,6 +108,12 @@ def log_predictive(result, mdp, demos, *, num_samples: int = 64, num_draws: int 
     _check_counts(num_samples=num_samples, num_draws=num_draws)
     if len(demos.lengths) == 0:
         raise ValueError("the held-out demonstrations hold no trajectory")
+    fitted = fitted_trajectories(result, demos)
+    if fitted:
+        warnings.warn(f"log_predictive: {fitted} of the {len(demos.lengths)} trajectories are ones the run was fitted "
+                      "to, so their score is an in-sample fit, above what new demonstrations would score; score "
+                      "held-out demonstrations (FitResult.add_log_likelihood gives the fitted ones' leave-one-out "
+                      "inputs)", UserWarning, stacklevel=3)
     C, D = np.shape(result.stats["log_joint"])
     moments = _draw_moments(result, mdp, demos, _draw_indices(C, D, num_draws), num_samples, seed, emission,
                             leave_one_out=False)

@@ -3,9 +3,11 @@
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 
-__all__ = ["at_least", "device_count", "add_world_arguments", "load_world_mdp", "command_error"]
+__all__ = ["at_least", "device_count", "add_world_arguments", "load_world_mdp", "command_error", "output_problem",
+           "folder_problem"]
 
 
 def at_least(minimum: int):
@@ -50,6 +52,39 @@ def load_world_mdp(args):
     from npbrs.domains.registry import get_domain
 
     return get_domain(args.domain).mdp
+
+
+def output_problem(path, what: str = "file", overwrite: bool = False) -> str:
+    """Why ``path`` cannot be written before a command starts its work ("" when it can): its
+    folder does not exist, it is a folder, or it is an existing file and ``overwrite`` is off.
+
+    Args:
+        path: the file to write.
+        what: what the file is, for the message ("run", "labels file", ...).
+        overwrite: whether an existing file may be replaced.
+    Returns:
+        the message, or "".
+    """
+    folder = os.path.dirname(os.path.abspath(os.fspath(path)))
+    if not os.path.isdir(folder):
+        return f"cannot write the {what} {path}: the folder {os.path.dirname(os.fspath(path)) or folder} does not exist"
+    if os.path.isdir(path):
+        return f"cannot write the {what} {path}: it is a folder"
+    if os.path.exists(path) and not overwrite:
+        return f"{path} exists; give --overwrite to replace it, or write the {what} elsewhere"
+    return ""
+
+
+def folder_problem(path) -> str:
+    """Why the folder ``path`` cannot be made or used for output ("" when it can): its parent
+    folder does not exist (one level is made, never a chain of them), or it is a file."""
+    parent = os.path.dirname(os.path.abspath(os.fspath(path)))
+    if os.path.exists(path) and not os.path.isdir(path):
+        return f"{path} is a file, not a folder"
+    if not os.path.isdir(parent):
+        return f"cannot make the folder {path}: its parent {os.path.dirname(os.fspath(path).rstrip(os.sep)) or parent} " \
+               "does not exist"
+    return ""
 
 
 def command_error(command: str, message) -> int:

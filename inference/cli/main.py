@@ -21,7 +21,8 @@ from typing import Optional
 from npbrs.domains.util.precision import float64_all
 
 from . import generate, reproduce, score
-from .arguments import add_world_arguments, at_least, command_error, device_count, load_world_mdp
+from .arguments import (add_world_arguments, at_least, command_error, device_count, folder_problem, load_world_mdp,
+                        output_problem)
 
 __all__ = ["build_parser", "main", "compilation_cache_dir", "DEMO_CONFIG", "QUICK_DEMO_CONFIG"]
 
@@ -97,6 +98,7 @@ def _add_fit(sub):
                         "the sticky fit, refitted with state ends when its skills favour them; overrides the "
                         "config)")
     p.add_argument("-o", "--output", required=True, help="the run file to write (.nc)")
+    p.add_argument("--overwrite", action="store_true", help="replace the output if it exists (else it is refused)")
     p.add_argument("--init-from", metavar="RUN", help="start every chain from the segmentation of a saved run (.nc)")
     p.add_argument("--resume", action="store_true", help="continue from the output's checkpoint if there is one")
     p.add_argument("--checkpoint-every", type=at_least(0), default=100,
@@ -123,6 +125,9 @@ def _load_world(args):
 def fit_command(args) -> int:
     from ..driver.fit import fit, resolve_config
 
+    problem = output_problem(args.output, "run", overwrite=args.overwrite)
+    if problem:  # (before any work: a missing folder or a run that would be lost)
+        return command_error("fit", problem)
     use_compilation_cache()
     try:
         mdp, demos = _load_world(args)
@@ -193,6 +198,11 @@ def report_command(args) -> int:
     from ..analysis import diagnostics
     from ..driver.runs import load_run
 
+    if not 0.0 < args.prob < 1.0:
+        return command_error("report", f"--prob must be between 0 and 1 (a credible interval's mass), got {args.prob}")
+    problem = folder_problem(args.plots) if args.plots else ""
+    if problem:
+        return command_error("report", problem)
     try:
         result = load_run(args.run)
     except (OSError, ValueError) as e:
@@ -210,7 +220,7 @@ def report_command(args) -> int:
             print(f"\nreward weights per skill (mean, {args.prob:.0%} interval; chains relabelled{which}):")
             print(diagnostics.skill_summary(result, "theta", prob=args.prob, top=top).to_string())
     if args.plots:
-        os.makedirs(args.plots, exist_ok=True)
+        os.makedirs(args.plots, exist_ok=True)  # (one level: its parent was checked above)
         for name, path in save_plots(result, args.plots).items():
             print(f"wrote the {name} plot {path}")
     return 0

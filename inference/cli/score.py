@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import os
 
-from .arguments import add_world_arguments, at_least, command_error, load_world_mdp
+from .arguments import add_world_arguments, at_least, command_error, load_world_mdp, output_problem
 
 __all__ = ["add_parsers"]
 
@@ -45,6 +45,7 @@ def add_parsers(sub):
     _world(p)
     p.add_argument("--draws", type=at_least(1), default=100, help="posterior draws used (100)")
     p.add_argument("-o", "--output", required=True, help="the labels file to write (.npz)")
+    p.add_argument("--overwrite", action="store_true", help="replace the output files if they exist")
     p.add_argument("--plot", metavar="PNG", help="also draw the first trajectories' skill probabilities")
     p.set_defaults(func=segment_command)
     p = sub.add_parser("compare", help="rank saved runs of the same demonstrations with ArviZ (PSIS-LOO)",
@@ -86,6 +87,10 @@ def segment_command(args) -> int:
 
     from npbrs.domains.util.files import atomic_write
 
+    for path, what in ((args.output, "labels file"), (args.plot, "plot")):
+        problem = output_problem(path, what, overwrite=args.overwrite) if path else ""
+        if problem:  # (before any work)
+            return command_error("segment", problem)
     try:
         mdp, run, demos, options = _run_and_demos(args)
         out = run.segment(mdp, demos, **options)
@@ -118,6 +123,14 @@ def segment_command(args) -> int:
     return 0
 
 
+def _likelihood_of(run) -> str:
+    """What a saved run's likelihood is a probability of (its emission's ``likelihood_of``)."""
+    from npbrs.models.emissions import EMISSIONS
+
+    cls = EMISSIONS.get(run.emission.get("name"))
+    return getattr(cls, "likelihood_of", "actions")
+
+
 def compare_command(args) -> int:
     from ..arviz_import import arviz
     from ..driver.runs import load
@@ -126,21 +139,43 @@ def compare_command(args) -> int:
 
     if len(args.runs) < 2:
         return command_error("compare", "compare needs at least two runs")
+    seen = {}
+    for path in args.runs:
+        real = os.path.realpath(path)
+        if real in seen:
+            return command_error("compare", f"{path} is given twice (as {seen[real]}); compare ranks different runs")
+        seen[real] = path
     try:
         mdp = load_world_mdp(args)
         runs = {}
         for path in args.runs:
-            run = load(path)
+            name = os.path.splitext(os.path.basename(path))[0]
+            runs[name if name not in runs else path] = load(path)
+        # (the checks before any computation: a run's log-likelihoods cost about as much as its fit)
+        first = next(iter(runs))
+        for name, run in runs.items():
+            if run.fingerprint != runs[first].fingerprint:
+                raise ValueError(f"{name} and {first} were fitted to different demonstrations (fingerprints "
+                                 f"{run.fingerprint[:12]}..., {runs[first].fingerprint[:12]}...); compare ranks runs "
+                                 "of the same demonstrations")
+        kinds = {name: _likelihood_of(run) for name, run in runs.items()}
+        if len(set(kinds.values())) > 1:
+            said = {"actions": "a probability of the actions given the states",
+                    "states": "a density of the states' vectors"}
+            raise ValueError("the runs' likelihoods are of different things, so their scores cannot be ranked: "
+                             + "; ".join(f"{name} ({runs[name].emission.get('name')}): {said.get(k, k)}"
+                                         for name, k in kinds.items()))
+        names = list(runs)
+        for i, a in enumerate(names):
+            for b in names[i + 1:]:
+                if runs[a].equals(runs[b]):
+                    raise ValueError(f"{a} and {b} hold the same run; compare ranks different runs")
+        for run in runs.values():
             if run.log_likelihood is None:
                 options = {"seed": args.seed}
                 if args.samples is not None:
                     options["num_samples"] = args.samples
                 run.add_log_likelihood(mdp, **options)
-            name = os.path.splitext(os.path.basename(path))[0]
-            runs[name if name not in runs else path] = run
-        fingerprints = {run.fingerprint for run in runs.values()}
-        if len(fingerprints) > 1:
-            raise ValueError("the runs were fitted to different demonstrations; compare needs the same ones")
         table = az.compare({name: run.to_arviz() for name, run in runs.items()})
     except (OSError, ValueError) as e:
         return command_error("compare", e)

@@ -79,7 +79,7 @@ def run_fit(mdp, demos, cfg: ModelConfig, emission: Optional[Emission] = None, *
     use_compilation_cache()
     if not isinstance(demos, Demonstrations):
         raise ValueError(f"demos must be npbrs.domains.Demonstrations, got {type(demos).__name__}")
-    demos.validate(mdp)
+    demos.validate(mdp, check_transitions=True)  # (before any work: demonstrations this MDP cannot make)
     if resume and checkpoint_path is None:
         raise ValueError("resume=True needs checkpoint_path")
     if checkpoint_path is not None and not resume and os.path.exists(checkpoint_path):
