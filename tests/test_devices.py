@@ -1,4 +1,4 @@
-"""fit on several devices (``mesh=`` / ``devices=``): chains on separate devices, and each
+"""fit on several devices (``devices=``: a number of devices or a mesh): chains on separate devices, and each
 chain's trajectories sharded over devices, give the one-device run's draws.
 
 JAX reads ``XLA_FLAGS`` once, when its backend starts, so the runs on 4 CPU "devices"
@@ -8,7 +8,7 @@ emission, 4 chains, 3 + 3 sweeps, a greedy merge in each warmup sweep) three way
 
 - on one device (no mesh);
 - ``devices=4``: the 4 chains on 4 devices (mesh ("chains", "trajectories") of shape (4, 1));
-- ``mesh=Mesh(jax.devices(), ("trajectories",))``: every chain's trajectories sharded over the
+- ``devices=Mesh(jax.devices(), ("trajectories",))``: every chain's trajectories sharded over the
   4 devices, the 6 trajectories padded to 8 with empty ones;
 - and the one-device run's checkpoint after 3 sweeps resumed on that mesh (a checkpoint resumes
   on another layout);
@@ -22,7 +22,7 @@ log joint of about -400), and XLA may round a mean or a Dirichlet draw's normali
 differently in another program (measured: 2e-16 in 23 of the 576 policy entries of the chains
 run, once the backward sampler drew its Gumbel noise before its scan; they had been equal).
 
-(Checked by hand: with each device's chains given other keys (``fit._place_state`` folding the
+(Checked by hand: with each device's chains given other keys (``devices.place_state`` folding the
 device's index into the state's ``rng_key``) the chains run fails; with omega's Gammas drawn
 after the trajectories' in the kernel's batch (their positions, and so their numbers, then
 depend on how many trajectories there are) the padded trajectories run fails.)
@@ -49,7 +49,7 @@ CHILD = textwrap.dedent('''
     from jax.sharding import Mesh
     from npbrs.inference import fit
 
-    F = importlib.import_module("npbrs.inference.driver.fit")
+    F = importlib.import_module("npbrs.inference.driver.compiled")
     out_path = sys.argv[1]
     assert jax.device_count() == 4, jax.devices()
 
@@ -59,11 +59,11 @@ CHILD = textwrap.dedent('''
     # a greedy merge in every warmup sweep (it gathers one skill's steps over all trajectories);
     # greedy splits, birth/death and split-merge moves are left out to save their compilation
     # (the one-device run batches its chains, as the runs on devices do: "auto" would pick threads)
-    kw = dict(emission="policy", num_chains=4, num_warmup=3, num_samples=3, max_skills=4, kappa=5.0, seed=1,
-              progress_bar=False, moves={"greedy_merge": 1, "greedy_split": 0, "greedy_from": 0.0},
-              chain_method="vectorized")
+    config = {"emission": "policy", "max_skills": 4, "kappa": 5.0, "chain_method": "vectorized",
+              "moves": {"greedy_merge": 1, "greedy_split": 0, "greedy_from": 0.0}}
+    kw = dict(num_chains=4, num_warmup=3, num_samples=3, seed=1, progress_bar=False)
     seen = {}
-    sweep = F._sweep_batched
+    sweep = F.sweep_batched
 
     def shard(x):  # the shape of the array's block on its first device
         return list(x.addressable_shards[0].data.shape if isinstance(x, jax.Array) else np.shape(x))
@@ -76,7 +76,7 @@ CHILD = textwrap.dedent('''
             "policy_shard": shard(new.params["policy"])})
         return new, record
 
-    F._sweep_batched = spy
+    F.sweep_batched = spy
     # the one-device run's checkpoint after its third sweep, kept to be resumed on 4 devices
     runs = importlib.import_module("npbrs.inference.driver.runs")
     write = runs.write_checkpoint
@@ -90,24 +90,24 @@ CHILD = textwrap.dedent('''
     half = out_path + ".half.npz"
     arrays, times = {}, {}
     traj_mesh = Mesh(np.array(jax.devices()), ("trajectories",))
-    for run, extra in (("one", {"checkpoint_path": out_path + ".ckpt.npz", "checkpoint_every": 3}),
-                       ("chains", {"devices": 4}), ("trajectories", {"mesh": traj_mesh}),
-                       ("resumed", {"mesh": traj_mesh, "checkpoint_path": half, "resume": True})):
+    for run, options, extra in (("one", {"checkpoint_every": 3}, {"checkpoint_path": out_path + ".ckpt.npz"}),
+                                ("chains", {}, {"devices": 4}), ("trajectories", {}, {"devices": traj_mesh}),
+                                ("resumed", {}, {"devices": traj_mesh, "checkpoint_path": half, "resume": True})):
         t = time.perf_counter()
-        result = fit(mdp, demos, **kw, **extra)
+        result = fit(mdp, demos, {**config, **options}, **kw, **extra)
         times[run] = time.perf_counter() - t
         for k, v in {**result.stats, **result.samples}.items():
             arrays[f"{run}/{k}"] = v
         arrays[f"{run}/chain_best_z"] = result.chain_best_z
         arrays[f"{run}/segmentation"] = np.concatenate(result.segmentation)
     errors = {}
-    for name, extra in (("chains_not_dividing", {"mesh": Mesh(np.array(jax.devices()), ("chains",)), "num_chains": 6}),
-                        ("sequential_chains", {"mesh": Mesh(np.array(jax.devices()), ("chains",)),
-                                               "chain_method": "sequential"}),
-                        ("too_many", {"devices": 5}),
-                        ("twice", {"devices": [jax.devices()[0], jax.devices()[0]]})):
+    chains_mesh = Mesh(np.array(jax.devices()), ("chains",))
+    for name, options, extra in (("chains_not_dividing", {}, {"devices": chains_mesh, "num_chains": 6}),
+                                 ("sequential_chains", {"chain_method": "sequential"}, {"devices": chains_mesh}),
+                                 ("too_many", {}, {"devices": 5}),
+                                 ("twice", {}, {"devices": [jax.devices()[0], jax.devices()[0]]})):
         try:
-            fit(mdp, demos, **{**kw, **extra})
+            fit(mdp, demos, {**config, **options}, **{**kw, **extra})
             errors[name] = None
         except ValueError as e:
             errors[name] = str(e)
@@ -181,12 +181,11 @@ def test_bad_meshes_and_devices_are_refused_naming_the_problem(four_devices):
     rng = np.random.default_rng(0)
     mdp = TabularMDP.from_dense(rng.dirichlet(np.ones(3), (3, 2)))
     demos = Demonstrations([rng.integers(0, 3, 8)], [rng.integers(0, 2, 8)])
-    kw = dict(emission="policy", num_chains=2, num_warmup=1, num_samples=1, progress_bar=False)
+    kw = dict(num_chains=2, num_warmup=1, num_samples=1, progress_bar=False)
     one = np.array(jax.devices()[:1])
     for bad, match in (({"devices": len(jax.devices()) + 1}, "there are"),
-                       ({"mesh": Mesh(one, ("data",))}, "mesh axis 'data'"),
-                       ({"mesh": "gpu"}, "must be a jax.sharding.Mesh"),
-                       ({"devices": "some"}, "devices must be"),
-                       ({"devices": 1, "mesh": Mesh(one, ("chains",))}, "not both")):
+                       ({"devices": Mesh(one, ("data",))}, "mesh axis 'data'"),
+                       ({"devices": 2.5}, "devices must be a number of devices or a sequence of jax.Device, got float"),
+                       ({"devices": "some"}, "devices must be a number, a list of jax.Device, 'all' or a Mesh")):
         with pytest.raises(ValueError, match=match):
-            fit(mdp, demos, **kw, **bad)
+            fit(mdp, demos, {"emission": "policy"}, **kw, **bad)

@@ -74,7 +74,7 @@ def exact_joint_states():
                                                 marks=pytest.mark.slow)],
                          ids=["gibbs", "birth_death_padded", "redraw_every_3", "split_merge", "all_moves"])
 def test_sampler_visits_segmentations_in_proportion_to_their_posterior(moves):
-    """(The birth-death case runs on the data padded as to a shape bucket, ``fit(bucket=True)``:
+    """(The birth-death case runs on the data padded as to a shape bucket, ``bucket=True`` in fit's config:
     an extra trajectory without steps and an extra masked step, whose births and deaths the move
     also tries: the real trajectories' posterior is the same.)"""
     keys, exact = exact_partition_posterior()
