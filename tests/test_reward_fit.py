@@ -25,8 +25,8 @@ NO_GREEDY = {"greedy_merge": 0, "greedy_split": 0}
 def test_the_sampler_recovers_planted_reward_skills_in_a_gridworld(moves):
     dom = gridworld()
     demos = generate_demonstrations(dom, num_trajectories=10, length=64, switch_prob=0.05, seed=0)
-    result = fit(dom.mdp, demos, emission="reward", num_chains=2, num_samples=40, num_warmup=40, max_skills=5,
-                 moves=moves, progress_bar=False)
+    config = {"emission": "reward", "max_skills": 5, **({} if moves is None else {"moves": moves})}
+    result = fit(dom.mdp, demos, config, num_chains=2, num_samples=40, num_warmup=40, progress_bar=False)
     assert result.num_skills == 3
     assert paper_accuracy(demos.skills, result.segmentation) >= 0.9
     assert result.rhat["log_joint"] < 1.1
@@ -54,21 +54,21 @@ def test_a_new_dataset_and_mdp_of_the_same_shapes_reuse_the_compiled_sampler():
     """The demonstrations and the MDP's arrays are arguments of the compiled programs, not
     constants: a second fit of other demonstrations in another MDP of the same shapes compiles
     nothing (it failed, compiling the sweep again, when the kernel was closed over)."""
-    kwargs = dict(emission="reward", num_chains=2, num_samples=3, num_warmup=3, max_skills=5, moves=NO_GREEDY,
-                  progress_bar=False)
+    config = {"emission": "reward", "max_skills": 5, "moves": NO_GREEDY}
+    kwargs = dict(num_chains=2, num_samples=3, num_warmup=3, progress_bar=False)
     dom = gridworld()
     first = fit(dom.mdp, generate_demonstrations(dom, num_trajectories=10, length=64, switch_prob=0.05, seed=3),
-                **kwargs)
+                config, **kwargs)
     other = gridworld(slip=0.2)
     demos = generate_demonstrations(other, num_trajectories=10, length=64, switch_prob=0.05, seed=4)
-    second, compiles = _compiling(fit, other.mdp, demos, **kwargs)
+    second, compiles = _compiling(fit, other.mdp, demos, config, **kwargs)
     assert compiles == [], f"the second fit compiled {len(compiles)} programs ({sum(compiles):.1f} s)"
     assert second.fingerprint != first.fingerprint and second.mdp_fingerprint != first.mdp_fingerprint
-    assert second.equals(fit(other.mdp, demos, **kwargs))  # the reused program: the same seed, the same draws
+    assert second.equals(fit(other.mdp, demos, config, **kwargs))  # the reused program: the same seed, the same draws
 
 
 def test_a_data_set_in_the_same_shape_bucket_reuses_the_compiled_sampler():
-    """``fit(bucket=True)`` pads to bucket sizes: another data set of other sizes in the same
+    """The config option ``bucket=True`` pads to bucket sizes: another data set of other sizes in the same
     bucket compiles nothing, and the result has the demonstrations' own shapes."""
     from npbrs.models.emissions import bucket_size
 
@@ -76,13 +76,12 @@ def test_a_data_set_in_the_same_shape_bucket_reuses_the_compiled_sampler():
     assert all(s >= n and (n <= 8 or s <= 1.25 * n) for n, s in zip(range(1, 1025), sizes))
     assert len(set(sizes)) <= 40 and sizes == sorted(sizes)
     # padded to 10 x 64, the planted-skills fit's shapes above: in this module it compiles nothing
-    kwargs = dict(emission="reward", num_chains=2, num_samples=3, num_warmup=3, max_skills=5, moves=NO_GREEDY,
-                  progress_bar=False,
-                  bucket=True)
+    config = {"emission": "reward", "max_skills": 5, "moves": NO_GREEDY, "bucket": True}
+    kwargs = dict(num_chains=2, num_samples=3, num_warmup=3, progress_bar=False)
     dom = gridworld()
-    fit(dom.mdp, generate_demonstrations(dom, num_trajectories=9, length=58, seed=5), **kwargs)
+    fit(dom.mdp, generate_demonstrations(dom, num_trajectories=9, length=58, seed=5), config, **kwargs)
     demos = generate_demonstrations(dom, num_trajectories=9, length=61, seed=6)  # the same bucket
-    result, compiles = _compiling(fit, dom.mdp, demos, **kwargs)
+    result, compiles = _compiling(fit, dom.mdp, demos, config, **kwargs)
     assert compiles == [], f"the second fit compiled {len(compiles)} programs ({sum(compiles):.1f} s)"
     assert [len(z) for z in result.segmentation] == list(demos.lengths)
     assert result.samples["features"].shape[2] == 9 and result.chain_best_z.shape[1:] == (9, 61)
@@ -90,7 +89,7 @@ def test_a_data_set_in_the_same_shape_bucket_reuses_the_compiled_sampler():
     # fit redraws the unused reward skills every fifth sweep (the emission's redraw_unused), and
     # the run records it
     assert result.config["sampler"]["moves"] == {**NO_GREEDY, "redraw_unused": 5}
-    assert result.equals(fit(dom.mdp, demos, **kwargs))
+    assert result.equals(fit(dom.mdp, demos, config, **kwargs))
 
 
 _X64_SCRIPT = """
@@ -128,8 +127,8 @@ def test_npbrs_computes_in_float64_without_switching_the_process_to_it(tmp_path)
     from npbrs.models.reward.irl import irl_fit
     from npbrs.models.reward.likelihood import count_table
 
-    kwargs = dict(emission="reward", num_chains=2, num_samples=3, num_warmup=3, max_skills=5, moves=NO_GREEDY,
-                  progress_bar=False)
+    config = {"emission": "reward", "max_skills": 5, "moves": NO_GREEDY}
+    kwargs = dict(num_chains=2, num_samples=3, num_warmup=3, progress_bar=False)
     script = _X64_SCRIPT.format(tests=os.path.dirname(__file__), arrays=str(tmp_path / "arrays.npz"))
     env = {k: v for k, v in os.environ.items() if k != "JAX_ENABLE_X64"}
     cache = jax.config.jax_compilation_cache_dir
@@ -140,10 +139,10 @@ def test_npbrs_computes_in_float64_without_switching_the_process_to_it(tmp_path)
     assert proc.returncode == 0, proc.stderr[-3000:]
     other = gridworld(slip=0.2)
     demos = generate_demonstrations(other, num_trajectories=10, length=64, switch_prob=0.05, seed=4)
-    here = fit(other.mdp, demos, **kwargs)
+    here = fit(other.mdp, demos, config, **kwargs)
     with jax.enable_x64(False):
         assert jnp.ones(1).dtype == jnp.float32
-        there = fit(other.mdp, demos, **kwargs)
+        there = fit(other.mdp, demos, config, **kwargs)
         assert not jax.config.jax_enable_x64 and jnp.ones(1).dtype == jnp.float32, "fit left jax_enable_x64 on"
     assert there.num_skills == here.num_skills and all(np.array_equal(a, b) for a, b in zip(there.segmentation,
                                                                                              here.segmentation))

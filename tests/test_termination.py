@@ -230,7 +230,7 @@ def test_a_fit_with_state_dependent_ends_finds_where_the_planted_skills_end(tmp_
     skill that ends at the port far more often than elsewhere, and one at the entrance. The
     run saves and loads with its ends, and scores held-out trajectories."""
     from npbrs.domains.worlds import labyrinth
-    from npbrs.inference import fit, load
+    from npbrs.inference import fit, load, resolve_config
 
     world = labyrinth(seed=1, depth=4, num_trajectories=80, num_heldout=4)
     # c = 2: the default c = 8 shrinks each state's end towards the skill's mean more (it scored
@@ -238,9 +238,10 @@ def test_a_fit_with_state_dependent_ends_finds_where_the_planted_skills_end(tmp_
     # entrance's end then stays near 0.2
     # (no greedy moves: they are most of a fit's compile time, and the ends do not need them here;
     # 50 + 50 sweeps: the ratios below were 3.8 and 8.4 with 50 + 50 sweeps, 3.5 and 6.7 with 100 + 100)
-    result = fit(world.mdp, world.demos, {"prior": {"end_concentration": 2.0}}, num_chains=1, num_warmup=50,
-                 num_samples=50, seed=0, progress_bar=False, switching="state",
-                 moves={"greedy_merge": 0, "greedy_split": 0})
+    config = resolve_config({"prior": {"end_concentration": 2.0}}, switching="state",
+                            moves={"greedy_merge": 0, "greedy_split": 0})
+    result = fit(world.mdp, world.demos, config, num_chains=1, num_warmup=50, num_samples=50, seed=0,
+                 progress_bar=False)
     K, S = result.config["max_skills"], world.mdp.num_states
     assert np.shape(result.samples["ends"]) == (1, 50, K, S)
     ends = np.asarray(result.samples["ends"])[0].mean(0)  # (K, S) posterior means
@@ -286,7 +287,7 @@ def test_a_state_ends_fit_too_large_to_keep_its_draws_is_refused_before_compilin
 
     demos = Demonstrations([np.array([0, 1, 2])], [np.array([0, 0, 0])])
     with pytest.raises(ValueError, match="switching='state' keeps each draw's end probabilities"):
-        fit(mdp, demos, switching="state", num_samples=200, progress_bar=False)
+        fit(mdp, demos, {"switching": "state"}, num_samples=200, progress_bar=False)
 
 
 # ------------------------------------------------------------------- the whole sweep: getting it right
