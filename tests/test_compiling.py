@@ -82,16 +82,16 @@ def test_a_wrapped_function_gets_the_options_at_the_top_and_none_when_nested(mon
 def test_fit_and_the_solvers_compile_through_it():
     from npbrs.domains.solvers import common as solvers
     from npbrs.inference.analysis import predictive
-    from npbrs.inference.driver import fit
+    from npbrs.inference.driver import compiled
     from npbrs.inference.sampler import kernel
     from npbrs.models.reward import irl, likelihood
 
-    for fn in (fit._sweep_batched, fit._sweep_one, fit._init_chains, kernel._init_state, solvers._solve_batch,
+    for fn in (compiled.sweep_batched, compiled.sweep_one, compiled.init_chains, kernel._init_state, solvers._solve_batch,
                predictive._one_draw, predictive._one_draw_marginals, irl._FIT_JIT, likelihood._LL_AND_GRAD):
         assert isinstance(fn, compiling._Jit), fn
     # the initial state is the fit's program run once; the sweeps are run hundreds of times
-    assert fit._init_chains._once and kernel._init_state._once
-    assert not (fit._sweep_one._once or fit._sweep_batched._once or solvers._solve_batch._once)
+    assert compiled.init_chains._once and kernel._init_state._once
+    assert not (compiled.sweep_one._once or compiled.sweep_batched._once or solvers._solve_batch._once)
 
 
 def test_the_options_follow_xla_flags_at_each_call_and_each_set_compiles_once(monkeypatch):
