@@ -41,15 +41,16 @@ from npbrs.inference import fit
 assert jax.device_count() == devices, jax.devices()
 dom = highway()
 demos = generate_demonstrations(dom, num_trajectories=1024, length=length, seed=0)
+config = {"moves": {"greedy_merge": 0, "greedy_split": 0}}
 kw = dict(num_chains=1, num_warmup=sweeps // 2, num_samples=sweeps - sweeps // 2, seed=0, progress_bar=False,
-          moves={"greedy_merge": 0, "greedy_split": 0}, **({"devices": devices} if devices > 1 else {}))
+          **({"devices": devices} if devices > 1 else {}))
 load = os.getloadavg()[0]
 t = time.perf_counter()
-fit(dom.mdp, demos, **kw)
+fit(dom.mdp, demos, config, **kw)
 first = time.perf_counter() - t
 load_mid = os.getloadavg()[0]
 t = time.perf_counter()
-result = fit(dom.mdp, demos, **kw)
+result = fit(dom.mdp, demos, config, **kw)
 second = time.perf_counter() - t
 np.savez(out, log_joint=result.stats["log_joint"], segmentation=np.concatenate(result.segmentation))
 print(json.dumps({"devices": devices, "first_fit_s": round(first, 2), "timed_fit_s": round(second, 2),

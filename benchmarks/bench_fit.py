@@ -87,12 +87,12 @@ def main(argv=None):
 
     jax.monitoring.register_event_duration_secs_listener(listen)
 
-    def timed(domain, demos, chains, warmup, samples, **options):
+    def timed(domain, demos, chains, warmup, samples, **config):
         intervals.clear()
         load = os.getloadavg()[0]
         t = time.perf_counter()
-        result = fit(domain.mdp, demos, num_chains=chains, num_warmup=warmup, num_samples=samples, seed=0,
-                     progress_bar=False, **options)
+        result = fit(domain.mdp, demos, config or None, num_chains=chains, num_warmup=warmup, num_samples=samples,
+                     seed=0, progress_bar=False)
         total = time.perf_counter() - t
         sweeps = warmup + samples
         compiling = union(intervals)

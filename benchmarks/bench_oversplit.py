@@ -63,8 +63,9 @@ def main(argv=None):
             if start not in args.starts:
                 continue
             t = time.perf_counter()
-            result = fit(domain.mdp, demos, num_chains=args.chains, num_warmup=args.warmup, num_samples=args.samples,
-                         max_skills=8, seed=seed, moves=args.moves, init_segmentation=init, progress_bar=False)
+            config = {"max_skills": 8, **({"moves": args.moves} if args.moves is not None else {})}
+            result = fit(domain.mdp, demos, config, num_chains=args.chains, num_warmup=args.warmup,
+                         num_samples=args.samples, seed=seed, init_segmentation=init, progress_bar=False)
             wall = time.perf_counter() - t
             lj = np.asarray(result.stats["log_joint"])
             sizes = sorted((int(sum(np.sum(np.asarray(s) == k) for s in result.segmentation))

@@ -41,8 +41,10 @@ programs an earlier run left in npbrs's folder, and the wall time and peak memor
 whether one had (the labyrinth's default fit: 66 s and 1.0 GB with a warm cache, 84-90 s and
 1.9-2.2 GB cold).
 
-``--fit-options`` (JSON) gives the fitted model's ``fit`` keyword arguments (for a model variant
-measured the same way: the single-reward comparison keeps the defaults); the JSON records them.
+``--fit-options`` (JSON) gives the fitted model's options (for a model variant measured the same
+way: the single-reward comparison keeps the defaults): ``fit``'s own keyword arguments
+(``num_chains``, ``seed``, ...) go to the call, every other name to its config (``switching``,
+``moves``, ...); the JSON records them.
 
 It prints a markdown table and writes the JSON at PATH (top-level keys: ``meta`` and one per
 world) and the markdown next to it (PATH with the suffix ``.md``). Rows of worlds already in
@@ -80,6 +82,9 @@ QUICK_SIZES = {
     "rooms": dict(num_trajectories=8, min_length=30, max_length=50, num_heldout=4),
 }
 QUICK_FIT = dict(num_chains=2, num_warmup=6, num_samples=6)
+# fit's own keyword arguments; every other option is its config's
+FIT_KEYWORDS = ("num_chains", "num_samples", "num_warmup", "seed", "init_segmentation", "progress_bar",
+                "checkpoint_path", "resume", "devices")
 QUICK_PREDICTIVE = dict(num_draws=4, num_samples=8)
 
 UNKNOWN_LOAD = ("What else was running on the machine during the run is unknown (another engineer may have been "
@@ -115,7 +120,10 @@ def run_world(name: str, seed: int, quick: bool, options: dict = None) -> dict:
     oracle = world.oracle()
 
     start = time.perf_counter()
-    result = fit(mdp, demos, progress_bar=False, **{**fit_options, **(options or {})})
+    given = {**fit_options, **(options or {})}
+    call = {k: v for k, v in given.items() if k in FIT_KEYWORDS}
+    config = {k: v for k, v in given.items() if k not in FIT_KEYWORDS}
+    result = fit(mdp, demos, config or None, progress_bar=False, **call)
     wall = time.perf_counter() - start
     peak = _peak_mb()
     print(f"[{_now()}] {name}: default fit {wall:.0f} s, {result.num_skills} skills", flush=True)
@@ -130,7 +138,7 @@ def run_world(name: str, seed: int, quick: bool, options: dict = None) -> dict:
     counted = result.skill_probabilities().labels  # the same, counted over the sampler's draws
 
     start = time.perf_counter()
-    single = fit(mdp, demos, emission="single", max_skills=1, progress_bar=False, **fit_options)
+    single = fit(mdp, demos, {"emission": "single", "max_skills": 1}, progress_bar=False, **fit_options)
     single_s = time.perf_counter() - start
     single_held = single.log_predictive(mdp, heldout, **predictive)
     print(f"[{_now()}] {name}: single-reward fit {single_s:.0f} s", flush=True)
@@ -271,7 +279,8 @@ def main(argv=None):
     parser.add_argument("--note", help="a line about this run (what library version, what load), kept in the "
                                        "JSON's meta and printed under the markdown's heading")
     parser.add_argument("--fit-options", default="{}", metavar="JSON",
-                        help="fit's keyword arguments for the fitted model, e.g. '{\"switching\": \"state\"}'")
+                        help="the fitted model's options: fit's keyword arguments and its config's names, "
+                             "e.g. '{\"switching\": \"state\", \"num_chains\": 2}'")
     parser.add_argument("--cache", action="store_true",
                         help="keep JAX's persistent compilation cache on (npbrs's folder); by default it is off, so "
                              "every fit compiles as on a new machine and wall times and peak memory compare across "
@@ -289,7 +298,7 @@ def main(argv=None):
     except json.JSONDecodeError as e:
         parser.error(f"--fit-options: not JSON ({e})")
     if not isinstance(options, dict):
-        parser.error("--fit-options: expected a JSON object of fit's keyword arguments")
+        parser.error("--fit-options: expected a JSON object of fit's keyword arguments and config names")
 
     if args.child:
         row = run_world(args.child, args.seed, args.quick, options)

@@ -22,10 +22,11 @@ import time
 import numpy as np
 
 EMISSIONS = ("reward", "single", "subgoal", "policy")
-SETTINGS = {"reward": {"num_chains": 4, "num_warmup": 20, "num_samples": 20, "max_skills": 8},
-            "single": {"num_chains": 2, "num_warmup": 25, "num_samples": 25, "max_skills": 1},
-            "subgoal": {"num_chains": 2, "num_warmup": 50, "num_samples": 50, "max_skills": 8},
-            "policy": {"num_chains": 2, "num_warmup": 50, "num_samples": 50, "max_skills": 8}}
+SETTINGS = {"reward": {"num_chains": 4, "num_warmup": 20, "num_samples": 20},
+            "single": {"num_chains": 2, "num_warmup": 25, "num_samples": 25},
+            "subgoal": {"num_chains": 2, "num_warmup": 50, "num_samples": 50},
+            "policy": {"num_chains": 2, "num_warmup": 50, "num_samples": 50}}
+MAX_SKILLS = {"reward": 8, "single": 1, "subgoal": 8, "policy": 8}
 
 
 def one_run(run, args):
@@ -50,7 +51,8 @@ def one_run(run, args):
     for name in EMISSIONS:
         emission = SubgoalEmission(mdp, candidates=visited_states(train)) if name == "subgoal" else name
         start = time.perf_counter()
-        result = fit(mdp, train, emission=emission, seed=run, progress_bar=False, **SETTINGS[name])
+        result = fit(mdp, train, {"emission": emission, "max_skills": MAX_SKILLS[name]}, seed=run, progress_bar=False,
+                     **SETTINGS[name])
         wall = time.perf_counter() - start
         em = emission if name == "subgoal" else None
         start = time.perf_counter()

@@ -86,10 +86,11 @@ def one_run(name, run, args, worlds):
         start = time.perf_counter()
         options = {**({"prior_scale": args.prior_scale} if args.prior_scale else {}),
                    **({"scale_prior": list(args.scale_prior)} if args.scale_prior else {})} or None
-        fits[method] = fit(domain.mdp, demos, emission=emission, emission_options=options,
-                           num_chains=s["chains"], num_warmup=s["warmup"],
-                           num_samples=s["samples"], max_skills=s["max_skills"], seed=run, progress_bar=False,
-                           **({"init_window": s["init_window"]} if "init_window" in s else {}))
+        config = {"emission": emission, "max_skills": s["max_skills"],
+                  **({"emission_options": options} if options else {}),
+                  **({"init_window": s["init_window"]} if "init_window" in s else {})}
+        fits[method] = fit(domain.mdp, demos, config, num_chains=s["chains"], num_warmup=s["warmup"],
+                           num_samples=s["samples"], seed=run, progress_bar=False)
         print(f"  {name} run {run}: {method} fit {time.perf_counter() - start:.0f} s, "
               f"{fits[method].num_skills} skills", flush=True)
     if args.save_runs:
