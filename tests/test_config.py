@@ -320,25 +320,51 @@ def test_progress_in_a_log_shows_compiling_then_sweeps_with_an_eta(capsys):
     assert len(lines) == 13 and "\r" not in err
 
 
-def test_progress_with_several_chains_says_what_it_counts():
-    """Chains swept in turn or on threads count each chain's sweeps one by one; the lines say so,
-    and the closing line gives the sweeps each chain ran. (Checked to fail: a closing line of
-    the counted total, or one without the chains.)"""
+def test_progress_counts_sweeps_of_every_chain_and_says_so():
+    """A unit is a sweep of every chain, however the chains are swept; the first line says the
+    sampler is compiling and what is counted, the closing line the sweeps each chain ran.
+    (Checked to fail: a first line without the chains, a closing line of another count.)"""
     import io
 
     from npbrs.inference.driver.progress import Progress
 
-    for chains, counted, first in ((4, 4, "; 40 sweeps to run (4 chains' sweeps, counted one by one)"),
-                                   (4, 1, "; 10 sweeps to run"), (1, 1, "; 10 sweeps to run")):
+    for chains, first in ((4, "; 10 sweeps of each of 4 chains to run"), (1, "; 10 sweeps to run")):
         out = io.StringIO()  # (not a terminal: plain lines)
-        bar = Progress(10 * counted, 0, True, stream=out, chains=chains, counted=counted)
+        bar = Progress(10, 0, True, stream=out, chains=chains)
         for _ in range(10):
-            bar.update(counted)
+            bar.update(1)
         bar.close_done(10, 1.3)
         lines = out.getvalue().splitlines()
         assert lines[0] == "npbrs fit: compiling the sampler (the first sweep)" + first
+        assert lines[1] == "npbrs fit: compiled; sweep 1/10 (compiling)"
+        assert "about" in lines[-2] and "s left" in lines[-2]
         each = " of each of 4 chains" if chains == 4 else ""
         assert lines[-1] == f"npbrs fit: done: 10 sweeps{each} in 1.3 s", lines[-1]
+
+
+def test_the_bar_s_clock_runs_from_the_start_and_its_time_left_from_the_second_sweep(monkeypatch):
+    """In a terminal (tqdm): the elapsed time counts the compiling first sweep; the time left
+    is timed from the sweeps after it. (Checked to fail with the clock restarted after the
+    first sweep.)"""
+    import io
+    import time as clock
+
+    from npbrs.inference.driver import progress
+
+    now = [100.0]
+    monkeypatch.setattr(progress, "interactive", lambda stream: True)
+    monkeypatch.setattr(clock, "perf_counter", lambda: now[0])
+    out = io.StringIO()
+    bar = progress.Progress(11, 0, True, stream=out, chains=2)
+    started = bar.bar.start_t
+    now[0] += 30.0  # the first sweep compiles for 30 s
+    bar.update(1)
+    now[0] += 1.0  # then 1 s a sweep
+    bar.update(1)
+    bar.update(0)
+    assert bar.bar.start_t == started  # (the clock was not restarted after compiling)
+    assert bar.bar.format_dict["postfix"].startswith("about 9 s left")  # 9 sweeps left at 1 s each
+    bar.close()
 
 
 def test_the_warmup_sweeps_scalars_are_kept_saved_and_drawn(tmp_path):

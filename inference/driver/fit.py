@@ -70,7 +70,7 @@ def resolve_config(config=None, **options) -> ModelConfig:
         ValueError: an unknown option or a value out of range, naming it.
     """
     cfg, flat = _base(config)
-    flat = {**flat, **{k: v for k, v in options.items() if v is not None}}
+    flat = {k: v for k, v in {**flat, **options}.items() if v is not None}  # (None: not given)
     unknown = sorted(k for k in flat if k not in OPTIONS)
     if unknown:
         raise ValueError(f"config: unknown option{'s' if len(unknown) > 1 else ''} {', '.join(map(repr, unknown))}; "

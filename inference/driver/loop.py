@@ -161,8 +161,7 @@ def run_fit(mdp, demos, cfg: ModelConfig, emission: Optional[Emission] = None, *
         decision = None if saved.get("stopped") else saved.get("decision")
 
     start = time.perf_counter()
-    counted = C if method == "sequential" else 1
-    bar = Progress(total * counted, done * counted, progress_bar, chains=C, counted=counted)
+    bar = Progress(total, done, progress_bar, chains=C)
     try:
         if state is None:
             if mesh is None and compile_beside:
@@ -214,7 +213,7 @@ def run_fit(mdp, demos, cfg: ModelConfig, emission: Optional[Emission] = None, *
 
     if done > total:  # resumed after the planned sweeps: the extension's next point
         total = min(cap, total + -(-(done - total) // block) * block)
-        bar.extend(total * (C if method == "sequential" else 1))
+        bar.extend(total)
     run_length, rhat_text = None, ""
     try:
         with _Interrupt() as interrupt:
@@ -242,7 +241,7 @@ def run_fit(mdp, demos, cfg: ModelConfig, emission: Optional[Emission] = None, *
                         flush()  # (the warmup's log joints, into draws)
                         restart = restart_lagging(chains, warmup_scores(draws["warmup_log_joint"]),
                                                    sampler.restart_margin, mesh)
-                    bar.update(C if method == "sequential" else 1)
+                    bar.update(1)
                     if checkpoint_path is not None and (done % every == 0 or done == total):
                         checkpoint(done)
                     elif len(pending) + len(warm) >= 100:
@@ -260,7 +259,7 @@ def run_fit(mdp, demos, cfg: ModelConfig, emission: Optional[Emission] = None, *
                 if run_length["stopped"] != "running":
                     break
                 total = min(total + block, cap)
-                bar.extend(total * (C if method == "sequential" else 1))
+                bar.extend(total)
                 rhat_text = "R-hat " + ", ".join(f"{k} {'undefined' if v is None else format(v, '.3f')}"
                                                  for k, v in run_length["rhat"].items())
                 bar.set_postfix(rhat_text)

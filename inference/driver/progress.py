@@ -30,37 +30,52 @@ def user_stacklevel() -> int:
 
 
 class Progress:
-    """Sweeps done, shown while a fit runs.
+    """Sweeps done, shown while a fit runs: one unit is a sweep of every chain.
 
-    The first sweep of a run compiles the sampler, so it is shown as "compiling" and left out
-    of the rate: the ETA comes from the sweeps after it. In a terminal or a notebook this is a
-    tqdm bar; when the output is not a terminal (a log file, CI), a plain line every
-    ``total / 10`` sweeps instead of carriage returns.
+    The clock runs from the start of the run; the first sweep compiles the sampler, so it is
+    shown as "compiling" and left out of the rate: the time left comes from the sweeps after
+    it. In a terminal or a notebook this is a tqdm bar; when the output is not a terminal (a
+    log file, CI), a plain line every ``total / 10`` sweeps instead of carriage returns.
+
+    Args:
+        total: the sweeps (of each chain) to run; initial: those done already (a resumed run).
+        enabled: show anything; stream: where (standard error); chains: the run's chains.
     """
 
-    def __init__(self, total: int, initial: int, enabled: bool, stream=None, chains: int = 1, counted: int = 1):
-        """``chains``: the run's; ``counted``: the chains whose sweeps count one by one (``chains``
-        where they are swept in turn or on threads), 1 where a sweep moves every chain at once."""
-        self.total, self.n, self.enabled = int(total), int(initial), bool(enabled)
-        self.chains, self.counted = int(chains), int(counted)
+    FORMAT = "{desc}: {percentage:3.0f}%|{bar}| {n_fmt}/{total_fmt} sweeps [{elapsed}{postfix}]"
+
+    def __init__(self, total: int, initial: int, enabled: bool, stream=None, chains: int = 1):
+        self.total, self.n, self.enabled, self.chains = int(total), int(initial), bool(enabled), int(chains)
         self.stream = sys.stderr if stream is None else stream
         self.phase, self.postfix = "compiling", ""
         self.timed_from = None  # (time, sweeps) after the first sweep
         self.bar = None
         self.plain = self.enabled and not interactive(self.stream)
         self.every = max(1, self.total // 10)
+        of_each = f" of each of {self.chains} chains" if self.chains > 1 else ""
         if self.enabled and not self.plain:
             from tqdm.auto import tqdm
 
-            self.bar = tqdm(total=total, initial=initial, unit="sweep", dynamic_ncols=True, leave=True,
-                            smoothing=0, file=self.stream)
-            self.bar.set_description("compiling", refresh=True)
+            self.bar = tqdm(total=total, initial=initial, dynamic_ncols=True, leave=True, smoothing=0,
+                            file=self.stream, bar_format=self.FORMAT)
+            self.bar.set_description("compiling the sampler", refresh=True)
         elif self.plain:
-            self._line(f"compiling the sampler (the first sweep); {self.total - self.n} sweeps to run"
-                       + (f" ({self.chains} chains' sweeps, counted one by one)" if self.counted > 1 else ""))
+            self._line(f"compiling the sampler (the first sweep); {self.total - self.n} sweeps{of_each} to run")
 
     def _line(self, text):
         print(f"npbrs fit: {text}", file=self.stream, flush=True)
+
+    def _left(self) -> str:
+        """The time left, from the sweeps after the first ("" before them)."""
+        if self.timed_from is None or self.n <= self.timed_from[1]:
+            return ""
+        t0, n0 = self.timed_from
+        rate = (time.perf_counter() - t0) / (self.n - n0)
+        return f"about {rate * (self.total - self.n):.0f} s left"
+
+    def _refresh_postfix(self):
+        if self.bar is not None:
+            self.bar.set_postfix_str(", ".join(x for x in (self._left(), self.postfix) if x), refresh=False)
 
     def set_phase(self, phase: str):
         self.phase = phase
@@ -69,29 +84,27 @@ class Progress:
 
     def set_postfix(self, text: str):
         self.postfix = text
-        if self.bar is not None:
-            self.bar.set_postfix_str(text, refresh=False)
+        self._refresh_postfix()
 
-    def update(self, k: int):
+    def update(self, k: int = 1):
         self.n += k
         now = time.perf_counter()
-        if self.timed_from is None:  # the first sweep: compiled; time the rest from here
+        if self.timed_from is None:  # the first sweep: compiled; the rate is timed from here
             self.timed_from = (now, self.n)
             if self.bar is not None:
                 self.bar.set_description(self.phase, refresh=False)
                 self.bar.update(k)
-                self.bar.initial, self.bar.start_t = self.bar.n, self.bar._time()
             elif self.plain:
                 self._line(f"compiled; sweep {self.n}/{self.total} ({self.phase})")
             return
         if self.bar is not None:
+            self._refresh_postfix()
             self.bar.update(k)
         elif self.plain and (self.n % self.every == 0 or self.n >= self.total):
             t0, n0 = self.timed_from
             rate = (now - t0) / max(self.n - n0, 1)
-            eta = rate * (self.total - self.n)
             self._line(f"sweep {self.n}/{self.total} ({self.phase}), {rate:.2f} s per sweep, "
-                       f"about {eta:.0f} s left" + (f", {self.postfix}" if self.postfix else ""))
+                       f"about {rate * (self.total - self.n):.0f} s left" + (f", {self.postfix}" if self.postfix else ""))
 
     def extend(self, total: int):
         """More sweeps to run than first planned (a run extended until convergence)."""
