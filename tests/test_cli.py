@@ -232,7 +232,12 @@ def test_score_and_compare_held_out_demonstrations(demo, tmp_path):
     assert code == 0, stderr
     per_step = float(stdout.split("held-out log-likelihood: ")[1].split()[0])
     assert -np.log(3) - 1.0 < per_step < 0  # 3 actions: uniform is -1.10 nats per step
-    shutil.copy(out / "run.nc", tmp_path / "again.nc")
+    shutil.copy(out / "run.nc", tmp_path / "copy.nc")  # (one run twice: refused, before any computation)
+    code, _, stderr = run_main(["compare", out / "run.nc", tmp_path / "copy.nc", "--domain", "highway"])
+    assert code == 2 and "hold the same run" in stderr
+    code, _, stderr = run_main(["fit", out / "demos.npz", "--domain", "highway", "--config", out / "config.toml",
+                                "--seed", "7", "-o", tmp_path / "again.nc", "--checkpoint-every", "0", "--no-progress"])
+    assert code == 0, stderr
     code, stdout, stderr = run_main(["compare", out / "run.nc", tmp_path / "again.nc", "--domain", "highway",
                                      "--samples", "8"])
     assert code == 0, stderr
