@@ -306,6 +306,11 @@ def demo_command(args) -> int:
     from ..driver.fit import fit
     from .reproduce import run_segmentation
 
+    problem = folder_problem(args.out)
+    if problem:
+        return command_error("demo", problem)
+    print(f"npbrs demo: writing demos.npz, config.toml, run.nc and segmentation.png into "
+          f"{os.path.abspath(args.out)} (--out chooses another folder)")
     use_compilation_cache()
     data = QUICK_DEMO_DATA if args.quick else DEMO_DATA
     config = ModelConfig.from_dict(QUICK_DEMO_CONFIG if args.quick else DEMO_CONFIG)
