@@ -121,3 +121,15 @@ def test_the_options_helpers_are_where_the_domains_are():
     from npbrs.domains.options import run_option as same
 
     assert run_option is same and Option.__module__ == "npbrs.domains.options"
+
+
+def test_the_summary_says_which_reward_prior_the_number_of_features_chose(tmp_path):
+    """Beyond 16 reward weights the emission's "auto" options take a Student t prior and start
+    at the fits: a run's summary says which (checked to fail without the line)."""
+    run = _saved_run(tmp_path / "r.nc", "f" * 64, "policy")
+    assert "reward prior" not in run.summary()
+    for D, family, start in ((17, "Student t (2 degrees of freedom)", "the IRL fit"), (16, "Gaussian", "a draw")):
+        run.emission = {"name": "reward", "prior_scale": 0.5, "prior_df": 2.0 if D > 16 else False, "start": "auto"}
+        run.feature_names = tuple(f"x{i}" for i in range(D))
+        line = next(s for s in run.summary().splitlines() if s.startswith("reward prior"))
+        assert family in line and start in line and f"{D} reward weights" in line

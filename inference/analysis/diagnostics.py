@@ -28,7 +28,7 @@ from scipy.optimize import linear_sum_assignment
 
 
 __all__ = ["convergence", "relabel", "relabelled_draws", "skill_summary", "LABEL_INVARIANT", "ConvergenceWarning",
-           "label_invariant_diagnostic", "unconverged", "convergence_warning", "summary"]
+           "label_invariant_diagnostic", "unconverged", "convergence_warning", "summary", "reward_prior_text"]
 
 
 
@@ -293,6 +293,33 @@ def convergence_warning(result, rhat: Optional[Dict[str, float]] = None, ess: Op
             "until every R-hat is at most 1.05)")
 
 
+def reward_prior_text(emission: dict, num_features: int = 0) -> str:
+    """The reward prior and start a run used, from its emission's description
+    (``FitResult.emission``): the prior's family and scale, and where the skills' rewards start;
+    ``prior_df``, ``prior_scale`` and ``start`` "auto" choose them from the number of reward
+    weights (more than 16: a Student t and the starting skills' fits), which this says. "" for an
+    emission without a reward prior.
+
+    Args:
+        emission: the run's emission description.
+        num_features: the number of reward weights (``len(FitResult.feature_names)``; 0: unknown).
+    Returns:
+        one line of text, or "".
+    """
+    if "prior_scale" not in emission or "prior_df" not in emission:
+        return ""
+    df = emission["prior_df"]
+    family = f"Student t ({df:g} degrees of freedom)" if df not in (False, None) else "Gaussian"
+    start = emission.get("start")
+    if start == "auto" and num_features:
+        start = "fit" if num_features > 16 else "draw"
+    starts = {"fit": "the IRL fit to each skill's starting steps", "draw": "a draw around that fit"}
+    return (f"reward prior: {family} per weight, scale {emission['prior_scale']:g}"
+            + (f"; the rewards start at {starts.get(start, start)}" if start else "")
+            + (f" ({num_features} reward weights: the emission's \"auto\" options choose these by that number)"
+               if num_features else ""))
+
+
 def summary(result) -> str:
     """A run's text summary: skills, segment lengths, how the run went, label-invariant diagnostics.
 
@@ -306,6 +333,9 @@ def summary(result) -> str:
     lines = [f"{result.num_skills} skills in {len(lengths)} trajectories ({sum(lengths)} steps); "
              f"{switches:.2f} switches per trajectory; best log joint {result.best_log_joint:.1f} (chain {result.best_chain})",
              "steps per skill: " + ", ".join(f"{k}: {c}" for k, c in enumerate(counts))]
+    prior = reward_prior_text(result.emission, len(result.feature_names))
+    if prior:
+        lines.append(prior)
     if "greedy_merges" in result.stats and "greedy_splits" in result.stats:
         kept = [np.asarray(result.stats[n])[:, -1].tolist() for n in ("greedy_merges", "greedy_splits")]
         if any(kept[0]) or any(kept[1]):
