@@ -3,7 +3,7 @@
 XLA compiles a CPU program's kernels with LLVM at optimisation level 2 by default. npbrs's
 programs (a sampler sweep, an IRL fit, the predictive's draws) are large and are run a few
 hundred times, so compiling them is a large part of a fit: at level 1 a fit compiles about a
-sixth faster and samples no slower (``benchmarks/NOTES.md``; e.g. highway 16 x 500 with 4
+sixth faster and samples no slower (``docs/speed.md``; e.g. highway 16 x 500 with 4
 chains, 20 + 20 sweeps: 55 s against 64 s, 27 s of compiling against 32 s; its sweeps were no
 slower). Results agree with level 2's to rounding, not bit for bit (a log joint by about
 1e-8 after 20 sweeps; the paper's tables' 40 fits found the same best draws).
@@ -11,7 +11,7 @@ slower). Results agree with level 2's to rounding, not bit for bit (a log joint 
 The programs a fit runs once (its initial state: ``jit(..., once=True)``) also take XLA's older
 CPU fusion emitters (:data:`ONCE_OPTIONS`, where the installed XLA has them), which compile them
 faster (a default labyrinth fit, 2 chains: 5-9 s less of about 90); the sweeps keep the newer
-emitters, under which the filters' loops run up to a third faster (``benchmarks/NOTES.md``).
+emitters, under which the filters' loops run up to a third faster (``docs/speed.md``).
 
 These are per-program compile options (``jax.jit(..., compiler_options=...)``), so they change
 only npbrs's programs and leave the user's process alone. None is set
@@ -34,7 +34,7 @@ OPTIMIZATION_LEVEL = 1
 _FLAG = "xla_backend_optimization_level"
 #: the CPU options of the programs a fit runs once (its initial state; ``jit(..., once=True)``):
 #: XLA's older fusion emitters compile them faster. The programs run many times (the sweeps)
-#: keep the newer ones, whose filter loops run up to a third faster (``benchmarks/NOTES.md``).
+#: keep the newer ones, whose filter loops run up to a third faster (``docs/speed.md``).
 ONCE_OPTIONS = {"xla_cpu_use_fusion_emitters": False}
 #: whether this process's XLA takes each compile option asked about, {(name, value): bool}, filled
 #: by :func:`accepted` (a name XLA does not know is an error at compile time, and a newer jaxlib

@@ -112,7 +112,7 @@ class RewardEmission(RewardMoves, RewardEvidence, RewardPrior, Emission):
             the fit and the first sweep scrambles the starting segmentation ("fit" keeps it: the
             labyrinth's default fit found 4 skills instead of 8); with a handful of features a
             draw lands near the fit, and starting at the fit gave the quadcopter's 500-step runs a
-            fourth skill in 2 of 10 (``benchmarks/results/worlds-probes/``).
+            fourth skill in 2 of 10 (``docs/design.md``).
     """
 
     def __init__(self, mdp, prior_scale="auto", temperature: float = 1.0, discount: Optional[float] = None,
