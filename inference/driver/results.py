@@ -337,7 +337,9 @@ class FitResult:
             mdp: a TabularMDP.
             greedy: the optimal action of each skill's reward in every state, (K, S) int,
                 instead of the Boltzmann action probabilities the model assigns the skill
-                (temperature and epsilon included), (K, S, A).
+                (temperature and epsilon included), (K, S, A). For control, acting in a
+                (changed) world, use ``greedy=True``: the Boltzmann policies describe how the
+                demonstrator acted, noise included, and act worse than the optimal ones.
             rewards: "mean" (default): each skill's posterior mean parameters over the draws,
                 chains matched to the run's skills. Rewards are linear in their weights, so
                 the optimal policy of the posterior mean reward is the policy with the highest
@@ -394,7 +396,9 @@ class FitResult:
     def add_log_likelihood(self, mdp, **options) -> np.ndarray:
         """Compute and keep :attr:`log_likelihood` (C, D, N), so that ``az.loo(result.to_arviz())``
         and ``az.compare`` work (options: ``num_samples``, ``seed``, ``emission``; see
-        :func:`npbrs.inference.analysis.predictive.pointwise_log_likelihood`). Returns it."""
+        :func:`npbrs.inference.analysis.predictive.pointwise_log_likelihood`). Returns it.
+        It costs about as much as the fit: a forward pass per draw, trajectory and Monte Carlo
+        sample (``num_samples``), every draw of every chain."""
         from ..analysis.predictive import pointwise_log_likelihood
 
         self.log_likelihood = pointwise_log_likelihood(self, mdp, **options)
