@@ -607,7 +607,7 @@ def test_the_greedy_moves_score_the_ends_integrated_out():
     holds. (Checked to fail: the stays and ends swapped in the Beta-binomial.)"""
     from scipy import integrate
 
-    from npbrs.inference.sampler.greedy import _structure_log_prob
+    from npbrs.inference.sampler.greedy import structure_log_prob
     from npbrs.models.bphmm import Hyper, collapsed_end_log_prob, collapsed_transition_log_prob, eta_counts
 
     rng = np.random.default_rng(2)
@@ -636,9 +636,9 @@ def test_the_greedy_moves_score_the_ends_integrated_out():
     for seed in (0, 1):  # two different ends held by the chain: the score does not see them
         ends = jax.random.uniform(jax.random.PRNGKey(seed), (K, S))
         model = (ends, jnp.asarray(mean), jnp.float64(c))
-        lp[seed] = float(_structure_log_prob(hyper, jnp.asarray(mask), jnp.asarray(z), jnp.asarray(features),
-                                             end_gate(ends, jnp.asarray(states), jnp.asarray(mask)), None, model,
-                                             jnp.asarray(states)))
+        lp[seed] = float(structure_log_prob(hyper, jnp.asarray(mask), jnp.asarray(z), jnp.asarray(features),
+                                            end_gate(ends, jnp.asarray(states), jnp.asarray(mask)), None, model,
+                                            jnp.asarray(states)))
     assert lp[0] == lp[1]
     from npbrs.models.bphmm import collapsed_feature_log_prob, sequence_counts
 

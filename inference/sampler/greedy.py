@@ -47,7 +47,7 @@ mean end probabilities (each (skill, state) a Beta-binomial, ``collapsed_end_log
 split's new skill starts with its parent's mean): scored given the chain's current ends, a
 proposed skill would pay for ends drawn for other steps (a split's new slot holds a prior draw),
 and on the highway under ``switching="state"`` the moves then kept extra skills (one-to-one
-accuracy 0.915 against 0.983 with the ends integrated out, ``benchmarks/NOTES.md``, session 42).
+accuracy 0.915 against 0.983 with the ends integrated out, ``benchmarks/NOTES.md``).
 
 The sweep redraws eta and omega given (z', F') right after either move, then the emission's
 parameters (and with state-dependent ends the ends' means and the ends). Since every kept move raises the score, a merge never undoes a split at once.
@@ -69,7 +69,7 @@ from .split_merge import Allocation, allocate_block, allocated_steps, allocation
 from .state import MoveState
 
 __all__ = ["GreedyInfo", "greedy_merge", "greedy_merge_at", "greedy_split", "greedy_split_at", "greedy_trials",
-           "merge_score"]
+           "merge_score", "structure_log_prob"]
 
 
 class GreedyInfo(NamedTuple):
@@ -94,14 +94,30 @@ def merge_score(emission, data, hyper, features, z, init=None, gate=None):
     onehot = jax.nn.one_hot(z, K, dtype=jnp.float64) * data.mask[..., None]
     _, log_ev = emission.fit_evidence(data, onehot, init)
     used = jnp.sum(onehot, axis=(0, 1)) > 0
-    return jnp.sum(jnp.where(used, log_ev, 0.0)) + _structure_log_prob(hyper, data.mask, z, features, gate)
+    return jnp.sum(jnp.where(used, log_ev, 0.0)) + structure_log_prob(hyper, data.mask, z, features, gate)
 
 
-def _structure_log_prob(hyper, mask, z, features, gate=None, gated=None, end_model=None, states=None):
-    """log p(z | F) + log p(F), eta and omega integrated out (trajectories without steps,
-    padding, left out); with state-dependent ends, given the ends' ``gate`` (``gated`` false:
-    the sticky phase's), or with ``end_model`` (ends (K, S), their means (K,), concentration)
-    the ends integrated out given their means."""
+def structure_log_prob(hyper, mask, z, features, gate=None, gated=None, end_model=None, states=None):
+    """log p(z | F) + log p(F) with eta and omega integrated out: the part of the greedy moves'
+    score (:func:`merge_score`) that the skill sequences and features make, trajectories
+    without steps (padding) left out.
+
+    Args:
+        hyper: :class:`~npbrs.models.bphmm.Hyper` (alpha, kappa, gamma).
+        mask: (N, T) bool, the real steps.
+        z: (N, T) int skill sequences (-1 on padding).
+        features: (N, K) 0/1.
+        gate: with state-dependent ends, their (N, T, K) gate (the switches given the ends);
+            None: the sticky BP-HMM.
+        gated: with a gate, a traced bool, false in the kernel's sticky phase; None: True.
+        end_model: with state-dependent ends, (ends (K, S), their means (K,), concentration):
+            the ends integrated out given their means (each (skill, state) a Beta-binomial),
+            instead of the ``gate``'s.
+        states: (N, T) int, the data's states (needed with ``end_model``).
+
+    Returns:
+        () float, the log probability.
+    """
     valid = jnp.any(mask, axis=1)
     ends = 0.0
     if end_model is not None:  # (the switches' probability without a gate; the ends integrated out)
@@ -250,9 +266,9 @@ def _run_trial(trial: _Trial, state: MoveState, emission, data, hyper):
     if end_model is not None:  # a split's new skill starts with its parent's mean end probability
         mean = end_model[1]
         end_new = (end_model[0], jnp.where(merging, mean, mean.at[trial.k].set(mean[trial.j])), end_model[2])
-    structure = (_structure_log_prob(hyper, data.mask, z_new, f_new, state.gate, state.gated, end_new, data.states)
-                 - _structure_log_prob(hyper, data.mask, z, features, state.gate, state.gated, end_model,
-                                       data.states))
+    structure = (structure_log_prob(hyper, data.mask, z_new, f_new, state.gate, state.gated, end_new, data.states)
+                 - structure_log_prob(hyper, data.mask, z, features, state.gate, state.gated, end_model,
+                                      data.states))
     gain = jnp.where(merging, -parts_minus_whole, parts_minus_whole) + structure
     two = pair(fits, True)  # (the last step's: ``lik`` holds their likelihoods)
     a, b = trial.slots[0], trial.slots[1]

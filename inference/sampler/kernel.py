@@ -5,7 +5,7 @@ One sweep (jitted whole, static shapes: K = ``max_skills`` slots with an active 
 1. features f_ik, one skill at a time for all trajectories at once, from their conditional
    with the skill sequences summed out (forward filter with f_ik = 0 and f_ik = 1);
 2. skill sequences z_i by forward filtering, backward sampling (then, when on, split-merge
-   trials, and in warmup only greedy merges and splits, ``npbrs.inference.sampler.greedy``);
+   trials, and in warmup only greedy merges and splits: ``npbrs.inference.sampler.schedule``);
 3. transition weights eta_i from their conjugate (Gamma-Dirichlet) conditional given z_i, and
    skill popularities omega_k | F ~ Beta(alpha/K + m_k, 1 + N - m_k) (independent given z, F);
 4. emission parameters with the emission's own move given the steps assigned to each skill;
@@ -17,7 +17,9 @@ conditional counts the switches only, and step 3 also draws each skill's mean en
 probability mu_k given z with the ends integrated out (random-walk Metropolis on its logit),
 then the ends beta_k(s) from their Beta conditional.
 
-Every density used here is one of the model's own (``npbrs.models.bphmm``).
+Every density used here is one of the model's own (``npbrs.models.bphmm``). What runs in warmup
+only to help the search (sticky start and phase, greedy moves, the emission's tuning) is the
+warmup schedule's (:class:`~npbrs.inference.sampler.schedule.WarmupSchedule`).
 """
 
 from __future__ import annotations
@@ -44,8 +46,8 @@ from npbrs.domains.util.compiling import jit
 from npbrs.domains.util.precision import float64_all
 
 from .birth_death import birth_death
-from .greedy import greedy_trials
 from .options import check_moves
+from .schedule import WarmupSchedule
 from .split_merge import split_merge
 from .state import MoveState
 
@@ -150,35 +152,19 @@ class BPHMMKernel(MCMCKernel, Pytree):
             parameters proposed from its windows; None: :func:`initial_skills`'s).
         init_window: window length of the initial segmentation (None: :func:`initial_window`'s).
         sample_features: Gibbs on the features (off only for tests of the other steps).
-        moves: trans-dimensional moves, {"birth_death": trials per sweep (0: off),
-            "window": (min, max) length of a birth's window, "split_merge": trials per sweep
-            (0: off; the emission needs ``fit_point``), "blocks": refits of a split's
-            sequential allocation, "start": the sweep (counted from 0, warmup included) from
-            which the moves run; before it a sweep is plain Gibbs, "greedy_merge": greedy
-            merge trials per sweep in the warmup sweeps from ``greedy_from`` x warmup on (0:
-            off; the emission needs ``fit_evidence``; see ``npbrs.inference.sampler.greedy``:
-            not an MCMC move, so it never runs in the sampling sweeps), "greedy_split": greedy
-            split trials per sweep there (their allocation fits by ``fit_evidence`` too),
-            "greedy_from": that fraction of warmup, in [0, 1), "greedy_patience": the greedy
-            moves stop for the rest of warmup once every chain's last this many greedy sweeps
-            have kept nothing (0: never; a long warmup's chains have mostly settled by then, and
-            a greedy sweep costs several plain ones), "redraw_unused": the sweeps
-            between prior redraws of the parameters of skills without steps (their exact
-            conditional; kept as they are in between, also exact: a redraw's likelihoods cost
-            new solves for the reward emission, half of a sweep's time on the highway),
-            "sticky_start": a factor f >= 1 (1: off) on a fixed kappa in the first half of warmup,
-            falling linearly from f at the first sweep to 1 at mid-warmup (``benchmarks/NOTES.md``:
-            long segments while the skills form keep one-hot rewards' search from over-switched
-            modes; not an MCMC move, so the sampling sweeps and the log joint keep the model's
-            kappa; no effect when kappa is sampled), "sticky_phase": with state-dependent ends,
-            the fraction of warmup, in [0, 1), whose sweeps search under the sticky BP-HMM (each
-            trajectory's own stays, eta's diagonal, instead of the ends; the trans-dimensional
-            and greedy moves move that sticky model there too). The state model's search from a random start mixes the
-            skills' goals where the sticky one does not (``benchmarks/NOTES.md``, session 41);
-            the ends are drawn from the skill sequences in every sweep, so they are ready when
-            it ends. Not an MCMC move: the sampling sweeps and the log joint are the model's}; the
-            defaults (every move off, a redraw every sweep):
-            :data:`npbrs.inference.sampler.options.MOVE_DEFAULTS`.
+        moves: the moves' options (defaults, every move and aid off, a redraw every sweep:
+            :data:`npbrs.inference.sampler.options.MOVE_DEFAULTS`). The exact moves:
+            "birth_death": trials per sweep (0: off), "window": (min, max) length of a birth's
+            window, "split_merge": trials per sweep (0: off; the emission needs ``fit_point``),
+            "blocks": refits of a split's sequential allocation, "start": the sweep (counted
+            from 0, warmup included) from which the moves run; before it a sweep is plain
+            Gibbs, "redraw_unused": the sweeps between prior redraws of the parameters of
+            skills without steps (their exact conditional; kept as they are in between, also
+            exact: a redraw's likelihoods cost new solves for the reward emission, half of a
+            sweep's time on the highway). The warmup aids, not MCMC moves (the sampling sweeps
+            and the log joint are the model's): "sticky_start", "sticky_phase",
+            "greedy_merge", "greedy_split" (the emission needs ``fit_evidence``),
+            "greedy_from", "greedy_patience": see :mod:`npbrs.inference.sampler.schedule`.
         termination: a :class:`~npbrs.models.bphmm.Termination`: skills end with a probability
             that depends on the state entered (sampled); None: the sticky BP-HMM.
     """
@@ -278,6 +264,11 @@ class BPHMMKernel(MCMCKernel, Pytree):
 
     # ------------------------------------------------------------------ pieces
     @property
+    def schedule(self) -> WarmupSchedule:
+        """The warmup aids of this kernel's ``moves`` (built on each call: not part of the pytree)."""
+        return WarmupSchedule.of(self.moves, self.hyperpriors)
+
+    @property
     def _valid(self):
         """(N,) the trajectories with steps: the others pad the data (to a shape bucket, or to a
         multiple of the devices that shard the trajectories), after the real ones. They are left
@@ -293,10 +284,8 @@ class BPHMMKernel(MCMCKernel, Pytree):
         ``greedy_patience`` greedy sweeps. The chains of a run stop them together (vectorised,
         skipping them saves time only then), so a driver that sweeps the chains one at a time
         passes this of all of them as the sweep's ``clock`` (numpyro's sequential chains, which
-        see one chain at a time, stop each chain's on its own)."""
-        patience = self.moves["greedy_patience"]
-        xp = np if isinstance(state.greedy_idle, (np.ndarray, np.generic)) else jnp  # (a host state stays on the host)
-        return xp.any(state.greedy_idle < patience) if patience else xp.bool_(True)
+        see one chain at a time, stop each chain's on its own). See :meth:`WarmupSchedule.greedy_open`."""
+        return self.schedule.greedy_open(state.greedy_idle)
 
     def gate(self, state: BPHMMState):
         """(N, T, K) every step's end probabilities under ``state``'s ends (the filters' gate),
@@ -465,35 +454,22 @@ class BPHMMKernel(MCMCKernel, Pytree):
     def sweep(self, state: BPHMMState, clock=None) -> BPHMMState:
         """One full sweep: features, birth/death, skill sequences, split-merge, greedy merges
         (warmup only), eta and omega, emission parameters, hyperparameters. The moves run from
-        sweep ``moves["start"]`` on. ``clock``: (sweep, warmup sweeps, :meth:`greedy_open`) as
-        unbatched scalars that replace the state's own for those tests: :meth:`sample` passes the first chain's,
-        shared by vectorised chains so that the tests stay real conditionals under vmap (a
-        batched predicate would run both branches in every sweep)."""
+        sweep ``moves["start"]`` on; the warmup aids as :attr:`schedule` decides. ``clock``:
+        (sweep, warmup sweeps, :meth:`greedy_open`) as unbatched scalars that replace the
+        state's own for those tests: :meth:`sample` passes the first chain's, shared by
+        vectorised chains so that the tests stay real conditionals under vmap (a batched
+        predicate would run both branches in every sweep)."""
         N, K = state.features.shape
         mask = self.data.mask
+        schedule = self.schedule
         step, num_warmup, greedy_any = ((state.step, state.num_warmup, self.greedy_open(state)) if clock is None
                                         else clock)
         model_kappa = state.hyper.kappa
-        sticky = self.moves["sticky_start"] > 1.0 and "kappa" not in self.hyperpriors
-        if sticky:
-            # a search aid of the first half of warmup: the sweep's every part sees kappa x a
-            # factor that falls linearly from sticky_start to 1 at mid-warmup (long segments while
-            # the skills form); the log joint and the sampling sweeps keep the model's kappa
-            half = jnp.maximum(num_warmup // 2, 1)
-            factor = self.moves["sticky_start"] + (1.0 - self.moves["sticky_start"]) * jnp.clip(step / half, 0.0, 1.0)
-            state = state._replace(hyper=state.hyper._replace(kappa=model_kappa * factor))
+        state = state._replace(hyper=schedule.sticky_hyper(state.hyper, step, num_warmup))
         key, k_feat, k_bd, k_z, k_eta, k_em, k_hyp, k_sm = jax.random.split(state.rng_key, 8)
         k_gm = jax.random.fold_in(k_sm, 1)
-        gate = self.gate(state)  # the ends are held fixed until step 3
-        # the filters' switching: the model's, or in the sticky phase the sticky BP-HMM's (a gate
-        # of ones with eta's diagonal: every step "ends" and redraws from its trajectory's row)
-        ends_on, current = True, state.log_marginals
-        if gate is not None and self.moves["sticky_phase"] > 0.0:
-            ends_on = step >= jnp.floor(self.moves["sticky_phase"] * num_warmup)
-            gate = jnp.where(ends_on, gate, 1.0)
-            current = jax.lax.cond(ends_on, lambda s: s.log_marginals, lambda s: log_marginal_likelihoods(
-                s.features, s.eta, s.log_lik, mask, gate, False), state)
-        gated = ends_on if gate is not None else False
+        # the ends are held fixed until step 3 (in the sticky phase, the sticky BP-HMM's switching)
+        gate, gated, current = schedule.switching(self.gate(state), state, mask, step, num_warmup)
         features = (self._sample_features(k_feat, state, gate, gated, current) if self.sample_features
                     else state.features)
         # the moves' state (``npbrs.inference.sampler.state``): each move maps it to a new one
@@ -547,27 +523,9 @@ class BPHMMKernel(MCMCKernel, Pytree):
 
             # eta changes here only for trajectories a move touched; eta is redrawn after the moves
             moved, splits = gated_move(splits_run, moved, splits)
-        if self.moves["greedy_merge"] or self.moves["greedy_split"]:
-            greedy_on = (step < num_warmup) & (step >= jnp.floor(self.moves["greedy_from"] * num_warmup))
-
-            def greedy_run(ops):
-                k_merge, k_split = jax.random.split(k_gm)
-                # not an MCMC move: its fits may be solved less exactly (Emission.for_search)
-                ops, merged, split = greedy_trials(k_merge, k_split, ops, search, self.data,
-                                                   state.hyper, self.moves["greedy_merge"], self.moves["greedy_split"],
-                                                   blocks)
-                return ops, (merged, split)
-
-            # the trials stop for every chain at once (``greedy_any``: while any chain's last
-            # ``greedy_patience`` greedy sweeps kept something), so that skipping them saves time
-            ran = greedy_on & greedy_any
-            moved, (merged, split) = jax.lax.cond(ran, greedy_run, lambda ops: (ops, (jnp.int32(0), jnp.int32(0))),
-                                                  moved)
-            idle = jnp.where(ran, jnp.where(merged + split > 0, 0, state.greedy_idle + 1), state.greedy_idle)
-            greedy_kept = dict(greedy_merges=state.greedy_merges + merged, greedy_splits=state.greedy_splits + split,
-                               greedy_idle=idle.astype(jnp.int32))
-        else:
-            greedy_kept = {}
+        moved, greedy_kept = schedule.greedy_step(k_gm, moved, search, self.data, state.hyper, blocks,
+                                                  (state.greedy_merges, state.greedy_splits, state.greedy_idle),
+                                                  (step, num_warmup, greedy_any))
         features, z, params = moved.features, moved.z, moved.params
         hyper = state.hyper
         if self.hyperpriors:  # (hyperparameters | z, F), then (eta, omega | z, F, hyperparameters)
@@ -580,18 +538,8 @@ class BPHMMKernel(MCMCKernel, Pytree):
             end_mean, new_ends = self._sample_ends(jax.random.fold_in(k_eta, 1), z, features, mean0)
             ends = dict(ends=new_ends, end_mean=end_mean)
         weights = skill_weights(z, mask, K)
-        # the clock, not the state's step: under vectorised chains a batched flag would make
-        # the emission's warmup-only work (e.g. the reward's Fisher preconditioner) run always
-        cache = state.cache
-        # (a preconditioner: any fixed one leaves the posterior invariant; the search's accuracy)
-        tune, tuned = search.tune, {}
-        if tune is not None:
-            every = int(self.emission.tune_every)
-            tune_now = (step < num_warmup) & (step % every == 0)
-            if self.emission.tunes_in_update:
-                tuned = {"tune": tune_now}  # (the update tunes itself where it has what tuning needs)
-            else:
-                cache = jax.lax.cond(tune_now, lambda c: tune(params, c, self.data, weights), lambda c: c, cache)
+        cache, tuned = schedule.tune_step(self.emission, search, params, state.cache, self.data, weights, step,
+                                          num_warmup)
         every = self.moves["redraw_unused"]
         solved = bool(self.emission.solves_in_update)
         if solved:  # (the update draws or keeps the unused skills' parameters itself)
@@ -610,9 +558,7 @@ class BPHMMKernel(MCMCKernel, Pytree):
         new = state._replace(rng_key=key, omega=omega, features=features, eta=eta, params=params, cache=cache,
                              z=z, accept=jnp.mean(accept), birth_accept=births, split_accept=splits,
                              hyper=hyper, **greedy_kept, **ends)
-        if sticky:
-            new = new._replace(hyper=new.hyper._replace(kappa=model_kappa))
-        new = self._finish(new, solved)
+        new = self._finish(new._replace(hyper=schedule.model_hyper(new.hyper, model_kappa)), solved)
         better = (state.step >= state.num_warmup) & (new.log_joint > state.best_log_joint)
         pick = lambda a, b: jax.tree.map(lambda x, y: jnp.where(better, x, y), a, b)  # noqa: E731
         return new._replace(step=state.step + 1, best_log_joint=jnp.where(better, new.log_joint, state.best_log_joint),
@@ -633,7 +579,7 @@ class BPHMMKernel(MCMCKernel, Pytree):
         The sweep then draws eta and omega given the new values: together a blocked Gibbs step
         of (hyperparameters, eta, omega) | z, F. Conditioned on eta instead, kappa barely moves
         (eta's row totals, which the data do not inform, are drawn with the current kappa; see
-        ``benchmarks/NOTES.md``, session 41). ``gate``: the ends' with state-dependent ends
+        ``benchmarks/NOTES.md``). ``gate``: the ends' with state-dependent ends
         (then kappa plays no part; ``gated``, a traced bool, false in the sticky phase). The
         others as they are."""
         valid = self._valid
