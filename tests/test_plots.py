@@ -3,8 +3,8 @@
 import numpy as np
 import pytest
 
-from npbrs.inference.analysis.plots import (UNMATCHED, plot_segmentation, plot_skill_rewards, plot_trace, skill_styles,
-                                   true_styles)
+from npbrs.inference.analysis.plots import (UNMATCHED, plot_segmentation, plot_skill_probabilities, plot_skill_rewards,
+                                            plot_trace, skill_styles, true_styles)
 from npbrs.inference.driver.results import FitResult
 
 TRUE = [np.array([0, 0, 0, 0, 1, 1, 1, 1, 1, 1]), np.array([2, 2, 2, 2, 1, 1, 1, 1, 0, 0])]
@@ -157,3 +157,111 @@ def test_the_report_draws_rewards_as_posterior_means_in_the_segmentations_colour
     assert is_png(tmp_path / "r.png")
     with pytest.raises(ValueError, match="interval bounds must have shape"):
         plot_skill_rewards(mean, names, tmp_path / "r.png", interval=(lower[:2], upper))
+
+
+def _kept_figures(monkeypatch):
+    """{path: the Figure written there}: plots._save wrapped, so each figure is kept and written."""
+    from npbrs.inference.analysis import plots
+
+    kept, save = {}, plots._save
+
+    def keep(fig, path):
+        kept[str(path)] = fig
+        save(fig, path)
+
+    monkeypatch.setattr(plots, "_save", keep)
+    return kept
+
+
+def _runs(flags):
+    """(start, length) of the runs of True in a 1-D boolean array."""
+    edges = np.diff(np.concatenate([[0], flags.astype(int), [0]]))
+    starts, ends = np.flatnonzero(edges == 1), np.flatnonzero(edges == -1)
+    return list(zip(starts, ends - starts))
+
+
+def test_a_raster_of_many_trajectories_has_a_gap_between_them_and_labels_each(tmp_path, monkeypatch):
+    """48 trajectories: a white gap of a few pixels between consecutive trajectories' rows (they
+    ran together), and a tick label for every one (only every other one was labelled); far more
+    than fit are labelled at a fixed stride, which the axis label says."""
+    from matplotlib.image import imread
+
+    kept = _kept_figures(monkeypatch)
+    N = 48
+    true = [np.repeat([0, 1], 10) for _ in range(N)]
+    path = tmp_path / "many.png"
+    plot_segmentation(true, {"npbrs": [t.copy() for t in true]}, path)
+    image = imread(str(path))[..., :3]
+    assert image.shape[0] < 1000, image.shape
+    column = image[:, int(0.6 * image.shape[1])]  # step 12 of 20: skill 1 in every row
+    colour = np.array(true_styles(true)[1].colour[:3])
+    drawn = np.all(np.abs(column - colour) < 0.02, axis=-1)
+    blocks = _runs(drawn)
+    assert len(blocks) == N, len(blocks)  # each trajectory's rows apart from the next one's
+    gaps = [b[0] - (a[0] + a[1]) for a, b in zip(blocks, blocks[1:])]
+    assert min(gaps) >= 3, gaps
+    assert np.all(column[blocks[0][0] + blocks[0][1]:blocks[0][0] + blocks[0][1] + gaps[0]] > 0.97)  # white
+    ax = kept[str(path)].axes[0]
+    assert [t.get_text() for t in ax.get_yticklabels()] == [str(i) for i in range(N)]
+    assert min(t.get_fontsize() for t in ax.get_yticklabels()) >= 7
+    assert "every" not in ax.get_ylabel()
+    many = [np.repeat([0, 1], 10) for _ in range(400)]
+    plot_segmentation(many, {"npbrs": many}, tmp_path / "400.png")
+    ax = kept[str(tmp_path / "400.png")].axes[0]
+    shown = [int(t.get_text()) for t in ax.get_yticklabels()]
+    stride = shown[1] - shown[0]
+    assert stride > 1 and shown == list(range(0, 400, stride)) and f"every {stride}" in ax.get_ylabel()
+
+
+def test_a_reward_per_state_is_drawn_on_the_states_grid(tmp_path, monkeypatch):
+    """One-hot rewards of a gridworld, given the states' 2-D coordinates: each skill's weights on
+    the grid, a small multiple per skill (not a heat map of skills by 100 state columns);
+    missing cells (walls) left blank."""
+    kept = _kept_figures(monkeypatch)
+    rows, cols = 4, 6
+    cells = np.array([(r, c) for r in range(rows) for c in range(cols)], dtype=float)[:-1]  # a wall at (3, 5)
+    D = len(cells)
+    theta = np.zeros((3, D))
+    theta[0, 5], theta[1, 18], theta[2, 7] = 8.0, -8.0, 3.0  # (0, 5), (3, 0), (1, 1)
+    path = tmp_path / "grid.png"
+    plot_skill_rewards(theta, [f"state{d}" for d in range(D)], path, skill_names=["A", "B", "C"],
+                       coordinates=cells, title="reward per state")
+    assert is_png(path)
+    panels = [ax for ax in kept[str(path)].axes if ax.images and ax.get_label() != "<colorbar>"]
+    assert [ax.get_title() for ax in panels] == ["A", "B", "C"]
+    for ax, k, (r, c) in zip(panels, range(3), [(0, 5), (3, 0), (1, 1)]):
+        grid = np.ma.filled(ax.images[0].get_array().astype(float), np.nan)
+        assert grid.shape == (rows, cols)
+        assert np.isnan(grid[3, 5])  # the wall
+        assert grid[r, c] == theta[k].max() if k != 1 else grid[r, c] == -8.0
+    with pytest.raises(ValueError, match="coordinates"):
+        plot_skill_rewards(theta, [str(d) for d in range(D)], tmp_path / "bad.png", coordinates=cells[:5])
+
+
+def test_a_heat_map_of_many_features_has_few_readable_tick_labels(tmp_path, monkeypatch):
+    """Without coordinates a reward per state stays a heat map, its feature ticks a readable few
+    (72 labels of 6 points were illegible)."""
+    kept = _kept_figures(monkeypatch)
+    for D in (60, 127, 5000):
+        path = tmp_path / f"heat{D}.png"
+        plot_skill_rewards(np.ones((2, D)), [f"state{d}" for d in range(D)], path)
+        ax = kept[str(path)].axes[0]
+        labels = [t for t in ax.get_xticklabels() if t.get_text()]
+        assert 3 <= len(labels) <= 30, (D, len(labels))
+        assert min(t.get_fontsize() for t in labels) >= 8
+        assert all(t.get_text().startswith("state") for t in labels)
+
+
+def test_skill_probabilities_take_the_colours_given(tmp_path, monkeypatch):
+    """``npbrs segment --plot`` draws each skill in the run's colour (the report's), not the
+    palette's k-th."""
+    kept = _kept_figures(monkeypatch)
+    probs = [np.tile([0.7, 0.2, 0.1], (5, 1))]
+    colours = [UNMATCHED, (0.1, 0.2, 0.3, 1.0), (0.9, 0.5, 0.1, 1.0)]
+    plot_skill_probabilities(probs, tmp_path / "p.png", colours=colours)
+    fig = kept[str(tmp_path / "p.png")]
+    bands = fig.axes[0].collections
+    assert [tuple(b.get_facecolor()[0]) for b in bands] == [tuple(c) for c in colours]
+    assert [tuple(h.get_facecolor()) for h in fig.legends[0].legend_handles] == [tuple(c) for c in colours]
+    with pytest.raises(ValueError, match="2 colours for 3 skills"):
+        plot_skill_probabilities(probs, tmp_path / "p.png", colours=colours[:2])

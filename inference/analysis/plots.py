@@ -30,7 +30,10 @@ __all__ = ["SkillStyle", "skill_styles", "true_styles", "plot_segmentation", "pl
 PALETTE = ("#1f77b4", "#ff7f0e", "#2ca02c", "#d62728", "#9467bd", "#8c564b", "#e377c2", "#bcbd22", "#17becf")
 UNMATCHED = (0.62, 0.62, 0.62, 1.0)
 PANELS = 16  # plot_segmentation: a panel per trajectory up to this many, one raster beyond
+RASTER_ROW = 0.05  # plot_segmentation's raster: inches a row (a method's row, or the gap after a trajectory)
+LABEL_PIXELS = 10  # plot_segmentation's raster: a trajectory label each while a trajectory is this many pixels tall
 BARS = 24  # plot_skill_rewards: bars up to this many features, a heat map beyond
+HEAT_TICKS = 28  # plot_skill_rewards' and plot_skill_ends' heat maps: column labels per 14 inches
 
 
 class SkillStyle(NamedTuple):
@@ -140,6 +143,12 @@ def _check_sequences(seqs, lengths, what):
     return seqs
 
 
+def _ordinal(n: int) -> str:
+    """2 -> "2nd", 11 -> "11th", 23 -> "23rd"."""
+    suffix = "th" if n % 100 in (11, 12, 13) else {1: "st", 2: "nd", 3: "rd"}.get(n % 10, "th")
+    return f"{n}{suffix}"
+
+
 def plot_segmentation(true, inferred: Dict[str, Sequence], path, labels: Optional[Sequence[str]] = None,
                       trajectories: Optional[Sequence[int]] = None, title: Optional[str] = None) -> Dict[str, Dict]:
     """Draw segmentations as in the paper's Figures 4 and 9 and save them as a PNG.
@@ -205,14 +214,19 @@ def plot_segmentation(true, inferred: Dict[str, Sequence], path, labels: Optiona
         image = np.ones((len(chosen) * height, T, 4))
         for b, i in enumerate(chosen):
             image[b * height:b * height + len(rows)] = block(i)
-        fig = Figure(figsize=(10, min(14.0, 2.0 + 0.012 * image.shape[0])), dpi=100)
+        # RASTER_ROW inches a row: a trajectory's block (and its gap, a row high) a few pixels
+        # tall, up to 14 inches in all
+        fig = Figure(figsize=(10, min(14.0, 1.5 + RASTER_ROW * image.shape[0])), dpi=100)
         ax = fig.subplots()
         ax.imshow(image, aspect="auto", interpolation="nearest", extent=(0, T, image.shape[0], 0))
-        every = max(1, -(-len(chosen) // 40))  # at most about 40 tick labels
+        fig.subplots_adjust(top=1 - 0.6 / fig.get_figheight())
+        block = ax.get_position().height * fig.get_figheight() * fig.dpi / len(chosen)  # pixels a trajectory
+        every = max(1, int(np.ceil(LABEL_PIXELS / block)))  # a label each while they fit
         ticks = np.arange(0, len(chosen), every)
         ax.set_yticks(ticks * height + len(rows) / 2)
         ax.set_yticklabels([str(chosen[b]) for b in ticks], fontsize=7)
-        ax.set_ylabel(f"trajectory (rows: {', '.join(name for name, _, _ in rows)})", fontsize=8)
+        which = "trajectory" if every == 1 else f"trajectory (every {_ordinal(every)} labelled)"
+        ax.set_ylabel(f"{which}; rows: {', '.join(name for name, _, _ in rows)}", fontsize=8)
         ax.tick_params(axis="x", labelsize=7)
         ax.set_xlim(0, T)
         axes, hspace = [ax], None
@@ -236,17 +250,21 @@ def plot_segmentation(true, inferred: Dict[str, Sequence], path, labels: Optiona
 
 
 def plot_skill_probabilities(probs: Sequence[np.ndarray], path, trajectories: Optional[Sequence[int]] = None,
-                             skill_names: Optional[Sequence[str]] = None, title: Optional[str] = None) -> None:
+                             skill_names: Optional[Sequence[str]] = None, title: Optional[str] = None,
+                             colours: Optional[Sequence] = None) -> None:
     """Per trajectory, the posterior probability of each skill at every step as stacked bands
-    (``FitResult.segment(...).probs``), skill k in the k-th palette colour, and what a row
-    leaves to one (draws that put the step in a skill the run does not have) white; saved as a
-    PNG.
+    (``FitResult.segment(...).probs``), skill k in ``colours[k]`` (default the k-th palette
+    colour), and what a row leaves to one (draws that put the step in a skill the run does not
+    have) white; saved as a PNG.
 
     Args:
         probs: per trajectory, (T, K) probabilities (rows sum to at most one).
         path: the PNG file to write.
         trajectories: which to draw (default the first 8).
         skill_names: K names (default "skill 0", "skill 1", ...).
+        title: optional figure title.
+        colours: K colours, e.g. a run's (:func:`run_styles`, what ``npbrs segment --plot`` uses:
+            the colours of the run's other figures).
     """
     from matplotlib.figure import Figure
     from matplotlib.patches import Patch
@@ -266,7 +284,10 @@ def plot_skill_probabilities(probs: Sequence[np.ndarray], path, trajectories: Op
     for i in chosen:
         if not 0 <= i < len(probs):
             raise ValueError(f"trajectory {i} is outside 0..{len(probs) - 1}")
-    colours = [_rgba(PALETTE[k % len(PALETTE)]) for k in range(K)]
+    colours = [PALETTE[k % len(PALETTE)] for k in range(K)] if colours is None else list(colours)
+    if len(colours) != K:
+        raise ValueError(f"{len(colours)} colours for {K} skills")
+    colours = [_rgba(c) for c in colours]
     fig = Figure(figsize=(10, 0.8 * len(chosen) + 0.9), dpi=100)
     axes = fig.subplots(len(chosen), 1, squeeze=False)[:, 0]
     for ax, i in zip(axes, chosen):
@@ -361,21 +382,28 @@ def _heat_map(values, path, row_names, xlabel: str, label: str, cmap: str, limit
               column_names=None) -> None:
     """A (K, n) array as a heat map, skills in rows, at most 14 inches wide; ``limits``: the
     colour scale's (min, max); ``row_colours``: the row names' colours; ``column_names``: the
-    columns' tick labels (default their indices)."""
+    columns' tick labels (default their indices), at most ``HEAT_TICKS`` per 14 inches, every
+    column's or every n-th's (the axis label says which)."""
     from matplotlib.figure import Figure
 
     K, n = values.shape
-    fig = Figure(figsize=(min(14.0, max(5.0, 2.0 + 0.06 * n)), 1.2 + 0.45 * K), dpi=100)
+    width = min(14.0, max(5.0, 2.0 + 0.06 * n))
+    fig = Figure(figsize=(width, 1.2 + 0.45 * K), dpi=100)
     ax = fig.subplots()
     image = ax.imshow(values, aspect="auto", interpolation="nearest", cmap=cmap, vmin=limits[0], vmax=limits[1])
     ax.set_yticks(np.arange(K))
     ax.set_yticklabels(row_names, fontsize=8)
     for tick, colour in zip(ax.get_yticklabels(), row_colours or ()):
         tick.set_color(colour)
+    every = max(1, int(np.ceil(n / max(3, int(HEAT_TICKS * width / 14.0)))))
+    ticks = np.arange(0, n, every)
+    ax.set_xticks(ticks)
     if column_names is not None:
-        ax.set_xticks(np.arange(n))
-        ax.set_xticklabels(list(column_names), rotation=90, fontsize=6)
-    ax.set_xlabel(xlabel)
+        column_names = list(column_names)
+        ax.set_xticklabels([str(column_names[d]) for d in ticks], rotation=90, fontsize=8)
+    else:
+        ax.set_xticklabels([str(d) for d in ticks], fontsize=8)
+    ax.set_xlabel(xlabel if every == 1 else f"{xlabel} (every {_ordinal(every)} labelled)")
     fig.colorbar(image, ax=ax, label=label)
     if title:
         ax.set_title(title)
@@ -384,12 +412,16 @@ def _heat_map(values, path, row_names, xlabel: str, label: str, cmap: str, limit
 
 
 def plot_skill_rewards(theta, feature_names: Sequence[str], path, skill_names: Optional[Sequence[str]] = None,
-                       title: Optional[str] = None, interval=None, colours: Optional[Sequence] = None) -> None:
+                       title: Optional[str] = None, interval=None, colours: Optional[Sequence] = None,
+                       coordinates=None) -> None:
     """Each skill's reward weights over the features: a bar chart up to ``BARS`` features (with
     the interval as error bars), beyond that (a reward weight per state: hundreds to millions of
     features) a heat map, skills in rows and features in columns, coloured by the weight on a
-    scale symmetric about zero (the interval is not drawn there). Either way the PNG stays at
-    most 14 inches wide: bars for 127 features were 25,000 pixels wide.
+    scale symmetric about zero (the interval is not drawn there). With ``coordinates`` (a
+    reward weight per state of a grid: each feature's state's 2-D coordinates) each skill's
+    weights are drawn on the grid instead, a panel per skill on one colour scale symmetric
+    about zero, cells without a state grey. Either way the PNG stays at most 14 inches wide:
+    bars for 127 features were 25,000 pixels wide.
 
     Args:
         theta: (K, D) reward weights (e.g. posterior means).
@@ -399,6 +431,8 @@ def plot_skill_rewards(theta, feature_names: Sequence[str], path, skill_names: O
         title: optional title.
         interval: optional (lower, upper), each (K, D): drawn as error bars (a credible interval).
         colours: optional K colours (default the palette in skill order).
+        coordinates: optional (D, 2) numbers, feature d's position (row, column): e.g. for
+            one-hot state features, ``mdp.state_vectors`` of the state each feature is 1 in.
     """
     from matplotlib.figure import Figure
 
@@ -418,11 +452,18 @@ def plot_skill_rewards(theta, feature_names: Sequence[str], path, skill_names: O
         lower, upper = (np.asarray(x, dtype=np.float64) for x in interval)
         if lower.shape != (K, D) or upper.shape != (K, D):
             raise ValueError(f"interval bounds must have shape ({K}, {D})")
+    if coordinates is not None:
+        coordinates = np.asarray(coordinates, dtype=np.float64)
+        if coordinates.shape != (D, 2) or not np.all(np.isfinite(coordinates)):
+            raise ValueError(f"coordinates must be (D, 2) = ({D}, 2) finite numbers, a position per feature, "
+                             f"got shape {coordinates.shape}")
+        _reward_grids(theta, coordinates, path, names, colours, title)
+        return
     if D > BARS:
         finite = np.abs(theta[np.isfinite(theta)])
         top = float(finite.max()) if finite.size and finite.max() > 0 else 1.0
         _heat_map(theta, path, names, "feature", "reward weight", "RdBu_r", (-top, top), title, colours,
-                  feature_names if D <= 3 * BARS else None)
+                  feature_names)
         return
     fig = Figure(figsize=(min(14.0, max(5.0, 1.0 + 0.4 * K * D)), 3.5), dpi=100)
     ax = fig.subplots()
@@ -442,4 +483,52 @@ def plot_skill_rewards(theta, feature_names: Sequence[str], path, skill_names: O
     if title:
         ax.set_title(title)
     fig.tight_layout()
+    _save(fig, path)
+
+
+def _reward_grids(theta, coordinates, path, names, colours, title=None) -> None:
+    """Each skill's weights (K, D) drawn at the features' (row, column) ``coordinates`` (D, 2):
+    a panel per skill (4 to a row), a cell per feature where the coordinates are integers on a
+    grid of modest size (cells without a feature grey), else a square marker per feature."""
+    from matplotlib import colormaps
+    from matplotlib.figure import Figure
+
+    K, D = theta.shape
+    finite = np.abs(theta[np.isfinite(theta)])
+    top = float(finite.max()) if finite.size and finite.max() > 0 else 1.0
+    cmap = colormaps["RdBu_r"].with_extremes(bad=(0.8, 0.8, 0.8, 1.0))
+    low = coordinates.min(0)
+    span = (coordinates.max(0) - low + 1).astype(np.int64)
+    on_grid = bool(np.all(coordinates == np.round(coordinates))) and span.prod() <= max(16 * D, 4096)
+    wide = span[1] / span[0]  # a panel's width over its height
+    columns = min(K, 4 if wide <= 1.5 else 2 if wide <= 4 else 1)
+    rows = -(-K // columns)
+    panel = min(3.5 * max(1.0, wide), 12.5 / columns)  # inches wide
+    height = float(np.clip(panel / wide, 0.6, 4.0))
+    fig = Figure(figsize=(columns * panel + 1.5, rows * (height + 0.45) + 0.9), dpi=100, layout="constrained")
+    axes = fig.subplots(rows, columns, squeeze=False)
+    cells = (coordinates - low).astype(np.int64)
+    image, drawn = None, []
+    for k, ax in enumerate(axes.ravel()):
+        if k >= K:
+            ax.remove()
+            continue
+        drawn.append(ax)
+        if on_grid:
+            grid = np.full(tuple(span), np.nan)
+            grid[cells[:, 0], cells[:, 1]] = theta[k]
+            image = ax.imshow(grid, cmap=cmap, vmin=-top, vmax=top, interpolation="nearest",
+                              extent=(low[1] - 0.5, low[1] + span[1] - 0.5, low[0] + span[0] - 0.5, low[0] - 0.5))
+        else:
+            image = ax.scatter(coordinates[:, 1], coordinates[:, 0], c=theta[k], cmap=cmap, vmin=-top, vmax=top,
+                               marker="s", s=max(2.0, 4000.0 / D), linewidths=0)
+            ax.invert_yaxis()
+            ax.set_aspect("equal", adjustable="datalim")
+        ax.set_title(names[k], fontsize=9, color=colours[k])
+        ax.tick_params(labelsize=7)
+    fig.supxlabel("the states' second coordinate (column)", fontsize=8)
+    fig.supylabel("first coordinate (row)", fontsize=8)
+    fig.colorbar(image, ax=drawn, label="reward weight", shrink=0.9)
+    if title:
+        fig.suptitle(title)
     _save(fig, path)
