@@ -2,12 +2,19 @@
 
 For a trajectory x that was not in the fit,
 
-    p(x | fit) = E_s[ sum_f p(f | F_s) integral p(x | f, eta, theta_s) p(eta) d eta ],
+    p(x | fit) = E_s[ sum_{f != 0} p(f | F_s) integral p(x | f, eta, theta_s) p(eta) d eta ]
+                 / E_s[ P(f != 0 | F_s) ],
 
-the expectation over the run's posterior draws s. Given draw s, the new trajectory's skill set f
+the expectations over the run's posterior draws s. Given draw s, the new trajectory's skill set f
 follows the weak-limit beta-Bernoulli predictive of the draw's features F_s, its transition
 weights eta their Gamma prior, and the skill sequence is summed out by the forward filter
-(``npbrs.models.bphmm.predictive_log_likelihoods``). f and eta are integrated by Monte Carlo,
+(``npbrs.models.bphmm.predictive_log_likelihoods``). An empty skill set emits no step (the
+model gives it likelihood 0, so no fitted trajectory's set is ever empty), and the predictive
+samples one with positive probability: the value is the predictive given that the new
+trajectory has steps, the denominator being the probability under the predictive that its set
+is not empty, exact (1 - prod_k (1 - P(f_k = 1)) per draw). Without it the value sat that
+probability's log lower (0.1 nats on a two-skill case of ``tests/test_predictive.py``). In the
+numerator f and eta are integrated by Monte Carlo,
 ``num_samples`` independent samples per draw (eta's self shares are importance-sampled around
 each trajectory's own stays, ``npbrs.models.bphmm._guided_eta``: drawn from the prior alone they
 rarely fit a long trajectory, and 64 samples fell several nats per 500-step trajectory below the
@@ -28,6 +35,7 @@ from typing import NamedTuple, Optional
 import jax
 import jax.numpy as jnp
 import numpy as np
+from scipy.special import logsumexp
 
 from npbrs.models.bphmm import Hyper, end_gate, feature_predictive, predictive_log_likelihoods
 from npbrs.models.emissions import Emission, HMMData
@@ -106,8 +114,6 @@ def log_predictive(result, mdp, demos, *, num_samples: int = 64, num_draws: int 
         ValueError: demonstrations outside the MDP, an MDP unlike the run's, bad options.
     """
     _check_counts(num_samples=num_samples, num_draws=num_draws)
-    if len(demos.lengths) == 0:
-        raise ValueError("the held-out demonstrations hold no trajectory")
     fitted = fitted_trajectories(result, demos)
     if fitted:
         warnings.warn(f"log_predictive: {fitted} of the {len(demos.lengths)} trajectories are ones the run was fitted "
@@ -117,7 +123,7 @@ def log_predictive(result, mdp, demos, *, num_samples: int = 64, num_draws: int 
     C, D = np.shape(result.stats["log_joint"])
     moments = _draw_moments(result, mdp, demos, _draw_indices(C, D, num_draws), num_samples, seed, emission,
                             leave_one_out=False)
-    return _summarise(moments.reshape(-1, 2, len(demos.lengths)), num_samples, demos)
+    return _summarise(moments.reshape(-1, 3, len(demos.lengths)), num_samples, demos)
 
 
 def pointwise_log_likelihood(result, mdp, *, num_samples: int = 32, seed: int = 0,
@@ -125,17 +131,20 @@ def pointwise_log_likelihood(result, mdp, *, num_samples: int = 32, seed: int = 
     """Each fitted trajectory's log-likelihood under each posterior draw, (C, D, N): the
     ``log_likelihood`` group ArviZ's ``loo`` and ``compare`` read.
 
-    Trajectory i's value under draw s is log p(x_i | theta_s, F_s without row i): its own skill
-    set (from the beta-Bernoulli predictive of the other trajectories' features) and transition
-    weights (their prior) integrated out by Monte Carlo (``num_samples`` per draw), the skill
-    sequence by the forward filter.
+    Trajectory i's value under draw s is log p(x_i | theta_s, F_s without row i, x_i has steps):
+    its own skill set (from the beta-Bernoulli predictive of the other trajectories' features,
+    given that it is not empty: divided by that predictive's exact probability of a nonempty set)
+    and transition weights (their prior) integrated out by Monte Carlo (``num_samples`` per
+    draw), the skill sequence by the forward filter. ``az.loo``'s importance weighting of these
+    values by the posterior draws then estimates log p(x_i | the other trajectories, x_i has
+    steps), the quantity :func:`log_predictive` gives for new trajectories.
     """
     _check_counts(num_samples=num_samples)
     if result.demos is None:
         raise ValueError("the run does not hold its demonstrations, which the pointwise log-likelihood needs")
     C, D = np.shape(result.stats["log_joint"])
     moments = _draw_moments(result, mdp, result.demos, np.arange(D), num_samples, seed, emission, leave_one_out=True)
-    return moments[:, :, 0, :]
+    return moments[:, :, 0, :] - moments[:, :, 2, :]
 
 
 def segment(result, mdp, demos=None, *, num_samples: int = 32, num_draws: int = 100, seed: int = 0,
@@ -206,8 +215,10 @@ def _check_counts(**values):
 def _draw_moments(result, mdp, demos, idx, num_samples, seed, emission, leave_one_out, marginals=False,
                   own_features=False):
     """Per chain and chosen draw, the log first and second moments over the (f, eta) samples of
-    every trajectory's likelihood, (C, len(idx), 2, n). With ``marginals``, instead a generator
-    of (chain, draw, log sum_m p_m (n,), log sum_m p_m p(z_t = k | ...)_m (n, T, K)) with p_m the
+    every trajectory's likelihood (an empty skill set's 0 included), and the log probability of
+    a nonempty skill set under the draw's predictive, (C, len(idx), 3, n). With ``marginals``,
+    instead a generator of (chain, draw, log sum_m p_m (n,), log sum_m p_m p(z_t = k | ...)_m
+    (n, T, K)) with p_m the
     trajectory's likelihood under sample m; ``own_features``: the draw's own skill sets (fitted
     trajectories) instead of the predictive."""
     from npbrs.models.emissions import make_emission
@@ -269,7 +280,7 @@ def _draw_moments(result, mdp, demos, idx, num_samples, seed, emission, leave_on
 
     if marginals:
         return by_draw()
-    out = np.empty((C, len(idx), 2, len(demos.lengths)))
+    out = np.empty((C, len(idx), 3, len(demos.lengths)))
     for c, j, moments in by_draw():
         out[c, j] = moments
     return out
@@ -286,8 +297,11 @@ def _one_draw(emission, key, params, counts, hyper, data, ends, cache, *, num_sa
     p_on = feature_predictive(counts, others, hyper.alpha)
     gate = None if ends is None else end_gate(ends, data.states, data.mask)
     lm = predictive_log_likelihoods(key, log_lik, data.mask, p_on, hyper, num_samples, gate=gate,
-                                    guided=True)  # (M, n)
-    return jnp.stack([_lse(lm, axis=0), _lse(2 * lm, axis=0)]) - jnp.log(num_samples), cache
+                                    guided=True)  # (M, n): -inf where the sampled skill set is empty
+    # log P(the skill set is not empty) under the draw's predictive, exactly: () or (n,)
+    log_nonempty = jnp.log(-jnp.expm1(jnp.sum(jnp.log1p(-p_on), -1)))
+    return jnp.stack([_lse(lm, axis=0) - jnp.log(num_samples), _lse(2 * lm, axis=0) - jnp.log(num_samples),
+                      jnp.broadcast_to(log_nonempty, lm.shape[1:])]), cache
 
 
 @partial(jit, static_argnames="num_samples")
@@ -315,7 +329,9 @@ def _draw_at(samples, params_all, hyper_fixed, idx, seed, C):
 
 
 def _summarise(moments: np.ndarray, num_samples: int, demos) -> HeldOut:
-    """HeldOut from each draw's log first and second moments of the likelihood (S, 2, n)."""
+    """HeldOut from each draw's log first and second moments of the likelihood and log
+    probability of a nonempty skill set (S, 3, n): log mean_s p_s(x) - log mean_s P_s(nonempty),
+    the denominator exact (the standard error is the numerator's)."""
     S, _, n = moments.shape
     top = np.max(moments[:, 0], axis=0)
     if not np.all(np.isfinite(top)):
@@ -329,7 +345,7 @@ def _summarise(moments: np.ndarray, num_samples: int, demos) -> HeldOut:
     se = np.sqrt(var_draw.sum(axis=0)) / S / mean
     if num_samples < 2:
         se = np.full(n, np.inf)
-    log_p = top + np.log(mean)
+    log_p = top + np.log(mean) - (logsumexp(moments[:, 2], axis=0) - np.log(S))
     steps = int(np.sum(demos.lengths))
     return HeldOut(per_trajectory=log_p, per_trajectory_se=se, per_step=float(log_p.sum() / steps),
                    per_step_se=float(np.sqrt(np.sum(se ** 2)) / steps), num_steps=steps, num_draws=S)
