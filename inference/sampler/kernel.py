@@ -17,28 +17,26 @@ conditional counts the switches only, and step 3 also draws each skill's mean en
 probability mu_k given z with the ends integrated out (random-walk Metropolis on its logit),
 then the ends beta_k(s) from their Beta conditional.
 
-Every density used here is one of the model's own (``npbrs.models.bphmm``). What runs in warmup
-only to help the search (sticky start and phase, greedy moves, the emission's tuning) is the
-warmup schedule's (:class:`~npbrs.inference.sampler.schedule.WarmupSchedule`).
+Every density used here is one of the model's own (``npbrs.models.bphmm``); the conditionals
+of steps 1, 3 and 5 are :mod:`npbrs.inference.sampler.conditionals`'. What runs in warmup only
+to help the search (sticky start and phase, greedy moves, the emission's tuning) is the warmup
+schedule's (:class:`~npbrs.inference.sampler.schedule.WarmupSchedule`).
 """
 
 from __future__ import annotations
 
 from functools import partial
-from typing import Any, Dict, NamedTuple, Optional
+from typing import Dict, Optional
 
 import jax
 import jax.numpy as jnp
 import numpy as np
-import numpyro.distributions as dist
 from numpyro.infer.mcmc import MCMCKernel
 
 from npbrs.domains.util.pytree import Pytree
-from npbrs.models.bphmm import (Hyper, Termination, bphmm_model, collapsed_feature_log_prob,
-                                collapsed_transition_log_prob, end_counts, end_gate, eta_counts, eta_from_gammas,
-                                eta_gamma_shapes, hmm_parameters, log_joint_terms, log_marginal_likelihoods,
-                                sample_end_means, sample_ends, sequence_counts)
-from npbrs.models.mcmc import metropolis_accept, select
+from npbrs.models.bphmm import (Hyper, Termination, bphmm_model, end_gate, hmm_parameters, log_joint_terms,
+                                log_marginal_likelihoods)
+from npbrs.models.mcmc import select
 from npbrs.models.emissions import Emission, EmissionInfo, HMMData
 from npbrs.models.hmm import batch_backward_sample, batch_forward_filter
 
@@ -46,10 +44,11 @@ from npbrs.domains.util.compiling import jit
 from npbrs.domains.util.precision import float64_all
 
 from .birth_death import birth_death
+from .conditionals import feature_conditional, sample_end_model, sample_eta_omega, sample_features, sample_hyperparameters
 from .options import check_moves
 from .schedule import WarmupSchedule
 from .split_merge import split_merge
-from .state import MoveState
+from .state import BPHMMState, MoveState
 
 #: The initial segmentation's window length where neither the caller nor the emission gives one.
 DEFAULT_INIT_WINDOW = 25
@@ -75,53 +74,7 @@ def initial_skills(emission: Emission, max_skills: int, init_skills: Optional[in
     return int(chosen) if chosen is not None else max(1, (int(max_skills) + 1) // 2)
 
 
-__all__ = ["BPHMMState", "BPHMMKernel", "skill_weights", "initial_window", "initial_skills", "DEFAULT_INIT_WINDOW"]
-
-
-class BPHMMState(NamedTuple):
-    """State of one chain of the BP-HMM sampler.
-
-    step: sweeps done. num_warmup: sweeps of warmup (adaptation, no best-state tracking). rng_key: the chain's key. omega (K,), features (N, K) 0/1, eta (N, K, K),
-    ends (K, S) and end_mean (K,): state-dependent end probabilities and their means (None
-    without them),
-    params: emission parameters {site: (K, ...)}, cache: emission cache, hyper: Hyper,
-    z (N, T) skill sequences (-1 on padding), log_lik (N, T, K), log_marginals (N,),
-    log_joint: the model's log density, num_skills: skills used by z, num_switches: mean
-    switches per trajectory, accept: the emission move's mean acceptance, birth_accept: the
-    fraction of birth/death trials accepted in the last sweep, split_accept: likewise for
-    split-merge trials, greedy_merges, greedy_splits: the greedy merges and splits kept so far
-    (they run in warmup only, so a draw shows warmup's totals), greedy_idle: the greedy sweeps
-    in a row that kept nothing (``moves["greedy_patience"]``), best_*: the
-    highest-log-joint state seen after warmup.
-    """
-
-    step: jax.Array
-    num_warmup: jax.Array
-    rng_key: jax.Array
-    omega: jax.Array
-    features: jax.Array
-    eta: jax.Array
-    params: Dict[str, jax.Array]
-    cache: Any
-    hyper: Hyper
-    z: jax.Array
-    log_lik: jax.Array
-    log_marginals: jax.Array
-    log_joint: jax.Array
-    num_skills: jax.Array
-    num_switches: jax.Array
-    accept: jax.Array
-    birth_accept: jax.Array
-    split_accept: jax.Array
-    greedy_merges: jax.Array
-    greedy_splits: jax.Array
-    greedy_idle: jax.Array
-    best_log_joint: jax.Array
-    best_z: jax.Array
-    best_params: Dict[str, jax.Array]
-    best_features: jax.Array
-    ends: Any = None
-    end_mean: Any = None
+__all__ = ["BPHMMKernel", "skill_weights", "initial_window", "initial_skills", "DEFAULT_INIT_WINDOW"]
 
 
 def skill_weights(z, mask, K):
@@ -152,19 +105,16 @@ class BPHMMKernel(MCMCKernel, Pytree):
             parameters proposed from its windows; None: :func:`initial_skills`'s).
         init_window: window length of the initial segmentation (None: :func:`initial_window`'s).
         sample_features: Gibbs on the features (off only for tests of the other steps).
-        moves: the moves' options (defaults, every move and aid off, a redraw every sweep:
-            :data:`npbrs.inference.sampler.options.MOVE_DEFAULTS`). The exact moves:
-            "birth_death": trials per sweep (0: off), "window": (min, max) length of a birth's
-            window, "split_merge": trials per sweep (0: off; the emission needs ``fit_point``),
-            "blocks": refits of a split's sequential allocation, "start": the sweep (counted
-            from 0, warmup included) from which the moves run; before it a sweep is plain
-            Gibbs, "redraw_unused": the sweeps between prior redraws of the parameters of
-            skills without steps (their exact conditional; kept as they are in between, also
-            exact: a redraw's likelihoods cost new solves for the reward emission, half of a
-            sweep's time on the highway). The warmup aids, not MCMC moves (the sampling sweeps
-            and the log joint are the model's): "sticky_start", "sticky_phase",
-            "greedy_merge", "greedy_split" (the emission needs ``fit_evidence``),
-            "greedy_from", "greedy_patience": see :mod:`npbrs.inference.sampler.schedule`.
+        moves: the moves' options (:data:`npbrs.inference.sampler.options.MOVE_DEFAULTS`: every
+            move and aid off, a redraw every sweep). The exact moves: "birth_death" and
+            "split_merge" trials per sweep (split-merge: the emission needs ``fit_point``),
+            "window", "blocks", "start" (the sweep, warmup included, from which they run; before
+            it a sweep is plain Gibbs), "redraw_unused" (the sweeps between prior redraws of the
+            parameters of skills without steps, their exact conditional; kept as they are in
+            between, also exact, which saves the reward emission's solves). The warmup aids, not
+            MCMC moves (the sampling sweeps and the log joint are the model's): "sticky_start",
+            "sticky_phase", "greedy_merge", "greedy_split" (the emission needs ``fit_evidence``),
+            "greedy_from", "greedy_patience": :mod:`npbrs.inference.sampler.schedule`.
         termination: a :class:`~npbrs.models.bphmm.Termination`: skills end with a probability
             that depends on the state entered (sampled); None: the sticky BP-HMM.
     """
@@ -270,12 +220,10 @@ class BPHMMKernel(MCMCKernel, Pytree):
 
     @property
     def _valid(self):
-        """(N,) the trajectories with steps: the others pad the data (to a shape bucket, or to a
-        multiple of the devices that shard the trajectories), after the real ones. They are left
-        out of the model: their features and transition weights are drawn (from the prior given
-        omega) but nothing reads them: omega's conditional, the moves' counts of skill users and
-        the log joint count the real trajectories only, and every random draw is numbered per
-        trajectory, so a padded run's draws of the real trajectories are the unpadded run's."""
+        """(N,) the trajectories with steps: the others pad the data (to a shape bucket, or to the
+        devices), after the real ones, and are left out of the model (see
+        :mod:`npbrs.inference.sampler.conditionals`): a padded run's draws of the real
+        trajectories are the unpadded run's."""
         return jnp.any(self.data.mask, axis=1)
 
     def greedy_open(self, state: BPHMMState):
@@ -333,10 +281,12 @@ class BPHMMKernel(MCMCKernel, Pytree):
         else:  # a given segmentation: each trajectory has the features of the skills it uses
             features = (jnp.sum(weights, axis=1) > 0).astype(jnp.float64)
         hyper = self.hyper0
-        eta, omega = self._sample_eta_omega(keys[3], z, features, hyper)
+        eta, omega = sample_eta_omega(keys[3], z, features, hyper, self.data.mask, self.termination is not None)
         ends = end_mean = None
         if self.termination is not None:
-            end_mean, ends = self._sample_ends(keys[5], z, features, jnp.full((K,), self._prior_end_mean))
+            a, b = self.termination.mean_prior  # (the means start at their prior's)
+            end_mean, ends = sample_end_model(keys[5], z, features, jnp.full((K,), a / (a + b)), self.data,
+                                              self.termination)
         zero = jnp.float64(0.0)
         state = BPHMMState(
             step=jnp.int32(0), num_warmup=jnp.asarray(num_warmup, jnp.int32), rng_key=keys[4], omega=omega,
@@ -349,107 +299,21 @@ class BPHMMKernel(MCMCKernel, Pytree):
             best_params=params, best_features=features, ends=ends, end_mean=end_mean)
         return self._finish(state)
 
-    @property
-    def _prior_end_mean(self):
-        a, b = self.termination.mean_prior
-        return a / (a + b)
-
-    def _sample_ends(self, key, z, features, end_mean):
-        """(mu, beta) | z: the skills' mean end probabilities by Metropolis with the ends
-        integrated out, then the ends (K, S) from their Beta conditional."""
-        term = self.termination
-        counts = end_counts(z, self.data.mask, self.data.states, features, term.num_states)
-        k1, k2 = jax.random.split(key)
-        end_mean = sample_end_means(k1, end_mean, counts, term)
-        return end_mean, sample_ends(k2, end_mean, counts, term)
-
     def sample_eta(self, key, z, features, hyper):
         """A draw of the transition weights eta (N, K, K) from their conditional given the skill
         sequences z (N, T), the features (N, K) and the hyperparameters (see
-        :meth:`_sample_eta_omega`, which the sweep calls to draw omega in the same batch)."""
-        return self._sample_eta_omega(key, z, features, hyper)[0]
-
-    def _sample_eta_omega(self, key, z, features, hyper, gated=None):
-        """eta | z, F and omega | F, from a single batch of Gamma draws (one Gamma sampler
-        in the compiled sweep instead of five).
-
-        eta: Dirichlet(conc + counts) proportions over the active skills times a
-        Gamma(sum conc) total (the Gamma-Dirichlet decomposition); inactive entries keep
-        their Gamma prior. omega_k ~ Beta(alpha/K + m_k, 1 + N - m_k) as a ratio of Gammas,
-        N and m_k counting the trajectories with steps (padding trajectories are left out of
-        the model: their features are drawn, but nothing depends on them).
-
-        The draws are laid out omega's first, then trajectory by trajectory (K^2 + K each):
-        JAX's partitionable threefry numbers each draw by its position, so a trajectory's draws
-        do not depend on how many trajectories follow it (padding the data with empty
-        trajectories, for shape buckets or devices, leaves the real ones' draws alone). (Under
-        a mesh that shards the trajectories the batch is gathered: JAX's Gamma sampler flattens
-        it; it is small next to the filtering.) ``gated``: a traced bool, false in the sticky
-        phase (then the stays inform eta's diagonal, as in the sticky BP-HMM).
-        """
-        N, K = features.shape
-        # with state-dependent ends only the switches inform eta
-        counts = eta_counts(z, self.data.mask, K, self.termination is not None if gated is None else gated)
-        shape_g, shape_total, active = eta_gamma_shapes(counts, features, hyper)
-        valid = self._valid
-        m = jnp.sum(jnp.where(valid[:, None], features, 0.0), axis=0)
-        n = jnp.sum(valid).astype(m.dtype)
-        shape_omega = jnp.concatenate([hyper.alpha / K + m, 1.0 + n - m])  # (2K,)
-        per_trajectory = jnp.concatenate([shape_g.reshape(N, K * K), shape_total], axis=1)  # (N, K^2 + K)
-        shapes = jnp.concatenate([shape_omega, per_trajectory.ravel()])
-        draws = jnp.maximum(jax.random.gamma(key, jnp.maximum(shapes, 1e-300)), 1e-300)
-        a, b = draws[:2 * K].reshape(2, K)
-        rows = draws[2 * K:].reshape(N, K * K + K)
-        g = rows[:, :K * K].reshape(N, K, K)
-        total = rows[:, K * K:].reshape(N, K, 1)
-        eta = eta_from_gammas(g, total, active)
-        omega = jnp.clip(a / (a + b), 1e-300, 1.0 - 1e-16)
-        return eta, omega
+        :func:`~npbrs.inference.sampler.conditionals.sample_eta_omega`, which the sweep calls to
+        draw omega in the same batch)."""
+        return sample_eta_omega(key, z, features, hyper, self.data.mask, self.termination is not None)[0]
 
     def feature_logits(self, state: BPHMMState, features, k, current=None) -> jax.Array:
         """log p(f_ik = 1 | rest) - log p(f_ik = 0 | rest) for every trajectory i, (N,),
         with the skill sequences summed out. ``features`` replaces ``state.features``;
         ``current``: the trajectories' log marginals under ``features`` when known (the
-        sweep carries them); otherwise they are filtered too."""
-        return self._feature_logits_and_marginals(state, features, k, current)[0]
-
-    def _feature_logits_and_marginals(self, state: BPHMMState, features, k, current=None, gate=None, gated=None):
-        """(logits (N,), log marginals with f_ik = 1 (N,), with f_ik = 0 (N,)); ``gate``: the
-        state's :meth:`gate` when known (``gated``: as ``log_marginal_likelihoods``')."""
-        off = features.at[:, k].set(0.0)
-        gate = self.gate(state) if gate is None else gate
-        if current is None:
-            current = log_marginal_likelihoods(features, state.eta, state.log_lik, self.data.mask, gate, gated)
-        is_on = features[:, k] > 0
-        flipped = features.at[:, k].set(jnp.where(is_on, 0.0, 1.0))
-        lm_flip = log_marginal_likelihoods(flipped, state.eta, state.log_lik, self.data.mask, gate, gated)
-        lm_on, lm_off = jnp.where(is_on, current, lm_flip), jnp.where(is_on, lm_flip, current)
-        # a trajectory must keep at least one skill (to emit its steps: one without steps, padding
-        # to a shape bucket, may have none, or its features would weigh on omega)
-        lm_off = jnp.where((jnp.sum(off, -1) > 0) | ~self._valid, lm_off, -jnp.inf)
-        prior = dist.Bernoulli(probs=state.omega[k])
-        return (lm_on + prior.log_prob(1.0)) - (lm_off + prior.log_prob(0.0)), lm_on, lm_off
-
-    def _sample_features(self, key, state: BPHMMState, gate=None, gated=None, current=None) -> jax.Array:
-        """Gibbs on every f_ik with z summed out; skills in turn, trajectories at once
-        (given omega, the trajectories' features are conditionally independent). The log
-        marginals of the current features are carried from skill to skill (they start as the
-        state's, which ``_finish`` computed for its features, eta and likelihoods), so each
-        skill filters every trajectory once, with its feature flipped. ``current``: the log
-        marginals under ``gate`` and ``gated`` when they are not the model's (the sticky phase)."""
-        K = state.features.shape[1]
-
-        def one_skill(carry, k_key):
-            features, current = carry
-            k, key = k_key
-            logit, lm_on, lm_off = self._feature_logits_and_marginals(state, features, k, current, gate, gated)
-            new = jax.random.bernoulli(key, jax.nn.sigmoid(logit))
-            return (features.at[:, k].set(new.astype(features.dtype)), jnp.where(new, lm_on, lm_off)), None
-
-        start = state.log_marginals if current is None else current
-        (features, _), _ = jax.lax.scan(one_skill, (state.features, start),
-                                        (jnp.arange(K), jax.random.split(key, K)))
-        return features
+        sweep carries them); otherwise they are filtered too (see
+        :func:`~npbrs.inference.sampler.conditionals.feature_conditional`)."""
+        return feature_conditional(features, k, state.eta, state.log_lik, state.omega, self.data.mask,
+                                   self.gate(state), None, current)[0]
 
     def sweep(self, state: BPHMMState, clock=None) -> BPHMMState:
         """One full sweep: features, birth/death, skill sequences, split-merge, greedy merges
@@ -470,8 +334,8 @@ class BPHMMKernel(MCMCKernel, Pytree):
         k_gm = jax.random.fold_in(k_sm, 1)
         # the ends are held fixed until step 3 (in the sticky phase, the sticky BP-HMM's switching)
         gate, gated, current = schedule.switching(self.gate(state), state, mask, step, num_warmup)
-        features = (self._sample_features(k_feat, state, gate, gated, current) if self.sample_features
-                    else state.features)
+        features = (sample_features(k_feat, state.features, state.eta, state.log_lik, state.omega, mask, current,
+                                    gate, gated) if self.sample_features else state.features)
         # the moves' state (``npbrs.inference.sampler.state``): each move maps it to a new one
         # (in the sticky phase they move the sticky BP-HMM, as the sweep does)
         end_model = None
@@ -529,13 +393,14 @@ class BPHMMKernel(MCMCKernel, Pytree):
         features, z, params = moved.features, moved.z, moved.params
         hyper = state.hyper
         if self.hyperpriors:  # (hyperparameters | z, F), then (eta, omega | z, F, hyperparameters)
-            hyper = self.sample_hyperparameters(k_hyp, z, features, hyper, gate, gated)
+            hyper = sample_hyperparameters(k_hyp, z, features, hyper, self.hyperpriors, mask, gate, gated)
         # eta | z, F and omega | F are conditionally independent: one block
-        eta, omega = self._sample_eta_omega(k_eta, z, features, hyper, gated)
+        eta, omega = sample_eta_omega(k_eta, z, features, hyper, mask, gated)
         ends = {}
         if self.termination is not None:
             mean0 = state.end_mean if moved.end_model is None else moved.end_model[1]
-            end_mean, new_ends = self._sample_ends(jax.random.fold_in(k_eta, 1), z, features, mean0)
+            end_mean, new_ends = sample_end_model(jax.random.fold_in(k_eta, 1), z, features, mean0, self.data,
+                                                  self.termination)
             ends = dict(ends=new_ends, end_mean=end_mean)
         weights = skill_weights(z, mask, K)
         cache, tuned = schedule.tune_step(self.emission, search, params, state.cache, self.data, weights, step,
@@ -565,48 +430,12 @@ class BPHMMKernel(MCMCKernel, Pytree):
                             best_z=pick(new.z, state.best_z), best_params=pick(new.params, state.best_params),
                             best_features=pick(new.features, state.best_features))
 
-    #: random-walk Metropolis steps per sweep on each sampled hyperparameter's log (cheap: the
-    #: counts are made once, each step is O(N K^2))
-    HYPER_STEPS = 10
-
     def sample_hyperparameters(self, key, z, features, hyper: Hyper, gate=None, gated=None) -> Hyper:
         """The hyperparameters with a prior (``hyperpriors``) given the skill sequences z (N, T)
-        and the features (N, K), with omega and eta integrated out: alpha's target is
-        log p(F | alpha) (:func:`~npbrs.models.bphmm.collapsed_feature_log_prob`), kappa's and
-        gamma's log p(z | F, kappa, gamma) (the rows' Dirichlet-multinomials,
-        :func:`~npbrs.models.bphmm.collapsed_transition_log_prob`), each times its Gamma
-        hyperprior; ``HYPER_STEPS`` random-walk Metropolis steps each on the log scale (in turn).
-        The sweep then draws eta and omega given the new values: together a blocked Gibbs step
-        of (hyperparameters, eta, omega) | z, F. Conditioned on eta instead, kappa barely moves
-        (eta's row totals, which the data do not inform, are drawn with the current kappa; see
-        ``benchmarks/NOTES.md``). ``gate``: the ends' with state-dependent ends
-        (then kappa plays no part; ``gated``, a traced bool, false in the sticky phase). The
-        others as they are."""
-        valid = self._valid
-        counts, _ = sequence_counts(z, self.data.mask, features, gate, gated)
-        gated = (gate is not None) if gated is None else gated
-
-        def log_target(name, h):
-            shape, rate = self.hyperpriors[name]
-            prior = dist.Gamma(shape, rate).log_prob(getattr(h, name))
-            if name == "alpha":
-                return prior + collapsed_feature_log_prob(features, h.alpha, valid)
-            seq = collapsed_transition_log_prob(counts, features, h.kappa, h.gamma, gated)
-            return prior + jnp.sum(jnp.where(valid, seq, 0.0))
-
-        for name, k in zip(self.hyperpriors, jax.random.split(key, len(self.hyperpriors))):
-            def step(h, k, name=name):
-                k1, k2 = jax.random.split(k)
-                old = getattr(h, name)
-                prop = old * jnp.exp(0.3 * jax.random.normal(k1))
-                cand = h._replace(**{name: prop})
-                # log-scale proposal: Jacobian log(prop / old)
-                log_ratio = log_target(name, cand) - log_target(name, h) + jnp.log(prop) - jnp.log(old)
-                accept, _ = metropolis_accept(k2, log_ratio)
-                return h._replace(**{name: jnp.where(accept, prop, old)}), None
-
-            hyper, _ = jax.lax.scan(step, hyper, jax.random.split(k, self.HYPER_STEPS))
-        return hyper
+        and the features (N, K), omega and eta integrated out
+        (:func:`~npbrs.inference.sampler.conditionals.sample_hyperparameters`); ``gate``: the
+        ends' with state-dependent ends (``gated``, a traced bool, false in the sticky phase)."""
+        return sample_hyperparameters(key, z, features, hyper, self.hyperpriors, self.data.mask, gate, gated)
 
 
 @partial(jit, static_argnums=4, once=True)
