@@ -300,3 +300,150 @@ def test_a_new_run_refuses_to_overwrite_another_runs_checkpoint(demo, tmp_path):
                                 "--config", out / "config.toml", "--no-progress"])
     assert code == 2 and "--resume" in stderr and str(checkpoint) in stderr
     assert checkpoint.read_bytes() == b"an interrupted run" and not (tmp_path / "y.nc").exists()
+
+
+def _counted_run(path, theta=None, mdp=None):
+    """A saved run without a fit: two trajectories of 16 steps with true skills; the best draw
+    has 4 skills (skill 3: the last 8 steps of trajectory 1), but over the draws those steps
+    are mostly skill 1, so the per-step labels use 3 skills. ``theta`` (4, D): a reward
+    emission's weights (every draw's), with ``mdp`` the MDP it was fitted in."""
+    from npbrs.domains import Demonstrations
+    from npbrs.inference.driver.results import FitResult
+
+    true = [np.repeat([0, 1], 8), np.repeat([2, 1], 8)]
+    true[0][7] = 1  # (one step the skills do not follow)
+    seg = [np.repeat([0, 1], 8), np.repeat([2, 3], 8)]
+    C, D, K = 2, 4, 4
+    counts = np.zeros((C, 2, 16, K), np.int64)
+    for i, z in enumerate(seg):
+        counts[:, i, np.arange(16), z] = D
+    counts[:, 1, 8:, 3], counts[:, 1, 8:, 1] = 1, D - 1
+    S = 16 if mdp is None else mdp.num_states
+    demos = Demonstrations([np.arange(16) % S] * 2, [np.zeros(16, int)] * 2, true)
+    stats = {"log_joint": np.arange(8.0).reshape(C, D), "num_skills": np.full((C, D), 4.0),
+             "num_switches": np.arange(8.0).reshape(C, D) % 3}
+    samples = {"skill_steps": np.ones((C, D, K), np.int64)}
+    params, emission, names = {"pi": np.ones((K, 3)) / 3}, {"name": "policy"}, ()
+    if theta is not None:
+        theta = np.asarray(theta, dtype=float)
+        params, emission = {"theta": theta}, {"name": "reward"}
+        samples["theta"] = np.broadcast_to(theta, (C, D) + theta.shape).copy()
+        names = tuple(mdp.feature_names) if mdp is not None else tuple(f"f{d}" for d in range(theta.shape[1]))
+    result = FitResult(segmentation=seg, num_skills=K, skill_params=params, skill_slots=np.arange(K), best_chain=0,
+                       best_log_joint=-1.0, stats=stats, samples=samples, config={"max_skills": K},
+                       fingerprint=demos.fingerprint(), emission=emission, feature_names=names,
+                       chain_best_z=np.stack([np.stack(seg)] * C), demos=demos, step_skill_counts=counts,
+                       mdp_fingerprint=mdp.fingerprint() if mdp is not None else "")
+    result.save(path)
+    return result
+
+
+def test_report_states_the_skills_its_figure_shows_and_the_accuracy_against_the_truth(tmp_path, monkeypatch):
+    """The summary's first line is the best draw's (4 skills); the segmentation figure draws the
+    per-step labels (3 skills): report says so next to the summary and in the figure's title,
+    and scores those labels against the run's true skills (both accuracies and switches)."""
+    from npbrs.inference.analysis import plots
+    from npbrs.inference.analysis.metrics import hungarian_accuracy, num_switches, paper_accuracy
+
+    result = _counted_run(tmp_path / "run.nc")
+    labels = result.skill_probabilities().labels
+    assert len(np.unique(np.concatenate(labels))) == 3 and result.num_skills == 4
+    drawn = []
+    monkeypatch.setattr(plots, "plot_trace", lambda *a, **k: None)
+    monkeypatch.setattr(plots, "plot_segmentation", lambda true, inferred, path, **k: drawn.append(
+        (inferred["npbrs"], k.get("title"))) or {"npbrs": plots.skill_styles(true, inferred["npbrs"])})
+    code, stdout, stderr = run_main(["report", tmp_path / "run.nc", "--plots", tmp_path / "plots"])
+    assert code == 0, stderr
+    assert stdout.startswith("4 skills")  # (the summary: the best draw's)
+    line = next(s for s in stdout.splitlines() if s.startswith("per-step labels"))
+    assert "most probable skill over the draws" in line and "3 of the best draw's 4 skills (0, 1, 2;" in line, line
+    shown, title = drawn[-1]
+    assert all(np.array_equal(a, b) for a, b in zip(shown, labels))
+    assert "most probable skill over the draws" in title and "3 of the best draw's 4 skills" in title, title
+    true = result.demos.skills
+    scores = next(s for s in stdout.splitlines() if s.startswith("against the true skills"))
+    for value in (paper_accuracy(true, labels), hungarian_accuracy(true, labels), num_switches(labels),
+                  num_switches(true)):
+        assert f"{value:.3f}" in scores or f"{value:.2f}" in scores, (value, scores)
+    assert f"{hungarian_accuracy(true, labels):.3f} (one-to-one" in scores
+    assert f"{paper_accuracy(true, labels):.3f} (paper's" in scores
+    # without the true skills: no accuracy
+    from npbrs.domains import Demonstrations
+
+    result.demos = Demonstrations(result.demos.states, result.demos.actions)
+    result.save(tmp_path / "unknown.nc")
+    code, stdout, stderr = run_main(["report", tmp_path / "unknown.nc"])
+    assert code == 0, stderr
+    assert "per-step labels" in stdout and "against the true skills" not in stdout
+
+
+def test_segment_scores_against_the_truth_and_colours_skills_as_report_does(demo, tmp_path, monkeypatch):
+    """segment prints the accuracy of its labels when the segmented demonstrations hold their
+    true skills, states how many of the run's skills its labels use (its plot's title too),
+    and its plot draws each skill in the colour the report's segmentation figure gives it."""
+    from npbrs.domains import Demonstrations
+    from npbrs.inference.analysis import plots
+    from npbrs.inference.analysis.metrics import hungarian_accuracy, num_switches, paper_accuracy
+    from npbrs.inference.cli.main import save_plots
+
+    out, _ = demo
+    run = load(out / "run.nc")
+    seen = {}
+    draw_segmentation, draw_probabilities = plots.plot_segmentation, plots.plot_skill_probabilities
+    monkeypatch.setattr(plots, "plot_trace", lambda *a, **k: None)
+    monkeypatch.setattr(plots, "plot_segmentation", lambda *a, **k: seen.setdefault(
+        "report", draw_segmentation(*a, **k)))
+    monkeypatch.setattr(plots, "plot_skill_probabilities", lambda *a, **k: seen.setdefault(
+        "segment", (a, k)) and draw_probabilities(*a, **k))
+    save_plots(run, tmp_path)
+    code, _, stderr = run_main(["generate", "highway", "--trajectories", "3", "--length", "25", "--seed", "8",
+                                "-o", tmp_path / "new.npz"])
+    assert code == 0, stderr
+    code, stdout, stderr = run_main(["segment", out / "run.nc", tmp_path / "new.npz", "--domain", "highway",
+                                     "--samples", "4", "--draws", "3", "-o", tmp_path / "labels.npz",
+                                     "--plot", tmp_path / "labels.png"])
+    assert code == 0, stderr
+    with np.load(tmp_path / "labels.npz") as f:
+        labels = [z[:n] for z, n in zip(f["labels"], f["lengths"])]
+    true = Demonstrations.load(tmp_path / "new.npz").skills
+    scores = next(s for s in stdout.splitlines() if s.startswith("against the true skills"))
+    assert f"{hungarian_accuracy(true, labels):.3f} (one-to-one" in scores, scores
+    assert f"{paper_accuracy(true, labels):.3f} (paper's" in scores, scores
+    assert f"{num_switches(labels):.2f}" in scores and f"{num_switches(true):.2f}" in scores, scores
+    used, K = len(np.unique(np.concatenate(labels))), run.num_skills
+    assert f"{used} of the run's {K} skill" in stdout, stdout  # (skills: K > 1)
+    _, options = seen["segment"]
+    assert f"{used} of its {K} skill" in options["title"], options["title"]
+    styles = seen["report"]["npbrs"]
+    colours = options["colours"]
+    assert len(colours) == K and all(tuple(colours[k]) == styles[k].colour for k in styles)
+    assert all(tuple(colours[k]) == plots.UNMATCHED for k in range(K) if k not in styles)
+
+
+def test_report_draws_a_reward_per_state_on_the_grid_of_the_mdp_given(tmp_path, monkeypatch):
+    """A gridworld's one-hot rewards: with the run's MDP (--mdp or --domain) report draws each
+    skill's reward per state on the grid (the states' 2-D coordinates); another MDP is refused."""
+    from npbrs.domains.worlds.grid_world import grid_mdp
+    from npbrs.inference.analysis import plots
+
+    mdp = grid_mdp(size=5)
+    theta = np.zeros((4, 25))
+    theta[0, 4], theta[1, 20], theta[2, 12], theta[3, 0] = 5.0, -5.0, 2.0, 1.0
+    _counted_run(tmp_path / "run.nc", theta=theta, mdp=mdp)
+    save_mdp(mdp, tmp_path / "grid.npz")
+    drawn = {}
+    monkeypatch.setattr(plots, "plot_trace", lambda *a, **k: None)
+    monkeypatch.setattr(plots, "plot_skill_rewards", lambda mean, names, path, **k: drawn.update(k, mean=mean))
+    code, stdout, stderr = run_main(["report", tmp_path / "run.nc", "--mdp", tmp_path / "grid.npz",
+                                     "--plots", tmp_path / "plots"])
+    assert code == 0, stderr
+    np.testing.assert_array_equal(drawn["coordinates"], mdp.state_vectors)  # feature d: state d's cell
+    np.testing.assert_allclose(drawn["mean"], theta)
+    assert "skill rewards plot" in stdout
+    drawn.clear()
+    code, _, stderr = run_main(["report", tmp_path / "run.nc", "--plots", tmp_path / "plots"])
+    assert code == 0, stderr
+    assert drawn.get("coordinates") is None  # no MDP: the heat map
+    save_mdp(grid_mdp(size=5, slip=0.2), tmp_path / "other.npz")
+    code, _, stderr = run_main(["report", tmp_path / "run.nc", "--mdp", tmp_path / "other.npz"])
+    assert code == 2 and "another MDP" in stderr, stderr

@@ -23,8 +23,8 @@ import numpy as np
 
 from .metrics import paper_labelling
 
-__all__ = ["SkillStyle", "skill_styles", "true_styles", "plot_segmentation", "plot_trace", "plot_skill_rewards",
-           "plot_skill_probabilities"]
+__all__ = ["SkillStyle", "skill_styles", "true_styles", "shown_segmentation", "run_styles", "skill_legend",
+           "plot_segmentation", "plot_trace", "plot_skill_rewards", "plot_skill_probabilities"]
 
 # tab10 without its grey, which is kept for unmatched skills
 PALETTE = ("#1f77b4", "#ff7f0e", "#2ca02c", "#d62728", "#9467bd", "#8c564b", "#e377c2", "#bcbd22", "#17becf")
@@ -108,6 +108,54 @@ def skill_styles(true, inferred, labels: Optional[Sequence[str]] = None) -> Dict
     return dict(sorted(styles.items()))
 
 
+def shown_segmentation(result):
+    """The segmentation a run's figures and summaries show (``npbrs report``, ``npbrs segment``):
+    each step's most probable skill over the draws (:meth:`FitResult.skill_probabilities`'
+    labels) or, for a run saved without the per-step counts, the best draw's.
+
+    Args:
+        result: a FitResult.
+    Returns:
+        (per-trajectory labels, what they are in words).
+    """
+    if getattr(result, "step_skill_counts", None) is not None:  # (no MDP needed: counted over the draws)
+        return result.skill_probabilities().labels, "per-step labels (most probable skill over the draws)"
+    return list(result.segmentation), "the best draw's segmentation (the run kept no per-step counts)"
+
+
+def run_styles(result, labels: Optional[Sequence[str]] = None) -> Dict[int, SkillStyle]:
+    """How a run's skills are drawn in every figure of the run: :func:`skill_styles` of
+    :func:`shown_segmentation` against the run's true skills (when its demonstrations hold them),
+    the styles of the report's segmentation figure.
+
+    Args:
+        result: a FitResult.
+        labels: names of the true skills (default "true 0", "true 1", ...).
+    Returns:
+        {skill: SkillStyle} for every skill the shown segmentation uses (:func:`skill_legend`
+        gives the others grey).
+    """
+    true = result.demos.skills if result.demos is not None else None
+    return skill_styles(true, shown_segmentation(result)[0], labels)
+
+
+def skill_legend(styles: Dict[int, SkillStyle], num_skills: int, with_true: bool = True):
+    """Each of a run's skills' colour and legend name from its ``styles`` (:func:`run_styles`):
+    skill k's colour, grey (``UNMATCHED``) for a skill without a style, and "skill k (its true
+    skill's name)".
+
+    Args:
+        styles: {skill: SkillStyle}.
+        num_skills: the run's number of skills.
+        with_true: whether the styles' names are true skills' (else "skill k" alone).
+    Returns:
+        (colours, names), each a list of ``num_skills``.
+    """
+    colours = [styles[k].colour if k in styles else UNMATCHED for k in range(num_skills)]
+    names = [f"skill {k}" + (f" ({styles[k].name})" if k in styles and with_true else "") for k in range(num_skills)]
+    return colours, names
+
+
 def _save(fig, path) -> None:
     """Write a figure as PNG atomically: a temporary file in the same folder, then a rename."""
     from matplotlib.backends.backend_agg import FigureCanvasAgg
@@ -156,8 +204,9 @@ def plot_segmentation(true, inferred: Dict[str, Sequence], path, labels: Optiona
     Per trajectory, one row per method (the true sequence first), each step coloured by its
     skill's label (see the module docstring). Up to ``PANELS`` trajectories get a panel each;
     more (behaviour data: hundreds of short trajectories) are stacked in one raster, a block of
-    rows per trajectory, so that the picture stays a picture (200 panels were a PNG 12,000
-    pixels tall that took 6 s to draw).
+    rows per trajectory and a white gap a row high after it, so that the picture stays a picture
+    (200 panels were a PNG 12,000 pixels tall that took 6 s to draw); every trajectory is
+    labelled while the labels fit (about 100), else every n-th, as the axis label says.
 
     Args:
         true: per-trajectory true skill sequences, or None.

@@ -187,6 +187,11 @@ def _add_report(sub):
     p.add_argument("--plots", metavar="DIR", help="save trace.png, segmentation.png and (for rewards) "
                                                   "skill_rewards.png in DIR")
     p.add_argument("--prob", type=float, default=0.9, help="credible interval mass (0.9)")
+    world = p.add_mutually_exclusive_group()
+    world.add_argument("--domain", help="the registered domain the run was fitted in (optional): with a reward "
+                                        "weight per state and states of 2-D coordinates (a grid), skill_rewards.png "
+                                        "draws each skill's rewards on the grid")
+    world.add_argument("--mdp", help="the MDP file the run was fitted in (optional; as --domain)")
     p.set_defaults(func=report_command)
     return p
 
@@ -205,9 +210,24 @@ def report_command(args) -> int:
         return command_error("report", problem)
     try:
         result = load_run(args.run)
+        mdp = load_world_mdp(args) if args.domain or args.mdp else None
+        if mdp is not None:
+            result.check_mdp(mdp)
     except (OSError, ValueError) as e:
         return command_error("report", e)
     print(result.summary())
+    # what the figures show (the summary's first line is the best draw's), scored against the truth
+    from ..analysis.plots import shown_segmentation
+
+    shown, what = shown_segmentation(result)
+    z = np.concatenate(shown)
+    used = skills_used(shown, result.num_skills, "the best draw's")
+    print(f"\n{what}, as the segmentation plot draws them: {used}; "
+          f"{np.mean([np.count_nonzero(np.diff(s)) for s in shown]):.2f} switches per trajectory; steps per skill: "
+          + ", ".join(f"{k}: {n}" for k, n in enumerate(np.bincount(z, minlength=result.num_skills)) if n))
+    if result.demos is not None and result.demos.skills is not None:
+        counted = getattr(result, "step_skill_counts", None) is not None
+        print(truth_scores(result.demos.skills, shown, result.segmentation if counted else None))
     print("\nconvergence of the label-invariant scalars:")
     with pd.option_context("display.width", 120, "display.max_columns", 20):
         print(diagnostics.convergence(result).to_string())
@@ -221,34 +241,84 @@ def report_command(args) -> int:
             print(diagnostics.skill_summary(result, "theta", prob=args.prob, top=top).to_string())
     if args.plots:
         os.makedirs(args.plots, exist_ok=True)  # (one level: its parent was checked above)
-        for name, path in save_plots(result, args.plots).items():
+        for name, path in save_plots(result, args.plots, mdp=mdp).items():
             print(f"wrote the {name} plot {path}")
     return 0
 
 
-def save_plots(result, directory, skill_names=None) -> dict:
+def skills_used(labels, num_skills: int, whose: str, listed: bool = True) -> str:
+    """How many of a run's skills a segmentation uses, in words ("3 of the best draw's 4 skills
+    (0, 1, 2; skill 3 is no step's most probable)"): what report and segment print and title
+    their figures with.
+
+    Args:
+        labels: per-trajectory skill sequences.
+        num_skills: how many skills there are.
+        whose: whose skills they are ("the best draw's", "the run's").
+        listed: whether to list the skills used (and those not).
+    Returns:
+        the words.
+    """
+    import numpy as np
+
+    used = [int(k) for k in np.unique(np.concatenate([np.asarray(z, dtype=np.int64) for z in labels]))]
+    text = f"{len(used)} of {whose} {num_skills} skill{'' if num_skills == 1 else 's'}"
+    if not listed:
+        return text
+    rest = [k for k in range(num_skills) if k not in used]
+    unused = f"; skill{'s' if len(rest) > 1 else ''} {', '.join(map(str, rest))} {'are' if len(rest) > 1 else 'is'} " \
+             "no step's most probable" if rest else ""
+    return f"{text} ({', '.join(map(str, used))}{unused})"
+
+
+def truth_scores(true, labels, best=None) -> str:
+    """A segmentation scored against the true skills, in words: the paper's accuracy (an inferred
+    skill takes the true skill of more than half its steps), the one-to-one (Hungarian) accuracy
+    and the switches per trajectory, the truth's too.
+
+    Args:
+        true: per-trajectory true skills.
+        labels: per-trajectory inferred skills (the same lengths).
+        best: optionally the best draw's segmentation, whose one-to-one accuracy is added.
+    Returns:
+        the line.
+    """
+    import numpy as np
+
+    from ..analysis.metrics import hungarian_accuracy, num_switches, paper_accuracy
+
+    count = len(np.unique(np.concatenate([np.asarray(z) for z in true])))
+    than_best = "" if best is None else f"; the best draw's {hungarian_accuracy(true, best):.3f}"
+    return (f"against the true skills ({count}): accuracy {paper_accuracy(true, labels):.3f} (paper's >50% "
+            f"labelling), {hungarian_accuracy(true, labels):.3f} (one-to-one{than_best}); switches per trajectory "
+            f"{num_switches(labels):.2f} (true {num_switches(true):.2f})")
+
+
+def save_plots(result, directory, skill_names=None, mdp=None) -> dict:
     """A run's trace, segmentation (each step's most probable skill counted over the draws,
-    :meth:`FitResult.skill_probabilities`, or the best draw's for a run without the counts;
-    against the true skills when known) and, for rewards,
-    skill reward plots, and for a run with state-dependent ends its skills' end probabilities,
-    as PNG files in ``directory``; returns {plot: path}."""
+    :meth:`FitResult.skill_probabilities`, or the best draw's for a run without the counts:
+    :func:`~npbrs.inference.analysis.plots.shown_segmentation`; against the true skills when
+    known) and, for rewards, skill reward plots (with ``mdp``, the MDP of the run, a reward per
+    state of 2-D states on their grid), and for a run with state-dependent ends its skills' end
+    probabilities, as PNG files in ``directory``; every figure colours a skill alike
+    (:func:`~npbrs.inference.analysis.plots.run_styles`). Returns {plot: path}."""
     from ..analysis import plots
 
     paths = {name: os.path.join(directory, f"{name.replace(' ', '_')}.png")
              for name in ("trace", "segmentation", "skill rewards", "skill ends")}
     plots.plot_trace(result, paths["trace"])
     true = result.demos.skills if result.demos is not None else None
-    if getattr(result, "step_skill_counts", None) is not None:  # (no MDP needed: counted over the draws)
-        shown, title = result.skill_probabilities().labels, "npbrs: each step's most probable skill over the draws"
-    else:  # a run saved before the counts were kept
-        shown, title = result.segmentation, "npbrs: the best draw's segmentation"
+    shown, what = plots.shown_segmentation(result)
+    title = f"npbrs: {what}: " + skills_used(shown, result.num_skills, "the best draw's", listed=False)
     styles = plots.plot_segmentation(true, {"npbrs": shown}, paths["segmentation"], labels=skill_names,
                                      title=title)["npbrs"]
     if "theta" in result.skill_params:
         names, mean, interval, colours, labels = reward_plot_inputs(result, styles, with_true=true is not None)
-        drawn = "posterior mean and 90% interval" if len(names) <= plots.BARS else "posterior mean"  # (a heat map)
+        cells = None if mdp is None else state_cells(mdp, len(names))
+        drawn = "posterior mean and 90% interval" if len(names) <= plots.BARS and cells is None else \
+            "posterior mean"  # (a heat map or a grid)
         plots.plot_skill_rewards(mean, names, paths["skill rewards"], skill_names=labels, interval=interval,
-                                 colours=colours, title=f"reward weights: {drawn}")
+                                 colours=colours, title=f"reward weights: {drawn}", coordinates=cells)
     else:
         del paths["skill rewards"]
     if "ends" in result.samples:
@@ -276,9 +346,32 @@ def reward_plot_inputs(result, styles, with_true: bool = True, prob: float = 0.9
     best = np.asarray(result.skill_params["theta"], dtype=np.float64)
     mean, lower, upper = (np.where(np.isnan(v), best, v) for v in
                           (table[col].to_numpy(dtype=np.float64).reshape(K, D) for col in ("mean", "lower", "upper")))
-    colours = [styles[k].colour if k in styles else plots.UNMATCHED for k in range(K)]
-    labels = [f"skill {k}" + (f" ({styles[k].name})" if k in styles and with_true else "") for k in range(K)]
+    colours, labels = plots.skill_legend(styles, K, with_true)
     return names, mean, (lower, upper), colours, labels
+
+
+def state_cells(mdp, num_features: int):
+    """Each reward feature's state's 2-D coordinates, where the features are one-hot state
+    features (a reward weight per state) and the states have 2-D coordinates
+    (``mdp.state_vectors`` of 2 columns, e.g. a grid's (row, column)); else None.
+
+    Args:
+        mdp: the run's TabularMDP.
+        num_features: the run's number of reward weights per skill.
+    Returns:
+        (num_features, 2) coordinates, or None.
+    """
+    import numpy as np
+
+    cells = getattr(mdp, "state_vectors", None)
+    features = np.asarray(mdp.features)
+    if cells is None or np.shape(cells)[1] != 2 or features.shape[-1] != num_features or len(cells) != num_features:
+        return None  # (one-hot state features: a feature per state)
+    phi = features[:, 0]
+    if not (np.all(features == phi[:, None]) and np.all((phi == 0) | (phi == 1)) and np.all(phi.sum(1) == 1)
+            and np.all(phi.sum(0) == 1)):
+        return None
+    return np.asarray(cells, dtype=np.float64)[np.argmax(phi, axis=0)]  # feature d: the state it is 1 in
 
 
 # ------------------------------------------------------------------------------------ demo

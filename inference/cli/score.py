@@ -104,17 +104,27 @@ def segment_command(args) -> int:
                 np.savez(f, labels=labels, probs=probs, lengths=lengths)
 
         atomic_write(args.output, write, suffix=".npz.tmp")
-        if args.plot:
-            from ..analysis.plots import plot_skill_probabilities
+        if args.plot:  # each skill in the colour of the run's other figures (npbrs report's)
+            from ..analysis import plots
+            from .main import skills_used
 
-            plot_skill_probabilities(out.probs, args.plot, title=f"{os.path.basename(args.demos)}: skills of "
-                                                                f"{os.path.basename(args.run)}")
+            colours, names = plots.skill_legend(plots.run_styles(run), K, run.demos is not None
+                                                and run.demos.skills is not None)
+            plots.plot_skill_probabilities(out.probs, args.plot, skill_names=names, colours=colours,
+                                           title=f"{os.path.basename(args.demos)}: skills of "
+                                                 f"{os.path.basename(args.run)}; most probable: "
+                                                 f"{skills_used(out.labels, K, 'its', listed=False)}")
     except (OSError, ValueError) as e:
         return command_error("segment", e)
+    from .main import skills_used, truth_scores
+
     switches = [int(np.count_nonzero(np.diff(z))) for z in out.labels]
     used = np.bincount(np.concatenate(out.labels), minlength=K)
-    print(f"segmented {N} trajectories ({int(lengths.sum())} steps) into the run's {K} skills: steps per skill "
-          + ", ".join(f"{k}: {n}" for k, n in enumerate(used)) + f"; {np.mean(switches):.2f} switches per trajectory")
+    print(f"segmented {N} trajectories ({int(lengths.sum())} steps); each step's most probable skill: "
+          + skills_used(out.labels, K, "the run's") + "; steps per skill "
+          + ", ".join(f"{k}: {n}" for k, n in enumerate(used) if n) + f"; {np.mean(switches):.2f} switches per trajectory")
+    if demos.skills is not None:
+        print(truth_scores(demos.skills, out.labels))
     confident = float(np.mean(np.concatenate([p.max(-1) for p in out.probs]) > 0.9))
     other = 1.0 - float(np.mean(np.concatenate([p.sum(-1) for p in out.probs])))
     print(f"{confident:.0%} of the steps have a skill of probability above 0.9"
