@@ -285,7 +285,7 @@ def test_a_state_ends_fit_too_large_to_keep_its_draws_is_refused_before_compilin
     mdp = open_gridworld(400)  # 160,000 states
     from npbrs.domains import Demonstrations
 
-    demos = Demonstrations([np.array([0, 1, 2])], [np.array([0, 0, 0])])
+    demos = Demonstrations([np.array([0, 1, 2])], [np.array([1, 1, 1])])  # (moves this MDP can make)
     with pytest.raises(ValueError, match="switching='state' keeps each draw's end probabilities"):
         fit(mdp, demos, {"switching": "state"}, num_samples=200, progress_bar=False)
 
