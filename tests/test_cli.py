@@ -441,9 +441,9 @@ def test_report_draws_a_reward_per_state_on_the_grid_of_the_mdp_given(tmp_path, 
     np.testing.assert_allclose(drawn["mean"], theta)
     assert "skill rewards plot" in stdout
     drawn.clear()
-    code, _, stderr = run_main(["report", tmp_path / "run.nc", "--plots", tmp_path / "plots"])
+    code, stdout, stderr = run_main(["report", tmp_path / "run.nc", "--plots", tmp_path / "plots"])
     assert code == 0, stderr
-    assert drawn.get("coordinates") is None  # no MDP: the heat map
+    assert drawn.get("coordinates") is None and "--domain or --mdp" in stdout  # no MDP: the heat map, and how
     save_mdp(grid_mdp(size=5, slip=0.2), tmp_path / "other.npz")
     code, _, stderr = run_main(["report", tmp_path / "run.nc", "--mdp", tmp_path / "other.npz"])
     assert code == 2 and "another MDP" in stderr, stderr

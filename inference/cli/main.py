@@ -243,6 +243,11 @@ def report_command(args) -> int:
         os.makedirs(args.plots, exist_ok=True)  # (one level: its parent was checked above)
         for name, path in save_plots(result, args.plots, mdp=mdp).items():
             print(f"wrote the {name} plot {path}")
+        from ..analysis.plots import BARS
+
+        if mdp is None and "theta" in result.skill_params and np.shape(result.skill_params["theta"])[-1] > BARS:
+            print("(a heat map of many reward weights; with a weight per state, give the run's --domain or --mdp "
+                  "to draw them on the states' grid)")
     return 0
 
 
