@@ -74,9 +74,20 @@ def check_table(result, runs):
     assert [t["met"] is not None for t in result["targets"]] == [True] * 5
 
 
+def check_targets_met(result):
+    """The true skills meet every target: the expert's reward and switches, at most 4 skills,
+    accuracy 1, ahead of the subgoal and unsegmented baselines (which the markdown says)."""
+    targets = result["targets"]
+    assert [t["met"] for t in targets] == [True] * 5, targets
+    assert targets[0]["value"] == "100.0%" and targets[2]["value"].endswith("(+0%)") and targets[3]["value"] == "1.000"
+    text = format_markdown(result)
+    assert "NOT met" not in text and sum(f"- {t['target']}: met" in text for t in targets) == 5
+
+
 def test_a_reproduction_with_the_true_skills_scores_as_the_expert(oracle_fit, tmp_path):
     result = reproduce("highway", 40, runs=2, num_trajectories=2, quick=True, plots_dir=tmp_path, progress=False)
     check_table(result, runs=2)
+    check_targets_met(result)
     table = result["table"]
     # common random numbers: the true segmentation with the true rewards replays the expert exactly
     assert table["reward"]["npbrs"]["mean"] == table["reward"]["expert"]["mean"]
@@ -99,6 +110,32 @@ def test_a_reproduction_with_the_true_skills_scores_as_the_expert(oracle_fit, tm
         assert f"| {label} |" in text
     assert "| | Expert | NPBRS | Subgoal | IRL | LDS |" in text
     assert "2 of 2 runs" in text and "Targets:" in text
+
+
+def targets_table(reward=98.0, skills=4.0, switches=12.5, accuracy=0.90, irl=0.0, expert_switches=10.0):
+    """A table of one run's means (expert reward 100) for ``_targets``."""
+    means = {"reward": {"expert": 100.0, "npbrs": reward, "subgoal": -50.0, "irl": irl, "lds": None},
+             "skills": {"expert": 3.0, "npbrs": skills}, "switches": {"expert": expert_switches, "npbrs": switches},
+             "paper_accuracy": {"npbrs": accuracy}}
+    return {row: {col: None if v is None else {"mean": v, "sd": None, "n": 1} for col, v in cells.items()}
+            for row, cells in means.items()}
+
+
+def test_the_targets_are_met_at_their_bounds_and_not_past_them():
+    """``_targets`` on constructed tables: every target met exactly at its bound (98% of the
+    expert's reward, 4 skills, switches 25% off the expert's, accuracy 0.90, any margin over
+    the baselines); each one moved past its bound alone is NOT met, the others still are; one
+    that cannot be measured is None."""
+    met = lambda table, methods=METHODS: [t["met"] for t in rep._targets(table, list(methods))]  # noqa: E731
+    assert met(targets_table()) == [True] * 5
+    assert met(targets_table(switches=7.5)) == [True] * 5
+    past = [("reward", 97.9, 0), ("skills", 4.1, 1), ("switches", 12.6, 2), ("switches", 7.4, 2),
+            ("accuracy", 0.899, 3), ("irl", 98.0, 4)]
+    for name, value, which in past:
+        assert met(targets_table(**{name: value})) == [i != which for i in range(5)], (name, value)
+    assert met(targets_table(expert_switches=0.0))[2] is None  # (no relative error to the expert's 0)
+    assert met(targets_table(), ("npbrs", "lds"))[4] is None  # (no baseline to be ahead of)
+    assert rep._targets(targets_table(), ["irl"]) == []
 
 
 def test_a_stopped_reproduction_resumes_with_its_finished_runs(oracle_fit):
@@ -183,6 +220,7 @@ def test_the_reproduce_command_writes_json_markdown_and_plots(oracle_fit, tmp_pa
     assert args.func(args) == 0
     result = load_json(tmp_path / "r.json")
     check_table(result, runs=1)
+    check_targets_met(result)
     assert (result["length"], result["num_trajectories"]) == (40, 2)
     assert (tmp_path / "r.md").read_text() == format_markdown(result)
     assert os.listdir(tmp_path / "plots") == ["highway-40-run0.png"]
