@@ -187,7 +187,14 @@ def test_the_reward_emissions_programs_call_no_library_kernel(monkeypatch):
     few = generate_demonstrations(dom, num_trajectories=4, length=20, switch_prob=0.05, seed=0)
     one_hot = labyrinth_mdp(depth=3)  # 15 states, a reward weight each
     rng = np.random.default_rng(0)
-    per_state = Demonstrations(rng.integers(0, 15, (3, 10)), rng.integers(0, 4, (3, 10)))
+    states, actions = np.zeros((3, 10), int), rng.integers(0, 4, (3, 10))
+    for i in range(3):  # (a random walk the MDP can make: fit checks the transitions)
+        states[i, 0] = rng.integers(0, 15)
+        for t in range(1, 10):
+            s, a = states[i, t - 1], actions[i, t - 1]
+            possible = one_hot.successors[s, a][one_hot.probs[s, a] > 0]
+            states[i, t] = rng.choice(possible)
+    per_state = Demonstrations(states, actions)
     for mdp, demos in ((dom.mdp, few), (one_hot, per_state)):
         texts = _program_texts(monkeypatch, mdp, demos, {"emission": "reward", "max_skills": 3}, num_chains=2,
                                num_warmup=4, num_samples=2)

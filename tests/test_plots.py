@@ -160,16 +160,16 @@ def test_the_report_draws_rewards_as_posterior_means_in_the_segmentations_colour
 
 
 def _kept_figures(monkeypatch):
-    """{path: the Figure written there}: plots._save wrapped, so each figure is kept and written."""
+    """{path: the Figure written there}: plots.save_figure wrapped, so each figure is kept and written."""
     from npbrs.inference.analysis import plots
 
-    kept, save = {}, plots._save
+    kept, save = {}, plots.save_figure
 
     def keep(fig, path):
         kept[str(path)] = fig
         save(fig, path)
 
-    monkeypatch.setattr(plots, "_save", keep)
+    monkeypatch.setattr(plots, "save_figure", keep)
     return kept
 
 

@@ -156,8 +156,14 @@ def skill_legend(styles: Dict[int, SkillStyle], num_skills: int, with_true: bool
     return colours, names
 
 
-def _save(fig, path) -> None:
-    """Write a figure as PNG atomically: a temporary file in the same folder, then a rename."""
+def save_figure(fig, path) -> None:
+    """Write a figure as PNG atomically (a temporary file in the same folder, then a rename); every
+    plot function here writes through it.
+
+    Args:
+        fig: a matplotlib Figure.
+        path: the PNG file to write.
+    """
     from matplotlib.backends.backend_agg import FigureCanvasAgg
 
     FigureCanvasAgg(fig)
@@ -294,7 +300,7 @@ def plot_segmentation(true, inferred: Dict[str, Sequence], path, labels: Optiona
     if title:
         fig.suptitle(title, y=1.03)
     fig.subplots_adjust(hspace=hspace, top=1 - 0.6 / fig.get_figheight())
-    _save(fig, path)
+    save_figure(fig, path)
     return styles
 
 
@@ -355,7 +361,7 @@ def plot_skill_probabilities(probs: Sequence[np.ndarray], path, trajectories: Op
     if title:
         fig.suptitle(title, y=1.03)
     fig.subplots_adjust(hspace=0.45, top=1 - 0.6 / fig.get_figheight())
-    _save(fig, path)
+    save_figure(fig, path)
 
 
 def plot_trace(result, path) -> None:
@@ -403,7 +409,7 @@ def plot_trace(result, path) -> None:
     fig.legend(handles=[Line2D([], [], color=c, label=f"chain {i}") for i, c in enumerate(colours)],
                loc="upper center", ncol=min(chains, 8), fontsize=8, frameon=False, bbox_to_anchor=(0.5, 1.0))
     fig.tight_layout(rect=(0, 0, 1, 1 - 0.35 / fig.get_figheight()))
-    _save(fig, path)
+    save_figure(fig, path)
 
 
 def plot_skill_ends(ends, path, skill_names: Optional[Sequence[str]] = None, title: Optional[str] = None) -> None:
@@ -457,7 +463,7 @@ def _heat_map(values, path, row_names, xlabel: str, label: str, cmap: str, limit
     if title:
         ax.set_title(title)
     fig.tight_layout()
-    _save(fig, path)
+    save_figure(fig, path)
 
 
 def plot_skill_rewards(theta, feature_names: Sequence[str], path, skill_names: Optional[Sequence[str]] = None,
@@ -532,7 +538,7 @@ def plot_skill_rewards(theta, feature_names: Sequence[str], path, skill_names: O
     if title:
         ax.set_title(title)
     fig.tight_layout()
-    _save(fig, path)
+    save_figure(fig, path)
 
 
 def _reward_grids(theta, coordinates, path, names, colours, title=None) -> None:
@@ -580,4 +586,4 @@ def _reward_grids(theta, coordinates, path, names, colours, title=None) -> None:
     fig.colorbar(image, ax=drawn, label="reward weight", shrink=0.9)
     if title:
         fig.suptitle(title)
-    _save(fig, path)
+    save_figure(fig, path)

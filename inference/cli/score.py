@@ -106,7 +106,7 @@ def segment_command(args) -> int:
         atomic_write(args.output, write, suffix=".npz.tmp")
         if args.plot:  # each skill in the colour of the run's other figures (npbrs report's)
             from ..analysis import plots
-            from .main import skills_used
+            from .texts import skills_used
 
             colours, names = plots.skill_legend(plots.run_styles(run), K, run.demos is not None
                                                 and run.demos.skills is not None)
@@ -116,7 +116,7 @@ def segment_command(args) -> int:
                                                  f"{skills_used(out.labels, K, 'its', listed=False)}")
     except (OSError, ValueError) as e:
         return command_error("segment", e)
-    from .main import skills_used, truth_scores
+    from .texts import skills_used, truth_scores
 
     switches = [int(np.count_nonzero(np.diff(z))) for z in out.labels]
     used = np.bincount(np.concatenate(out.labels), minlength=K)
