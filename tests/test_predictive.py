@@ -98,7 +98,7 @@ def test_pointwise_log_likelihood_equals_enumeration_within_its_standard_error()
     (the delta method on the same samples' second moment) in every (draw, trajectory). Leaving
     the empty set out without renormalising put every value log P(nonempty) lower (0.05 to 0.31
     nats here, 8 to 30 standard errors)."""
-    from npbrs.inference.analysis.predictive import _draw_moments
+    from npbrs.inference.analysis.predictive import draw_moments
 
     policies, _ = draws(4)
     features = np.array([[[1, 0], [0, 1], [1, 0], [0, 1]], [[1, 1], [1, 0], [0, 1], [1, 0]],
@@ -111,7 +111,7 @@ def test_pointwise_log_likelihood_equals_enumeration_within_its_standard_error()
     run.demos = demos
     M = 4000
     values = run.add_log_likelihood(two_state_mdp(), num_samples=M, seed=3)  # (C, D, N)
-    moments = _draw_moments(run, two_state_mdp(), demos, np.arange(3), M, 3, None, leave_one_out=True)
+    moments = draw_moments(run, two_state_mdp(), demos, np.arange(3), M, 3, None, leave_one_out=True)
     se = np.sqrt(np.maximum(np.expm1(moments[:, :, 1] - 2 * moments[:, :, 0]), 0.0) / (M - 1))
     assert values.shape == (1, 3, 4) and np.all((se > 0) & (se < 0.05)), se
     N = features.shape[2]

@@ -43,7 +43,7 @@ from npbrs.domains.util.compiling import jit
 from npbrs.domains.util.precision import float64_all
 
 __all__ = ["HeldOut", "SkillProbabilities", "log_predictive", "pointwise_log_likelihood", "segment", "fitted_trajectories",
-           "skill_probabilities"]
+           "skill_probabilities"]  # (draw_moments, public for tests, is called inside these)
 
 _NOT_PARAMS = ("features", "skill_steps", "alpha", "kappa", "gamma", "ends", "end_mean")
 
@@ -121,7 +121,7 @@ def log_predictive(result, mdp, demos, *, num_samples: int = 64, num_draws: int 
                       "held-out demonstrations (FitResult.add_log_likelihood gives the fitted ones' leave-one-out "
                       "inputs)", UserWarning, stacklevel=3)
     C, D = np.shape(result.stats["log_joint"])
-    moments = _draw_moments(result, mdp, demos, _draw_indices(C, D, num_draws), num_samples, seed, emission,
+    moments = draw_moments(result, mdp, demos, _draw_indices(C, D, num_draws), num_samples, seed, emission,
                             leave_one_out=False)
     return _summarise(moments.reshape(-1, 3, len(demos.lengths)), num_samples, demos)
 
@@ -143,7 +143,7 @@ def pointwise_log_likelihood(result, mdp, *, num_samples: int = 32, seed: int = 
     if result.demos is None:
         raise ValueError("the run does not hold its demonstrations, which the pointwise log-likelihood needs")
     C, D = np.shape(result.stats["log_joint"])
-    moments = _draw_moments(result, mdp, result.demos, np.arange(D), num_samples, seed, emission, leave_one_out=True)
+    moments = draw_moments(result, mdp, result.demos, np.arange(D), num_samples, seed, emission, leave_one_out=True)
     return moments[:, :, 0, :] - moments[:, :, 2, :]
 
 
@@ -186,7 +186,7 @@ def segment(result, mdp, demos=None, *, num_samples: int = 32, num_draws: int = 
     n, T = len(demos.lengths), int(np.max(demos.lengths))
     total = np.full(n, -np.inf)
     acc = np.full((n, T, L), -np.inf)
-    for c, j, lm, post in _draw_moments(result, mdp, demos, idx, num_samples, seed, emission,
+    for c, j, lm, post in draw_moments(result, mdp, demos, idx, num_samples, seed, emission,
                                         leave_one_out=False, marginals=True, own_features=fitted):
         if fitted:
             # the draws already condition on the fitted trajectories: each draw's own posterior
@@ -212,15 +212,25 @@ def _check_counts(**values):
             raise ValueError(f"{name} must be an integer >= 1, got {value!r}")
 
 
-def _draw_moments(result, mdp, demos, idx, num_samples, seed, emission, leave_one_out, marginals=False,
+def draw_moments(result, mdp, demos, idx, num_samples, seed, emission, leave_one_out, marginals=False,
                   own_features=False):
-    """Per chain and chosen draw, the log first and second moments over the (f, eta) samples of
-    every trajectory's likelihood (an empty skill set's 0 included), and the log probability of
-    a nonempty skill set under the draw's predictive, (C, len(idx), 3, n). With ``marginals``,
-    instead a generator of (chain, draw, log sum_m p_m (n,), log sum_m p_m p(z_t = k | ...)_m
-    (n, T, K)) with p_m the
-    trajectory's likelihood under sample m; ``own_features``: the draw's own skill sets (fitted
-    trajectories) instead of the predictive."""
+    """The Monte Carlo moments behind the held-out scores (what :func:`log_predictive`,
+    :func:`pointwise_log_likelihood` and :func:`segment` reduce).
+
+    Args:
+        result, mdp, demos: the run, its MDP and the demonstrations scored.
+        idx: the draws used, indices into each chain's draws.
+        num_samples, seed: Monte Carlo samples of a trajectory's skill set and transition weights.
+        emission: the emission instance, or None (the run's configured one).
+        leave_one_out: each fitted trajectory's skill set from the predictive given the others.
+        marginals: instead, a generator of (chain, draw, log sum_m p_m (n,), log sum_m p_m
+            p(z_t = k | ...)_m (n, T, K)), p_m the trajectory's likelihood under sample m.
+        own_features: the draw's own skill sets (fitted trajectories) instead of the predictive.
+    Returns:
+        (C, len(idx), 3, n): per chain and draw, the log first and second moments over the
+        samples of every trajectory's likelihood (an empty skill set's 0 included), and the log
+        probability of a nonempty skill set under the draw's predictive.
+    """
     from npbrs.models.emissions import make_emission
     from ..threads import on_threads, threads_for
 

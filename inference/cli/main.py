@@ -392,8 +392,8 @@ def demo_command(args) -> int:
               "npbrs fit's defaults run 4 chains of 200 warmup and 200 sampling sweeps: docs/fitting.md)")
     # scored as the tables are: each step's most probable skill under the run's posterior
     labels = run_segmentation(result, domain.mdp)
-    print(f"\nsegmentation vs the true skills (each step's most probable skill): {result.num_skills} skills found "
-          f"(true: {domain.num_skills}); accuracy {paper_accuracy(demos.skills, labels):.3f} (paper's >50% "
+    print(f"\nsegmentation vs the true skills (each step's most probable skill): "
+          f"{skills_used(labels, result.num_skills, 'the best draw', listed=False)} (true: {domain.num_skills}); accuracy {paper_accuracy(demos.skills, labels):.3f} (paper's >50% "
           f"labelling), {hungarian_accuracy(demos.skills, labels):.3f} (one-to-one; the best draw's "
           f"{hungarian_accuracy(demos.skills, result.segmentation):.3f}); switches per trajectory "
           f"{num_switches(labels):.2f} (true {num_switches(demos.skills):.2f})")
