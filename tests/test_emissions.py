@@ -45,7 +45,7 @@ def test_unknown_emission_names_are_rejected_with_the_known_ones():
     assert "policy" in EMISSIONS
 
 
-@pytest.mark.parametrize("name", sorted(EMISSIONS))
+@pytest.mark.parametrize("name", sorted(n for n, c in EMISSIONS.items() if c.__module__.startswith("npbrs.")))
 def test_each_registered_emissions_declared_capabilities_are_what_its_methods_take(name):
     """The sampler reads an emission's capabilities from its flags, never from its signatures:
     here the flags are checked against the signatures, so that a method that gains or loses a
