@@ -141,7 +141,7 @@ def pytest_configure(config):
 
 # The test files that take longest from an empty compilation cache, longest first, with the
 # seconds one worker spent in each (module fixtures included) in a cold run on this project's
-# 2-core machine (2026-12-04, ``NPBRS_TEST_COMPILE_LOG`` and ``--durations``). The suite runs each
+# 2-core machine (``NPBRS_TEST_COMPILE_LOG`` and ``--durations``). The suite runs each
 # file in one of two pytest-xdist workers, taking files in collection order
 # (``--no-loadscope-reorder`` in ``addopts``: xdist would otherwise order them by their number of
 # tests, which put the three-test file of default fits, the longest, near the end). Starting
