@@ -319,3 +319,30 @@ def pytest_terminal_summary(terminalreporter, exitstatus, config):
     terminalreporter.write_line(f"npbrs: peak memory of the test process {own:.2f} GB, of its largest finished "
                                 f"child process {workers:.2f} GB")
 
+
+@pytest.fixture
+def no_compilation(monkeypatch):
+    """Fail if a fit gets as far as compiling the sampler: for checks that must come first."""
+    from npbrs.inference.driver.compiled import Compiled
+
+    def refuse(*args, **kwargs):
+        raise AssertionError("compiled before checking the input")
+
+    monkeypatch.setattr(Compiled, "init", refuse)
+    monkeypatch.setattr(Compiled, "step", refuse)
+
+
+def run_main(argv):
+    """(exit code, stdout, stderr) of ``npbrs ARGV``, in this process (compiled kernels are shared)."""
+    import contextlib
+    import io
+
+    from npbrs.inference.cli import main
+
+    out, err = io.StringIO(), io.StringIO()
+    with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+        try:
+            code = main([str(a) for a in argv])
+        except SystemExit as e:
+            code = e.code
+    return code, out.getvalue(), err.getvalue()

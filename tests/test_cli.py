@@ -1,8 +1,6 @@
 """The ``npbrs`` command line: every command has --help; the demo runs end to end; ``fit`` on the
 demo's files reproduces the demo's run; ``report`` prints R-hat and ESS and writes plots."""
 
-import contextlib
-import io
 import os
 import subprocess
 import sys
@@ -13,18 +11,8 @@ import pytest
 
 from npbrs.domains.mdp import TabularMDP
 from npbrs.inference import ConvergenceWarning, ModelConfig, load, save_mdp
-from npbrs.inference.cli import compilation_cache_dir, main
-
-
-def run_main(argv):
-    """(exit code, stdout, stderr) of ``npbrs ARGV``, in this process (compiled kernels are shared)."""
-    out, err = io.StringIO(), io.StringIO()
-    with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
-        try:
-            code = main([str(a) for a in argv])
-        except SystemExit as e:
-            code = e.code
-    return code, out.getvalue(), err.getvalue()
+from conftest import run_main
+from npbrs.inference.cli import compilation_cache_dir
 
 
 @pytest.mark.parametrize("command", ["generate", "fit", "report", "demo", "segment", "score", "compare"])

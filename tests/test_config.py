@@ -228,16 +228,6 @@ def test_a_registered_toy_emission_fits_through_the_config_by_name(tmp_path):
     assert not np.array_equal(again.stats["log_joint"][:, :4], result.stats["log_joint"])
 
 
-@pytest.fixture
-def no_compilation(monkeypatch):
-    """Fail if fit gets as far as compiling anything."""
-    def refuse(*args, **kwargs):
-        raise AssertionError("compiled before validating the input")
-
-    monkeypatch.setattr(compiled_module.Compiled, "init", refuse)
-    monkeypatch.setattr(compiled_module.Compiled, "step", refuse)
-
-
 @pytest.mark.parametrize("change, message", [
     (dict(emission="no_such_emission"), "unknown emission 'no_such_emission'"),
     (dict(max_skills=0), "max_skills: expected an integer >= 1"),

@@ -3,42 +3,17 @@ starts: output folders that do not exist, runs that would be overwritten, demons
 cannot make, runs of other data or of another kind of likelihood, a credible mass outside (0, 1);
 and a held-out score of the fitted trajectories says so."""
 
-import contextlib
-import io
-
 import numpy as np
 import pytest
 
+from conftest import run_main
 from gridworld import gridworld
 from npbrs.domains import Demonstrations
 from npbrs.inference import FitResult, fit
 from npbrs.inference.analysis.predictive import fitted_trajectories, log_predictive
-from npbrs.inference.cli import main
-from npbrs.inference.driver.compiled import Compiled
 
 
-def run_main(argv):
-    """(exit code, stdout, stderr) of ``npbrs ARGV`` in this process."""
-    out, err = io.StringIO(), io.StringIO()
-    with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
-        try:
-            code = main([str(a) for a in argv])
-        except SystemExit as e:
-            code = e.code
-    return code, out.getvalue(), err.getvalue()
-
-
-@pytest.fixture
-def no_work(monkeypatch):
-    """Fail if anything gets as far as compiling the sampler."""
-    def refuse(*args, **kwargs):
-        raise AssertionError("work started before the input was checked")
-
-    monkeypatch.setattr(Compiled, "init", refuse)
-    monkeypatch.setattr(Compiled, "step", refuse)
-
-
-def test_fit_refuses_a_missing_output_folder_and_an_existing_run_before_any_work(tmp_path, no_work):
+def test_fit_refuses_a_missing_output_folder_and_an_existing_run_before_any_work(tmp_path, no_compilation):
     # (the demonstrations file does not exist either: the output is checked first)
     code, _, err = run_main(["fit", tmp_path / "demos.npz", "--domain", "highway", "-o", tmp_path / "nodir" / "run.nc"])
     assert code == 2 and "nodir" in err and "does not exist" in err and "Traceback" not in err
@@ -54,7 +29,7 @@ def test_fit_refuses_a_missing_output_folder_and_an_existing_run_before_any_work
     assert code == 2 and "is a folder" in err
 
 
-def test_segment_report_and_compare_check_their_arguments_first(tmp_path, no_work):
+def test_segment_report_and_compare_check_their_arguments_first(tmp_path, no_compilation):
     missing = tmp_path / "run.nc"  # (no such run: each check comes before the run is read)
     code, _, err = run_main(["segment", missing, tmp_path / "d.npz", "--domain", "highway",
                              "-o", tmp_path / "nodir" / "labels.npz"])
@@ -96,7 +71,7 @@ def test_compare_refuses_other_data_other_kinds_and_one_run_twice_before_computi
     assert code == 2 and "hold the same run" in err
 
 
-def test_fit_refuses_demonstrations_the_mdp_cannot_make_before_compiling(no_work):
+def test_fit_refuses_demonstrations_the_mdp_cannot_make_before_compiling(no_compilation):
     mdp = gridworld(size=4).mdp
     # every index in range, but 0 -> 15 is a jump across the grid
     demos = Demonstrations([np.array([0, 1, 2, 3]), np.array([0, 15, 14, 13])], [np.zeros(4, int), np.zeros(4, int)])

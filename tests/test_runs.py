@@ -17,7 +17,6 @@ from npbrs.domains.mdp import TabularMDP
 from npbrs.inference import ModelConfig, fit, load, load_mdp, resolve_config, save_mdp
 from npbrs.inference.driver.runs import atomic_write, read_checkpoint
 
-from npbrs.inference.driver.compiled import Compiled
 
 CONFIG = """
 max_skills = 3
@@ -128,15 +127,6 @@ def test_a_killed_run_resumed_equals_an_uninterrupted_run_bit_for_bit(workdir, k
     assert resumed.equals(whole_run)
     np.testing.assert_array_equal(resumed.samples["policy"], whole_run.samples["policy"])
     assert resumed.wall_time > 0
-
-
-@pytest.fixture
-def no_compilation(monkeypatch):
-    def refuse(*args, **kwargs):
-        raise AssertionError("compiled before checking the checkpoint")
-
-    monkeypatch.setattr(Compiled, "init", refuse)
-    monkeypatch.setattr(Compiled, "step", refuse)
 
 
 def test_resume_refuses_a_checkpoint_of_other_demonstrations_config_or_start(workdir, killed, no_compilation):
