@@ -236,8 +236,9 @@ def test_score_and_compare_held_out_demonstrations(demo, tmp_path):
     assert code == 2 and "at least two" in stderr
 
 
-def test_segment_writes_the_skills_of_new_demonstrations(demo, tmp_path):
-    out, _ = demo
+def _segment_new_demonstrations(out, tmp_path) -> str:
+    """``npbrs segment`` of the demo's run on 3 new highway trajectories of 25 steps (new.npz),
+    writing labels.npz and labels.png in ``tmp_path``; returns what it printed."""
     code, _, stderr = run_main(["generate", "highway", "--trajectories", "3", "--length", "25", "--seed", "8",
                                 "-o", tmp_path / "new.npz"])
     assert code == 0, stderr
@@ -245,6 +246,12 @@ def test_segment_writes_the_skills_of_new_demonstrations(demo, tmp_path):
                                      "--samples", "4", "--draws", "3", "-o", tmp_path / "labels.npz",
                                      "--plot", tmp_path / "labels.png"])
     assert code == 0, stderr
+    return stdout
+
+
+def test_segment_writes_the_skills_of_new_demonstrations(demo, tmp_path):
+    out, _ = demo
+    stdout = _segment_new_demonstrations(out, tmp_path)
     assert "segmented 3 trajectories (75 steps)" in stdout
     with np.load(tmp_path / "labels.npz") as f:
         labels, probs, lengths = f["labels"], f["probs"], f["lengths"]
@@ -384,13 +391,7 @@ def test_segment_scores_against_the_truth_and_colours_skills_as_report_does(demo
     monkeypatch.setattr(plots, "plot_skill_probabilities", lambda *a, **k: seen.setdefault(
         "segment", (a, k)) and draw_probabilities(*a, **k))
     save_plots(run, tmp_path)
-    code, _, stderr = run_main(["generate", "highway", "--trajectories", "3", "--length", "25", "--seed", "8",
-                                "-o", tmp_path / "new.npz"])
-    assert code == 0, stderr
-    code, stdout, stderr = run_main(["segment", out / "run.nc", tmp_path / "new.npz", "--domain", "highway",
-                                     "--samples", "4", "--draws", "3", "-o", tmp_path / "labels.npz",
-                                     "--plot", tmp_path / "labels.png"])
-    assert code == 0, stderr
+    stdout = _segment_new_demonstrations(out, tmp_path)
     with np.load(tmp_path / "labels.npz") as f:
         labels = [z[:n] for z, n in zip(f["labels"], f["lengths"])]
     true = Demonstrations.load(tmp_path / "new.npz").skills
