@@ -121,7 +121,7 @@ def test_fit_on_the_demos_files_reproduces_the_demos_run(demo):
     code, stdout, stderr = run_main(["fit", out / "demos.npz", "--domain", "highway", "--config", out / "config.toml",
                                      "-o", out / "again.nc", "--checkpoint-every", "3", "--no-progress"])
     assert code == 0, stderr
-    assert "skills in 3 trajectories" in stdout
+    assert " in 3 trajectories (" in stdout
     assert not (out / "again.nc.checkpoint.npz").exists()  # removed once the run is saved
     assert load(out / "again.nc").equals(load(out / "run.nc"))
     # options override the config
@@ -334,9 +334,9 @@ def _counted_run(path, theta=None, mdp=None):
 
 
 def test_report_states_the_skills_its_figure_shows_and_the_accuracy_against_the_truth(tmp_path, monkeypatch):
-    """The summary's first line is the best draw's (4 skills); the segmentation figure draws the
-    per-step labels (3 skills): report says so next to the summary and in the figure's title,
-    and scores those labels against the run's true skills (both accuracies and switches)."""
+    """The summary's first line counts the skills of the per-step labels the segmentation figure
+    draws (3 skills), and a line after it the best draw's (4): the figure's title says the same,
+    and report scores those labels against the run's true skills (both accuracies and switches)."""
     from npbrs.inference.analysis import plots
     from npbrs.inference.analysis.metrics import hungarian_accuracy, num_switches, paper_accuracy
 
@@ -349,9 +349,10 @@ def test_report_states_the_skills_its_figure_shows_and_the_accuracy_against_the_
         (inferred["npbrs"], k.get("title"))) or {"npbrs": plots.skill_styles(true, inferred["npbrs"])})
     code, stdout, stderr = run_main(["report", tmp_path / "run.nc", "--plots", tmp_path / "plots"])
     assert code == 0, stderr
-    assert stdout.startswith("4 skills")  # (the summary: the best draw's)
-    line = next(s for s in stdout.splitlines() if s.startswith("per-step labels"))
-    assert "most probable skill over the draws" in line and "3 of the best draw's 4 skills (0, 1, 2;" in line, line
+    first = stdout.splitlines()[0]
+    assert first.startswith("3 skills in") and "most probable skill over the draws" in first, first
+    best = next(s for s in stdout.splitlines() if s.startswith("the best draw ("))
+    assert "4 skills" in best, best
     shown, title = drawn[-1]
     assert all(np.array_equal(a, b) for a, b in zip(shown, labels))
     assert "most probable skill over the draws" in title and "3 of the best draw's 4 skills" in title, title

@@ -28,7 +28,8 @@ from scipy.optimize import linear_sum_assignment
 
 
 __all__ = ["convergence", "relabel", "relabelled_draws", "skill_summary", "LABEL_INVARIANT", "ConvergenceWarning",
-           "label_invariant_diagnostic", "unconverged", "convergence_warning", "summary", "reward_prior_text"]
+           "label_invariant_diagnostic", "unconverged", "convergence_warning", "summary", "reward_prior_text",
+           "shown_segmentation"]
 
 
 
@@ -293,6 +294,21 @@ def convergence_warning(result, rhat: Optional[Dict[str, float]] = None, ess: Op
             "until every R-hat is at most 1.05)")
 
 
+def shown_segmentation(result):
+    """The segmentation a run's figures and summaries show (``npbrs report``, ``npbrs segment``):
+    each step's most probable skill over the draws (:meth:`FitResult.skill_probabilities`'
+    labels) or, for a run saved without the per-step counts, the best draw's.
+
+    Args:
+        result: a FitResult.
+    Returns:
+        (per-trajectory labels, what they are in words).
+    """
+    if getattr(result, "step_skill_counts", None) is not None:  # (no MDP needed: counted over the draws)
+        return result.skill_probabilities().labels, "per-step labels (most probable skill over the draws)"
+    return list(result.segmentation), "the best draw's segmentation (the run kept no per-step counts)"
+
+
 def reward_prior_text(emission: dict, num_features: int = 0) -> str:
     """The reward prior and start a run used, from its emission's description
     (``FitResult.emission``): the prior's family and scale, and where the skills' rewards start;
@@ -328,11 +344,23 @@ def summary(result) -> str:
     Returns:
         the text, one line per item."""
     lengths = [len(s) for s in result.segmentation]
-    switches = np.mean([np.sum(s[1:] != s[:-1]) for s in result.segmentation])
-    counts = np.bincount(np.concatenate(result.segmentation), minlength=result.num_skills)
-    lines = [f"{result.num_skills} skills in {len(lengths)} trajectories ({sum(lengths)} steps); "
-             f"{switches:.2f} switches per trajectory; best log joint {result.best_log_joint:.1f} (chain {result.best_chain})",
-             "steps per skill: " + ", ".join(f"{k}: {c}" for k, c in enumerate(counts))]
+    shown, what = shown_segmentation(result)
+
+    def switches(labels):
+        return np.mean([np.count_nonzero(np.diff(s)) for s in labels])
+
+    counts = np.bincount(np.concatenate(shown), minlength=result.num_skills)
+    used = np.flatnonzero(counts)
+    lines = [f"{len(used)} skill{'' if len(used) == 1 else 's'} in {len(lengths)} trajectories ({sum(lengths)} "
+             f"steps), {switches(shown):.2f} switches per trajectory: {what}",
+             "steps per skill: " + ", ".join(f"{k}: {counts[k]}" for k in used)]
+    if shown is not result.segmentation:
+        best = np.bincount(np.concatenate(result.segmentation), minlength=result.num_skills)
+        lines.append(f"the best draw (log joint {result.best_log_joint:.1f}, chain {result.best_chain}): "
+                     f"{result.num_skills} skills, {switches(result.segmentation):.2f} switches per trajectory; "
+                     "steps per skill: " + ", ".join(f"{k}: {c}" for k, c in enumerate(best)))
+    else:
+        lines.append(f"best log joint {result.best_log_joint:.1f} (chain {result.best_chain})")
     prior = reward_prior_text(result.emission, len(result.feature_names))
     if prior:
         lines.append(prior)

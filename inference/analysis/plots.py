@@ -21,6 +21,7 @@ from typing import Dict, List, NamedTuple, Optional, Sequence
 
 import numpy as np
 
+from .diagnostics import shown_segmentation
 from .metrics import paper_labelling
 
 __all__ = ["SkillStyle", "skill_styles", "true_styles", "shown_segmentation", "run_styles", "skill_legend",
@@ -106,21 +107,6 @@ def skill_styles(true, inferred, labels: Optional[Sequence[str]] = None) -> Dict
         if t is None:
             styles[k] = SkillStyle("unmatched", UNMATCHED, None)
     return dict(sorted(styles.items()))
-
-
-def shown_segmentation(result):
-    """The segmentation a run's figures and summaries show (``npbrs report``, ``npbrs segment``):
-    each step's most probable skill over the draws (:meth:`FitResult.skill_probabilities`'
-    labels) or, for a run saved without the per-step counts, the best draw's.
-
-    Args:
-        result: a FitResult.
-    Returns:
-        (per-trajectory labels, what they are in words).
-    """
-    if getattr(result, "step_skill_counts", None) is not None:  # (no MDP needed: counted over the draws)
-        return result.skill_probabilities().labels, "per-step labels (most probable skill over the draws)"
-    return list(result.segmentation), "the best draw's segmentation (the run kept no per-step counts)"
 
 
 def run_styles(result, labels: Optional[Sequence[str]] = None) -> Dict[int, SkillStyle]:

@@ -217,15 +217,10 @@ def report_command(args) -> int:
     except (OSError, ValueError) as e:
         return command_error("report", e)
     print(result.summary())
-    # what the figures show (the summary's first line is the best draw's), scored against the truth
-    from ..analysis.plots import shown_segmentation
+    # (the summary's first lines count the skills of the segmentation the figures draw)
+    from ..analysis.diagnostics import shown_segmentation
 
-    shown, what = shown_segmentation(result)
-    z = np.concatenate(shown)
-    used = skills_used(shown, result.num_skills, "the best draw's")
-    print(f"\n{what}, as the segmentation plot draws them: {used}; "
-          f"{np.mean([np.count_nonzero(np.diff(s)) for s in shown]):.2f} switches per trajectory; steps per skill: "
-          + ", ".join(f"{k}: {n}" for k, n in enumerate(np.bincount(z, minlength=result.num_skills)) if n))
+    shown, _ = shown_segmentation(result)
     if result.demos is not None and result.demos.skills is not None:
         counted = getattr(result, "step_skill_counts", None) is not None
         print(truth_scores(result.demos.skills, shown, result.segmentation if counted else None))
@@ -255,18 +250,18 @@ def report_command(args) -> int:
 def save_plots(result, directory, skill_names=None, mdp=None) -> dict:
     """A run's trace, segmentation (each step's most probable skill counted over the draws,
     :meth:`FitResult.skill_probabilities`, or the best draw's for a run without the counts:
-    :func:`~npbrs.inference.analysis.plots.shown_segmentation`; against the true skills when
+    :func:`~npbrs.inference.analysis.diagnostics.shown_segmentation`; against the true skills when
     known) and, for rewards, skill reward plots (with ``mdp``, the MDP of the run, a reward per
     state of 2-D states on their grid), and for a run with state-dependent ends its skills' end
     probabilities, as PNG files in ``directory``; every figure colours a skill alike
     (:func:`~npbrs.inference.analysis.plots.run_styles`). Returns {plot: path}."""
-    from ..analysis import plots
+    from ..analysis import diagnostics, plots
 
     paths = {name: os.path.join(directory, f"{name.replace(' ', '_')}.png")
              for name in ("trace", "segmentation", "skill rewards", "skill ends")}
     plots.plot_trace(result, paths["trace"])
     true = result.demos.skills if result.demos is not None else None
-    shown, what = plots.shown_segmentation(result)
+    shown, what = diagnostics.shown_segmentation(result)
     title = f"npbrs: {what}: " + skills_used(shown, result.num_skills, "the best draw's", listed=False)
     styles = plots.plot_segmentation(true, {"npbrs": shown}, paths["segmentation"], labels=skill_names,
                                      title=title)["npbrs"]
