@@ -37,6 +37,12 @@ An emission model supplies everything that depends on what a skill *is*:
   their parameters; the sampler stops choosing for it) and returns a cache from which
   ``log_likelihoods(params, data, cache, solved=True)`` gives the likelihoods of the parameters it
   returned without evaluating them afresh (the reward emission: its move's values).
+- optionally ``reports_solves`` (a bool, False by default): ``log_likelihoods(params, data,
+  cache, with_ok=True)`` then returns ``(ll, cache, ok)``, ok (K,) True where the likelihoods of
+  skill k are to be trusted (the reward emission: its soft solve converged to the solver's
+  tolerance and the log-likelihoods are finite), the cache as without it. The trans-dimensional
+  moves reject a proposal whose new skills are not ok (:func:`log_likelihoods_and_ok`); an
+  emission without the flag is always ok.
 - optionally ``init_window`` (an integer or None) and ``initial_skills(max_skills)`` (an integer
   or None): the initial segmentation's window length and number of skills where the user gives
   none (None: the kernel's defaults), and ``fixed_max_skills`` (an integer or None): a number of
@@ -69,7 +75,7 @@ from npbrs.domains.util.pytree import Pytree
 from npbrs.domains.util.precision import float64_all
 
 __all__ = ["HMMData", "Emission", "EmissionInfo", "register_emission", "get_emission_class", "make_emission", "EMISSIONS",
-           "bucket_size"]
+           "bucket_size", "log_likelihoods_and_ok"]
 
 
 class EmissionInfo(NamedTuple):
@@ -131,6 +137,10 @@ class Emission(Pytree):
     - ``fits_with_likelihoods``: ``fit_evidence`` takes ``with_likelihoods`` (a Python bool) and,
       when true, returns the fits' per-step log-likelihoods (N, T, M) third, cheaper than
       ``log_likelihoods`` would. Without it the greedy moves call ``log_likelihoods``.
+    - ``reports_solves``: ``log_likelihoods`` takes ``with_ok`` (a Python bool) and, when true,
+      returns ``(ll, cache, ok)`` with ok (K,) bool: skill k's likelihoods came from a converged
+      solve and are finite. Without it every skill is taken as ok
+      (:func:`log_likelihoods_and_ok`).
     """
 
     name: str = "emission"
@@ -159,6 +169,8 @@ class Emission(Pytree):
     fits_without_evidence: bool = False
     #: ``fit_evidence`` takes ``with_likelihoods`` (see the class docstring)
     fits_with_likelihoods: bool = False
+    #: ``log_likelihoods`` takes ``with_ok`` (see the class docstring)
+    reports_solves: bool = False
 
     def initial_skills(self, max_skills: int) -> Optional[int]:
         """The initial segmentation's number of skills for ``max_skills`` slots (None: the
@@ -257,6 +269,24 @@ class Emission(Pytree):
     def from_mdp(cls, mdp, **options) -> "Emission":
         """This emission for a TabularMDP, with its keyword options."""
         return cls(mdp, **options)
+
+
+def log_likelihoods_and_ok(emission: Emission, params, data: HMMData, cache=()):
+    """Per-step log-likelihoods of K skills' parameters and whether each is to be trusted.
+
+    Args:
+        emission: the emission model.
+        params: K skills' parameters (leading axis K).
+        data: the demonstrations.
+        cache: the emission's cache for K skills (e.g. ``emission.init_cache(K)``).
+    Returns:
+        (ll (N, T, K), cache, ok (K,) bool): ``log_likelihoods(..., with_ok=True)`` where the
+        emission declares ``reports_solves``, else ok all True.
+    """
+    if emission.reports_solves:
+        return emission.log_likelihoods(params, data, cache, with_ok=True)
+    ll, cache = emission.log_likelihoods(params, data, cache)
+    return ll, cache, jnp.ones(ll.shape[-1:], bool)
 
 
 EMISSIONS: Dict[str, Callable[..., Emission]] = {}

@@ -59,6 +59,7 @@ def test_each_registered_emissions_declared_capabilities_are_what_its_methods_ta
     # (a property where it depends on the options, the reward's: true with MALA, so update takes it)
     can_solve = cls.solves_in_update if isinstance(cls.solves_in_update, bool) else True
     assert can_solve == ("redraw_unused" in update), name
+    assert cls.reports_solves == ("with_ok" in inspect.signature(cls.log_likelihoods).parameters), name
     if cls.supports_greedy_merge():
         taken = inspect.signature(cls.fit_evidence).parameters
         assert cls.fits_without_evidence == ("with_evidence" in taken), name
@@ -111,15 +112,17 @@ def test_an_emission_that_declares_no_capability_runs_with_the_defaults():
     """The sampler runs a user's emission without the capability flags: its ``tune`` is called
     before ``update`` in each warmup sweep (never in a sampling sweep) and ``update`` is not passed
     ``tune``; the greedy merges and splits call its ``fit_evidence`` without ``with_evidence`` or
-    ``with_likelihoods`` and take the fits' likelihoods from ``log_likelihoods``. (A keyword the
-    emission does not take would be a TypeError while the sweep is traced.)"""
+    ``with_likelihoods`` and take the fits' likelihoods from ``log_likelihoods``, and birth/death
+    and split-merge call ``log_likelihoods`` without ``with_ok``. (A keyword the emission does not
+    take would be a TypeError while the sweep is traced.)"""
     import jax
 
     from npbrs.inference.sampler import BPHMMKernel
 
     em = UserEmission(4, 3)
-    assert not (em.tunes_in_update or em.solves_in_update or em.fits_without_evidence or em.fits_with_likelihoods)
-    moves = {"greedy_merge": 1, "greedy_split": 1, "greedy_from": 0.0, "split_merge": 0}
+    assert not (em.tunes_in_update or em.solves_in_update or em.fits_without_evidence or em.fits_with_likelihoods
+                or em.reports_solves)
+    moves = {"greedy_merge": 1, "greedy_split": 1, "greedy_from": 0.0, "split_merge": 1, "birth_death": 1}
     kernel = BPHMMKernel(em, small_data(), max_skills=3, moves=moves)
     state = kernel.init(jax.random.PRNGKey(0), 2, None, (), {})
     sweep = jax.jit(kernel.sweep)

@@ -6,6 +6,7 @@ import numpy as np
 
 from npbrs.inference.sampler import (BPHMMKernel, MoveState, birth_death_log_ratio, birth_death_proposal,
                                      window_weights)
+from npbrs.inference.sampler.birth_death import birth_death
 from npbrs.models.bphmm import collapsed_feature_log_prob
 from npbrs.models.emissions import PolicyEmission
 from test_kernel import planted_policy_data
@@ -56,3 +57,73 @@ def test_birth_then_death_returns_the_state_with_reciprocal_ratios():
     lr_back = birth_death_log_ratio(birth, state, em, data, hyper, i, k, window)
     np.testing.assert_allclose(float(lr_back), -float(lr_birth), rtol=1e-10)
     assert np.isfinite(float(lr_birth))
+
+
+class ReportingPolicy(PolicyEmission):
+    """The policy emission, reporting the likelihoods of the first (or only) skill of a call
+    ok where ``ok[0]``, of the second where ``ok[1]``: a stand-in for solves that did or did not
+    converge. ``ok`` is an array (traced data), so every choice runs one compiled program."""
+
+    reports_solves = True
+
+    def __init__(self, num_states, num_actions, ok):
+        super().__init__(num_states, num_actions)
+        self.ok = np.array([bool(o) for o in ok] + [True] * (2 - len(ok)))
+
+    def log_likelihoods(self, params, data, cache=(), with_ok=False):
+        ll, cache = super().log_likelihoods(params, data, cache)
+        if not with_ok:
+            return ll, cache
+        return ll, cache, jnp.asarray(self.ok)[:ll.shape[-1]]
+
+
+def _birth_death_trials(em, state, data, hyper, seeds=range(24)):
+    """(is_birth, possible, accepted) of one birth/death trial per seed, as (len(seeds),) arrays."""
+    run = jax.jit(jax.vmap(lambda key: birth_death(key, state, em, data, hyper, 5, 15)[1]))
+    info = run(jax.vmap(jax.random.PRNGKey)(jnp.arange(len(seeds)) + seeds[0]))
+    return np.asarray(info.is_birth), np.asarray(info.possible), np.asarray(info.accepted)
+
+
+def test_a_birth_is_possible_only_where_the_emission_reports_the_born_skill_ok():
+    """A birth whose born skill's likelihoods the emission reports not ok (``reports_solves``,
+    e.g. a soft solve that did not converge) is never possible, nor accepted; a death does not
+    depend on it (its ratio holds the dying skill's likelihoods, already in the state, and none of
+    the prior draw that replaces it)."""
+    data, _ = planted_policy_data(seed=2, N=4, T=30)
+    plain = PolicyEmission(4, 3)
+    kernel = BPHMMKernel(plain, data, max_skills=5, init_skills=2)
+    start = kernel.init(jax.random.PRNGKey(0), 0, None, (), {})
+    # a skill unique to trajectory 0 and one to trajectory 1, so that deaths are possible too
+    f = np.zeros((4, 5))
+    f[:, 0] = f[0, 1] = f[1, 2] = 1.0
+    state = MoveState.of(start)._replace(features=jnp.asarray(f))
+    births, possible, _ = _birth_death_trials(plain, state, data, start.hyper)
+    assert possible[births].all() and possible[~births].any()
+    for ok, possible_births in (([True], True), ([False], False)):
+        b, p, a = _birth_death_trials(ReportingPolicy(4, 3, ok), state, data, start.hyper)
+        np.testing.assert_array_equal(b, births)
+        assert np.all(p[b] == possible_births) and (possible_births or not a[b].any())
+        np.testing.assert_array_equal(p[~b], possible[~b])
+
+
+def test_a_birth_whose_soft_solve_does_not_converge_is_impossible():
+    """The reward emission reports its solves (``reports_solves``): with a solver that stops
+    after one Newton step, short of its tolerance, no birth is possible; with the default solver
+    the same births, from the same state and keys, are."""
+    from gridworld import gridworld
+    from npbrs.domains import generate_demonstrations
+    from npbrs.models.emissions import HMMData
+    from npbrs.models.reward.emission import RewardEmission
+
+    dom = gridworld(size=3)
+    data = HMMData.from_demonstrations(generate_demonstrations(dom, num_trajectories=3, length=20, seed=2))
+    em = RewardEmission(dom.mdp)
+    kernel = BPHMMKernel(em, data, max_skills=4, init_skills=2)
+    start = kernel.init(jax.random.PRNGKey(0), 0, None, (), {})
+    state = MoveState.of(start)
+    births, possible, _ = _birth_death_trials(em, state, data, start.hyper, range(6))
+    assert births.any() and possible[births].all()
+    unconverged = RewardEmission(dom.mdp, solver_options={"max_iter": 1})
+    b, p, a = _birth_death_trials(unconverged, state, data, start.hyper, range(6))
+    np.testing.assert_array_equal(b, births)
+    assert not p[b].any() and not a[b].any()

@@ -374,3 +374,24 @@ def test_the_sweeps_likelihoods_are_backups_from_the_moves_values(scale_prior, m
             assert not np.any(np.isclose(theta[~used], old[~used]))
         else:
             np.testing.assert_array_equal(theta[~used], old[~used])
+
+
+def test_the_likelihoods_report_whether_each_skills_solve_converged():
+    """``log_likelihoods(..., with_ok=True)`` (``reports_solves``) adds ok (K,): each skill's soft
+    solve converged to the solver's tolerance and its log-likelihoods are finite. A solver that
+    stops after one Newton step reports False, the default solver True; the likelihoods and the
+    cache (its structure too: it is carried in the sampler's state) are those without
+    ``with_ok``."""
+    dom = gridworld(size=3)
+    data = HMMData.from_demonstrations(generate_demonstrations(dom, num_trajectories=2, length=10, seed=1))
+    params = {"theta": jnp.asarray(dom.skill_weights[:2])}
+    assert RewardEmission.reports_solves
+    for options, converged in (({}, True), ({"max_iter": 1}, False)):
+        em = RewardEmission(dom.mdp, solver_options=options)
+        ll, cache, ok = em.log_likelihoods(params, data, em.init_cache(2), with_ok=True)
+        assert ok.shape == (2,) and ok.dtype == bool
+        np.testing.assert_array_equal(np.asarray(ok), converged)
+        plain_ll, plain_cache = em.log_likelihoods(params, data, em.init_cache(2))
+        np.testing.assert_array_equal(np.asarray(ll), np.asarray(plain_ll))
+        assert sorted(cache) == sorted(plain_cache) == sorted(em.init_cache(2))
+        np.testing.assert_array_equal(np.asarray(cache["V"]), np.asarray(plain_cache["V"]))

@@ -193,3 +193,61 @@ def test_moves_start_runs_gibbs_before_the_start_sweep_and_the_moves_from_it():
     assert step >= 2, step  # (so that the early start is before it)
     assert _tree_equal(sweep[early](state), with_moves)  # started at sweep 2
     assert _tree_equal(sweep[late](state), new)  # starts at sweep 40
+
+
+def _anchors(z, mask):
+    """Split anchors (two steps of the skill at step (0, 3)) and merge anchors (that step and one
+    of another skill) in z."""
+    zz, real = np.asarray(z), np.asarray(mask)
+    k = int(zz[0, 3])
+    same = np.argwhere((zz == k) & real)
+    other = np.argwhere((zz != k) & real)
+    return (0, 3) + tuple(int(x) for x in same[len(same) // 2]), (0, 3) + tuple(int(x) for x in other[0])
+
+
+def test_a_split_or_merge_is_possible_only_where_the_emission_reports_its_new_skills_ok():
+    """With ``reports_solves`` a split is possible only where both proposed skills' likelihoods
+    are ok (e.g. their solves converged), a merge only where the merged skill's are: the freed
+    slot's prior draw enters no ratio."""
+    from test_moves import ReportingPolicy
+
+    kernel, data, em, start = _state()
+    state, hyper = MoveState.of(start), start.hyper
+    split_at, merge_at = _anchors(state.z, data.mask)
+    key = jax.random.PRNGKey(11)
+    propose = jax.jit(propose_split_merge, static_argnums=(5,))
+    expected = {(True, True): (True, True), (True, False): (False, True), (False, True): (False, False)}
+    for ok, (split_possible, merge_possible) in expected.items():
+        emission = ReportingPolicy(4, 3, ok)
+        split = propose(key, state, emission, data, hyper, split_at)
+        merge = propose(key, state, emission, data, hyper, merge_at)
+        assert bool(split.is_split) and not bool(merge.is_split)
+        assert bool(split.possible) == split_possible and bool(merge.possible) == merge_possible, ok
+
+
+@pytest.mark.slow
+def test_a_split_or_merge_whose_soft_solves_do_not_converge_is_impossible():
+    """The reward emission reports its solves (``reports_solves``): with a solver that stops
+    after one Newton step, short of its tolerance, neither a split nor a merge is possible; with
+    the default solver the same proposals, from the same state and key, are. (Slow: two reward
+    split-merge programs to compile; the rule is checked by the stand-in above, the reward
+    emission's report in test_reward_emission.py and by a birth in test_moves.py.)"""
+    from gridworld import gridworld
+    from npbrs.domains import generate_demonstrations
+    from npbrs.models.emissions import HMMData
+    from npbrs.models.reward.emission import RewardEmission
+
+    dom = gridworld(size=3)
+    data = HMMData.from_demonstrations(generate_demonstrations(dom, num_trajectories=3, length=20, seed=2))
+    em = RewardEmission(dom.mdp)
+    kernel = BPHMMKernel(em, data, max_skills=4, init_skills=2, init_window=5, moves={"split_merge": 1})
+    start = kernel.init(jax.random.PRNGKey(0), 0, None, (), {})
+    state, hyper = MoveState.of(start), start.hyper
+    split_at, merge_at = _anchors(state.z, data.mask)
+    key = jax.random.PRNGKey(3)
+    propose = jax.jit(propose_split_merge, static_argnums=(5,))
+    for emission, possible in ((em, True), (RewardEmission(dom.mdp, solver_options={"max_iter": 1}), False)):
+        split = propose(key, state, emission, data, hyper, split_at)
+        merge = propose(key, state, emission, data, hyper, merge_at)
+        assert bool(split.is_split) and not bool(merge.is_split)
+        assert bool(split.possible) == possible and bool(merge.possible) == possible

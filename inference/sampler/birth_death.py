@@ -34,6 +34,7 @@ import jax.numpy as jnp
 
 from npbrs.models.mcmc import metropolis_accept, select
 from npbrs.models.bphmm import collapsed_feature_log_prob, hmm_parameters
+from npbrs.models.emissions import log_likelihoods_and_ok
 from npbrs.models.hmm import forward_filter
 from npbrs.domains.util.precision import float64_all
 
@@ -92,19 +93,26 @@ def _trajectory_log_marginal(features_i, eta_i, log_lik_i, mask_i, gate_i=None, 
 
 
 def _one_log_lik(emission, data, one):
-    """Per-step log-likelihoods (N, T) of a single skill's parameters."""
+    """Per-step log-likelihoods (N, T) of a single skill's parameters and whether they are to be
+    trusted, () bool (:func:`npbrs.models.emissions.log_likelihoods_and_ok`)."""
     params = jax.tree.map(lambda x: x[None], one)
-    ll, _ = emission.log_likelihoods(params, data, emission.init_cache(1))
-    return ll[..., 0]
+    ll, _, ok = log_likelihoods_and_ok(emission, params, data, emission.init_cache(1))
+    return ll[..., 0], ok[0]
+
+
+def _birth_death_proposal(state: MoveState, emission, data, i, k, one, is_birth):
+    """:func:`birth_death_proposal` and whether slot k's new likelihoods are ok."""
+    features = state.features.at[i, k].set(jnp.where(is_birth, 1.0, 0.0))
+    ll, ok = _one_log_lik(emission, data, one)
+    log_lik = state.log_lik.at[:, :, k].set(ll)
+    return state._replace(features=features, params=_set_slot(state.params, k, one), log_lik=log_lik), ok
 
 
 def birth_death_proposal(state: MoveState, emission, data, i, k, one, is_birth) -> MoveState:
     """The state a birth (``is_birth``) or death of slot k in trajectory i proposes: f_ik on (or
     off), slot k's parameters replaced by ``one`` (the born skill's, or the prior draw that
     replaces a dying skill's) and their per-step log-likelihoods with them."""
-    features = state.features.at[i, k].set(jnp.where(is_birth, 1.0, 0.0))
-    log_lik = state.log_lik.at[:, :, k].set(_one_log_lik(emission, data, one))
-    return state._replace(features=features, params=_set_slot(state.params, k, one), log_lik=log_lik)
+    return _birth_death_proposal(state, emission, data, i, k, one, is_birth)[0]
 
 
 def birth_death_log_ratio(current: MoveState, proposed: MoveState, emission, data, hyper, i, k, window, log_q=None):
@@ -140,7 +148,8 @@ def birth_death_log_ratio(current: MoveState, proposed: MoveState, emission, dat
 
 def birth_death(key, state: MoveState, emission, data, hyper, min_len: int = 10, max_len: int = 50):
     """One birth-or-death trial (each with probability 1/2) on a random trajectory: returns
-    (state, :class:`BirthDeathInfo`). Impossible moves (no unused slot for a birth; no unique
+    (state, :class:`BirthDeathInfo`). Impossible moves (no unused slot for a birth, or a born
+    skill whose likelihoods the emission does not report ok, e.g. an unconverged solve; no unique
     skill, or only one skill, for a death) leave the state unchanged.
     """
     features = state.features
@@ -165,7 +174,10 @@ def birth_death(key, state: MoveState, emission, data, hyper, min_len: int = 10,
     proposed, log_q_new, log_q_old = emission.propose_and_score(k_prop, data, window, old_one)
     with_prior = emission.sample_prior_one(k_prior)
     new_one = jax.tree.map(lambda b, d: jnp.where(is_birth, b, d), proposed, with_prior)
-    new = birth_death_proposal(state, emission, data, i, k, new_one, is_birth)
+    new, new_ok = _birth_death_proposal(state, emission, data, i, k, new_one, is_birth)
+    # a birth needs the born skill's likelihoods to be trusted (its solve converged); a death's
+    # ratio holds the dying skill's, already in the state, and none of the prior draw's
+    possible = possible & (new_ok | ~is_birth)
     log_ratio = birth_death_log_ratio(state, new, emission, data, hyper, i, k, window,
                                       log_q=jnp.where(is_birth, log_q_new, log_q_old))
     accept, _ = metropolis_accept(k_acc, log_ratio, possible)

@@ -74,6 +74,7 @@ import jax.numpy as jnp
 from npbrs.models.mcmc import metropolis_accept, select
 from npbrs.models.bphmm import (collapsed_feature_log_prob, eta_counts, eta_from_gammas, eta_gamma_shapes,
                                 hmm_parameters)
+from npbrs.models.emissions import log_likelihoods_and_ok
 from npbrs.models.hmm import NEG_LOG, batch_backward_sample, batch_forward_filter, viterbi
 from npbrs.domains.util.precision import float64_all
 
@@ -438,7 +439,10 @@ def _log_ratio(current: MoveState, proposed: MoveState, emission, data, hyper, a
 def propose_split_merge(key, state: MoveState, emission, data, hyper, anchors, num_blocks: int = 2):
     """One split-merge proposal at given anchors ((i_a, t_a, i_b, t_b)): a split of their skill
     when they share one, else a merge of theirs. Returns a :class:`SplitMergeProposal`; its log
-    ratio leaves out the anchors' choice (which :func:`split_merge` adds)."""
+    ratio leaves out the anchors' choice (which :func:`split_merge` adds). It is not possible
+    where the emission does not report the likelihoods of the skills it proposes ok (a split's
+    two, a merge's merged one: :func:`npbrs.models.emissions.log_likelihoods_and_ok`, e.g. a soft
+    solve that did not converge)."""
     K = state.features.shape[1]
     mask = data.mask
     features, eta, z, params, log_lik, gate = state[:6]
@@ -471,7 +475,7 @@ def propose_split_merge(key, state: MoveState, emission, data, hyper, anchors, n
 
     new_f, new_two, lq_fwd, alloc_fwd = jax.lax.cond(is_split, forward_split, forward_merge, None)
     new_params = _set_two(params, k1, k2, new_two)
-    new_cols, _ = emission.log_likelihoods(new_two, data, emission.init_cache(2))  # (N, T, 2)
+    new_cols, _, cols_ok = log_likelihoods_and_ok(emission, new_two, data, emission.init_cache(2))  # (N, T, 2)
     new_log_lik = log_lik.at[:, :, k1].set(new_cols[..., 0]).at[:, :, k2].set(new_cols[..., 1])
 
     # transition weights of the trajectories that use k1 or k2: redrawn from their
@@ -488,7 +492,11 @@ def propose_split_merge(key, state: MoveState, emission, data, hyper, anchors, n
 
     log_ratio = _log_ratio(state, proposed, emission, data, hyper, anchors, k1, k2, is_split, proposals, lq_fwd,
                            counts_fwd, lm_new)
-    possible = ~same_step & (~is_split | jnp.any(free)) & jnp.isfinite(log_ratio) & (log_ratio > 0.5 * NEG_LOG)
+    # the proposed skills' likelihoods must be trusted (e.g. their solves converged): a split's
+    # two; a merge's merged skill, its freed slot's prior draw entering no ratio
+    new_ok = cols_ok[0] & (cols_ok[1] | ~is_split)
+    possible = (~same_step & (~is_split | jnp.any(free)) & jnp.isfinite(log_ratio) & (log_ratio > 0.5 * NEG_LOG)
+                & new_ok)
     return SplitMergeProposal(proposed, log_ratio, possible, is_split, k1, k2, order)
 
 

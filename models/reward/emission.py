@@ -235,19 +235,35 @@ class RewardEmission(RewardMoves, RewardEvidence, RewardPrior, Emission):
         uniform actions at rate epsilon, (K, S, A) (the policies the likelihood uses)."""
         return self._log_policies_and_values(params["theta"])[0]
 
-    def log_likelihoods(self, params, data, cache=(), solved=False):
-        """Per-step log-likelihoods (N, T, K) and the cache with the values of ``params``;
-        ``solved``: the cache's values are those of ``params`` already (what :meth:`update`
-        returns with MALA): one backup, no solve."""
+    def log_likelihoods(self, params, data, cache=(), solved=False, with_ok=False):
+        """Per-step log-likelihoods of K skills' weights.
+
+        Args:
+            params: {"theta": (K, D)} (and "sigma2" with ``scale_prior``).
+            data: the demonstrations (:class:`HMMData`).
+            cache: a cache of K skills (its values warm-start the solve), or () for a cold start.
+            solved: the cache's values are those of ``params`` already (what :meth:`update`
+                returns with MALA): one backup, no solve.
+            with_ok: also return ok (``reports_solves``).
+        Returns:
+            (ll (N, T, K), cache with the values of ``params``), and with ``with_ok`` third ok
+            (K,) bool: skill k's solve converged to the solver's tolerance and its
+            log-likelihoods are finite.
+        """
         theta = params["theta"]
         if solved:
-            log_pi, V = log_policy(self.solver, theta, cache["V"], self.temperature, self.epsilon, solved=True)
+            v0 = cache["V"]
         else:
-            log_pi, V = self._log_policies_and_values(theta, cache)
+            v0 = cache["V"] if isinstance(cache, dict) and cache["V"].shape[0] == theta.shape[0] else None
+        log_pi, V, residual = log_policy(self.solver, theta, v0, self.temperature, self.epsilon, solved=solved,
+                                         with_residual=True)
         ll = step_log_likelihoods(log_pi, data.states, data.actions, data.mask)
         new_cache = dict(cache) if isinstance(cache, dict) else self.init_cache(theta.shape[0])
         new_cache["V"] = V
-        return ll, new_cache
+        if not with_ok:
+            return ll, new_cache
+        ok = (residual <= self.solver.tol) & jnp.all(jnp.isfinite(ll), axis=(0, 1))
+        return ll, new_cache, ok
 
     # ------------------------------------------------------------------ capabilities
     @property
@@ -266,6 +282,8 @@ class RewardEmission(RewardMoves, RewardEvidence, RewardPrior, Emission):
     # ``with_likelihoods`` (the fits' per-step log-likelihoods from their own soft values)
     fits_without_evidence = True
     fits_with_likelihoods = True
+    # ``log_likelihoods`` takes ``with_ok`` (whether each skill's solve converged)
+    reports_solves = True
 
     def initial_skills(self, max_skills: int):
         """``fit``'s number of skills in the initial segmentation: every slot (``max_skills``)

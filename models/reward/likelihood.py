@@ -135,7 +135,7 @@ def _solve_policy(solver, theta, v0=None, temperature=1.0, epsilon=0.0, solved=F
 
 
 def log_policy(solver: SoftSolver, theta, v0=None, temperature: float = 1.0, epsilon: float = 0.0,
-               solved: bool = False):
+               solved: bool = False, with_residual: bool = False):
     """Boltzmann log-policies of reward weights.
 
     Args:
@@ -146,16 +146,19 @@ def log_policy(solver: SoftSolver, theta, v0=None, temperature: float = 1.0, eps
         epsilon: the noisy expert's random-action probability (:func:`noisy_log_policy`).
         solved: v0 holds these weights' soft values already (e.g. :func:`fit_reward`'s V, to
             the solver's tolerance): the policies by one backup from them, no solve.
+        with_residual: also return the solver's relative Bellman residual (K,) (or ()), which
+            is at most ``solver.tol`` where the solve converged.
     Returns:
-        (log_pi, V): log pi(a | s), (K, S, A) (or (S, A)), and the soft values (K, S) (or (S,)).
+        (log_pi, V): log pi(a | s), (K, S, A) (or (S, A)), and the soft values (K, S) (or (S,));
+        with ``with_residual`` (log_pi, V, residual).
     """
     solver = as_solver(solver)
     if _is_concrete(theta):
         _check_theta(theta, solver.num_features)
     if solved and v0 is None:
         raise ValueError("log_policy: solved=True needs the soft values v0 of theta")
-    log_pi, V, _ = _solve_policy(solver, theta, v0, temperature, epsilon, solved)
-    return log_pi, V
+    log_pi, V, residual = _solve_policy(solver, theta, v0, temperature, epsilon, solved)
+    return (log_pi, V, residual) if with_residual else (log_pi, V)
 
 
 def step_log_likelihoods(log_pi, states, actions, mask=None) -> jax.Array:
