@@ -248,6 +248,26 @@ class TabularMDP(Pytree):
         np.add.at(P, (s_idx[..., None], a_idx[..., None], self.successors), self.probs)
         return P
 
+    def equivalent_actions(self) -> np.ndarray:
+        """Which actions of each state are equivalent: the same next-state distribution and the
+        same reward features, hence the same soft Q-value under every reward.
+
+        Returns:
+            bool (S, A, A): ``[s, a, b]`` is True when b is equivalent to a in s (a is to itself).
+        """
+        order = np.argsort(np.where(self.probs > 0, self.successors, -1), axis=-1, kind="stable")
+        succ = np.take_along_axis(np.where(self.probs > 0, self.successors, -1), order, axis=-1)
+        prob = np.take_along_axis(self.probs, order, axis=-1)
+        S, A = self.num_states, self.num_actions
+        same = np.zeros((S, A, A), dtype=bool)
+        for a in range(A):
+            same[:, a, a] = True
+            for b in range(a + 1, A):
+                eq = (np.all(succ[:, a] == succ[:, b], axis=-1) & np.all(np.abs(prob[:, a] - prob[:, b]) <= 1e-12, -1)
+                      & np.all(self.features[:, a] == self.features[:, b], axis=-1))
+                same[:, a, b] = same[:, b, a] = eq
+        return same
+
     def reward(self, theta) -> np.ndarray:
         """Reward table r(s, a) = phi(s, a) . theta, shape (S, A) (or (K, S, A) for theta (K, D))."""
         theta = np.asarray(theta, dtype=np.float64)

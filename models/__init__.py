@@ -11,6 +11,7 @@ from .reward.prior import PRIOR_SCALE, log_prior
 from .reward.likelihood import (count_log_likelihood, count_log_likelihood_and_grad, count_log_likelihood_and_values,
                                 count_table, fisher_information, log_policy, log_posterior, step_log_likelihoods)
 from .reward.irl import IRLFit, fit_reward, irl_fit
+from .names import ActionNames
 from . import mcmc
 from .reward import mala as reward_mala  # reward_mala.init / reward_mala.build_kernel: the reward move
 from .reward.mala import RewardMALAInfo, RewardMALAState

@@ -148,6 +148,10 @@ class Emission(Pytree):
     #: a policy) or "states" (a density of the states' vectors): only runs of the same kind can
     #: be ranked by their likelihoods (``npbrs compare``)
     likelihood_of: str = "actions"
+    #: whether the scores of demonstrations include the learned names of equivalent actions
+    #: (:mod:`npbrs.models.names`; the reward emission's ``action_names="learned"``); the
+    #: sampler never reads it (the names' factor leaves the skills' posterior unchanged)
+    learns_action_names: bool = False
     #: the sweeps between prior redraws of unused skills' parameters that ``fit`` asks for
     redraw_unused: int = 1
     #: whether ``update`` takes ``redraw_unused`` (a bool shared by vectorised chains: the skills

@@ -183,3 +183,26 @@ def test_a_sticky_auto_fit_resumed_after_its_decision_keeps_it(tmp_path, monkeyp
     resumed = fit(world.mdp, world.demos, {"checkpoint_every": 10}, checkpoint_path=path, resume=True, **SETTINGS)
     assert not scored and resumed.switching["chosen"] == "sticky"
     assert resumed.equals(whole) and resumed.switching == whole.switching
+
+
+def test_a_default_fit_records_the_names_of_equivalent_actions_and_scores_with_them(tmp_path):
+    """The labyrinth's nodes have equivalent actions (a leaf's three ways of staying, the root's
+    two): the default fit records the names' factor fitted to its demonstrations (sets, log
+    Bayes factor, the summary's line), keeps it through saving, and its held-out score is the
+    same run's with uniform names plus the factor's exact term."""
+    import dataclasses
+
+    from npbrs.inference import load
+    from npbrs.models.names import ActionNames
+
+    world, result = default_fit("labyrinth")
+    names = ActionNames.fit(world.mdp, world.demos)
+    assert result.emission["action_names"] == "learned"
+    assert result.action_names["sets"] == [np.flatnonzero(s).tolist() for s in names.counts.sets] != []
+    assert result.action_names["log_bayes_factor"] == pytest.approx(names.log_bayes_factor)
+    assert result.action_names["text"] in result.summary()
+    result.save(tmp_path / "run.nc")
+    assert load(tmp_path / "run.nc").action_names == result.action_names
+    uniform = dataclasses.replace(result, emission=dict(result.emission, action_names="uniform"))
+    a, b = (r.log_predictive(world.mdp, world.heldout, num_samples=4, num_draws=2) for r in (result, uniform))
+    np.testing.assert_allclose(a.per_trajectory - b.per_trajectory, names.heldout_correction(world.mdp, world.heldout))

@@ -364,6 +364,8 @@ def summary(result) -> str:
     prior = reward_prior_text(result.emission, len(result.feature_names))
     if prior:
         lines.append(prior)
+    if getattr(result, "action_names", None):
+        lines.append(result.action_names["text"])
     if "greedy_merges" in result.stats and "greedy_splits" in result.stats:
         kept = [np.asarray(result.stats[n])[:, -1].tolist() for n in ("greedy_merges", "greedy_splits")]
         if any(kept[0]) or any(kept[1]):

@@ -123,7 +123,27 @@ def log_predictive(result, mdp, demos, *, num_samples: int = 64, num_draws: int 
     C, D = np.shape(result.stats["log_joint"])
     moments = draw_moments(result, mdp, demos, _draw_indices(C, D, num_draws), num_samples, seed, emission,
                             leave_one_out=False)
-    return _summarise(moments.reshape(-1, 3, len(demos.lengths)), num_samples, demos)
+    held = _summarise(moments.reshape(-1, 3, len(demos.lengths)), num_samples, demos)
+    names = _action_names(result, mdp, emission)
+    if names is None:
+        return held
+    log_p = held.per_trajectory + names.heldout_correction(mdp, demos)
+    return held._replace(per_trajectory=log_p, per_step=float(log_p.sum() / held.num_steps))
+
+
+def _action_names(result, mdp, emission):
+    """The action-name factor fitted to the run's demonstrations (:mod:`npbrs.models.names`)
+    where the run's emission learns it, else None."""
+    from npbrs.models.names import ActionNames
+
+    learns = (emission.learns_action_names if emission is not None
+              else result.emission.get("action_names") == "learned")
+    if not learns:
+        return None
+    if result.demos is None:
+        raise ValueError("the run learns the names of equivalent actions from its demonstrations, which it does not "
+                         "hold; score it with an emission of action_names='uniform'")
+    return ActionNames.fit(mdp, result.demos)
 
 
 def pointwise_log_likelihood(result, mdp, *, num_samples: int = 32, seed: int = 0,
@@ -144,7 +164,10 @@ def pointwise_log_likelihood(result, mdp, *, num_samples: int = 32, seed: int = 
         raise ValueError("the run does not hold its demonstrations, which the pointwise log-likelihood needs")
     C, D = np.shape(result.stats["log_joint"])
     moments = draw_moments(result, mdp, result.demos, np.arange(D), num_samples, seed, emission, leave_one_out=True)
-    return moments[:, :, 0, :] - moments[:, :, 2, :]
+    out = moments[:, :, 0, :] - moments[:, :, 2, :]
+    names = _action_names(result, mdp, emission)
+    # (the names' factor is independent of the draws: its exact leave-one-out term is added to each)
+    return out if names is None else out + names.loo_correction()
 
 
 def segment(result, mdp, demos=None, *, num_samples: int = 32, num_draws: int = 100, seed: int = 0,

@@ -16,6 +16,7 @@ import warnings
 from typing import Optional, Union
 
 import jax
+import numpy as np
 
 from npbrs.domains.demos import Demonstrations
 from npbrs.domains.util.precision import float64
@@ -170,8 +171,26 @@ def fit(mdp, demos: Demonstrations, config: Union[ModelConfig, dict, str, os.Pat
                    resume=resume, devices=devices)
         strategy = fit_auto if cfg.prior.switching == "auto" else fit_grown
         result = strategy(mdp, demos, cfg, _emission_instance(config), **run)
+    result = with_action_names(result, mdp, demos, _emission_instance(config))
     warn_if_unconverged(result)
     return result
+
+
+def with_action_names(result: FitResult, mdp, demos, emission: Optional[Emission] = None) -> FitResult:
+    """``result`` with its ``action_names`` set where its emission learns which of several
+    equivalent actions the demonstrator names (:mod:`npbrs.models.names`)."""
+    from npbrs.models.names import ActionNames
+
+    learns = (emission.learns_action_names if emission is not None
+              else result.emission.get("action_names") == "learned")
+    if not learns:
+        return result
+    names = ActionNames.fit(mdp, demos)
+    if not len(names.counts.sets):  # (no state the demonstrations visit has equivalent actions)
+        return result
+    return dataclasses.replace(result, action_names={
+        "sets": [np.flatnonzero(s).tolist() for s in names.counts.sets],
+        "log_bayes_factor": names.log_bayes_factor, "text": names.describe()})
 
 
 def warn_if_unconverged(result: FitResult) -> None:

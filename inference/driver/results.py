@@ -158,6 +158,11 @@ class FitResult:
             ("sticky", "state"; :func:`~npbrs.models.bphmm.switching_log_evidence`), their
             difference ("log_bayes_factor", state over sticky), the margin it had to pass
             ("margin") and the model of this result ("chosen"); None otherwise.
+        action_names: for a run whose emission learns which of several equivalent actions the
+            demonstrator names (the reward emission's ``action_names="learned"``, the default;
+            :mod:`npbrs.models.names`): the sets of equivalent actions the demonstrations visit
+            ("sets"), the log Bayes factor of learned over uniform names ("log_bayes_factor")
+            and a line for the summary ("text"); None otherwise.
         restart: for a run of several chains with ``restart_margin`` on (see
             :class:`~npbrs.inference.driver.config.SamplerConfig`): the margin ("margin"), each
             chain's score at the end of warmup ("scores", its log joint averaged over the last
@@ -196,6 +201,7 @@ class FitResult:
     truncation: Optional[dict] = None
     restart: Optional[dict] = None
     switching: Optional[dict] = None
+    action_names: Optional[dict] = None
     step_skill_counts: Optional[np.ndarray] = None
 
     @classmethod
@@ -298,6 +304,7 @@ class FitResult:
                 and json.dumps(self.truncation, sort_keys=True) == json.dumps(other.truncation, sort_keys=True)
                 and json.dumps(self.restart, sort_keys=True) == json.dumps(other.restart, sort_keys=True)
                 and json.dumps(self.switching, sort_keys=True) == json.dumps(other.switching, sort_keys=True)
+                and json.dumps(self.action_names, sort_keys=True) == json.dumps(other.action_names, sort_keys=True)
                 and (not wall_time or same(self.wall_time, other.wall_time)))
 
     @property
@@ -447,6 +454,8 @@ class FitResult:
             attrs["restart"] = json.dumps(self.restart, sort_keys=True)
         if self.switching is not None:
             attrs["switching"] = json.dumps(self.switching, sort_keys=True)
+        if self.action_names is not None:
+            attrs["action_names"] = json.dumps(self.action_names, sort_keys=True)
         groups = {"posterior": xr.Dataset(posterior, coords=chain_draw),
                   "sample_stats": xr.Dataset(sample_stats, coords=chain_draw),
                   "constant_data": xr.Dataset(constant, attrs=attrs)}
@@ -515,6 +524,7 @@ class FitResult:
                    truncation=json.loads(attrs["truncation"]) if "truncation" in attrs else None,
                    restart=json.loads(attrs["restart"]) if "restart" in attrs else None,
                    switching=json.loads(attrs["switching"]) if "switching" in attrs else None,
+                   action_names=json.loads(attrs["action_names"]) if "action_names" in attrs else None,
                    step_skill_counts=np.asarray(const[STEP_COUNTS].values) if STEP_COUNTS in const else None)
 
     def summary(self) -> str:

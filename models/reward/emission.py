@@ -45,6 +45,7 @@ __all__ = ["RewardEmission", "SingleRewardEmission"]
 _UPDATES = ("mala", "map")
 _T_EVIDENCE = ("laplace", "calibrated")
 _STARTS = ("auto", "draw", "fit")
+_ACTION_NAMES = ("learned", "uniform")
 # the initial segmentation's windows for rewards of more than START_FIT_FEATURES weights
 # (RewardEmission.init_window)
 SHORT_INIT_WINDOW = 5
@@ -113,6 +114,11 @@ class RewardEmission(RewardMoves, RewardEvidence, RewardPrior, Emission):
             labyrinth's default fit found 4 skills instead of 8); with a handful of features a
             draw lands near the fit, and starting at the fit gave the quadcopter's 500-step runs a
             fourth skill in 2 of 10 (``docs/design.md``).
+        action_names: "learned" (default): which of several equivalent actions (the same next
+            states and features, so the same Q under every reward) the demonstrator names is
+            learned from the fitted demonstrations, and enters their scores
+            (:mod:`npbrs.models.names`; it leaves the skills' posterior unchanged); "uniform":
+            the Boltzmann policy's even split.
     """
 
     def __init__(self, mdp, prior_scale="auto", temperature: float = 1.0, discount: Optional[float] = None,
@@ -120,7 +126,11 @@ class RewardEmission(RewardMoves, RewardEvidence, RewardPrior, Emission):
                  map_steps: int = 5, fit_steps: int = 20, refit_steps: int = 3, proposal_inflation: float = 1.5,
                  solver_options: Optional[dict] = None, epsilon: float = 0.0, proposal_broad_weight: float = 0.1,
                  proposal_broad_scale: float = 10.0, scale_prior=False, start: str = "auto",
-                 search_tol: float = 1e-6, prior_df="auto", t_evidence: str = "laplace"):
+                 search_tol: float = 1e-6, prior_df="auto", t_evidence: str = "laplace",
+                 action_names: str = "learned"):
+        if action_names not in _ACTION_NAMES:
+            raise ValueError(f"unknown action_names {action_names!r}; expected one of {_ACTION_NAMES}")
+        self.action_names = action_names
         if start not in _STARTS:
             raise ValueError(f"unknown start {start!r}; expected one of {_STARTS}")
         if update not in _UPDATES:
@@ -201,7 +211,7 @@ class RewardEmission(RewardMoves, RewardEvidence, RewardPrior, Emission):
                 # False, not None, for a fixed scale: a saved configuration (TOML has no None) keeps it
                 "scale_prior": list(self.scale_prior) if self.scale_prior else False, "start": self.start,
                 "search_tol": self.search_tol, "prior_df": self.prior_df if self.prior_df is not None else False,
-                "t_evidence": self.t_evidence}
+                "t_evidence": self.t_evidence, "action_names": self.action_names}
 
     def for_search(self) -> "RewardEmission":
         """This emission with its solver at ``search_tol`` (see :meth:`Emission.for_search`); a
@@ -266,6 +276,11 @@ class RewardEmission(RewardMoves, RewardEvidence, RewardPrior, Emission):
         return ll, new_cache, ok
 
     # ------------------------------------------------------------------ capabilities
+    @property
+    def learns_action_names(self) -> bool:
+        """Scores include the learned names of equivalent actions (see :class:`Emission`)."""
+        return self.action_names == "learned"
+
     @property
     def solves_in_update(self) -> bool:
         """MALA's update returns the values of its weights in the cache (see :class:`Emission`)."""
