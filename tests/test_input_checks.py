@@ -106,5 +106,7 @@ def test_the_summary_says_which_reward_prior_the_number_of_features_chose(tmp_pa
     for D, family, start in ((17, "Student t (2 degrees of freedom)", "the IRL fit"), (16, "Gaussian", "a draw")):
         run.emission = {"name": "reward", "prior_scale": 0.5, "prior_df": 2.0 if D > 16 else False, "start": "auto"}
         run.feature_names = tuple(f"x{i}" for i in range(D))
+        run.config = dict(run.config, sampler={"init_window": 5 if D > 16 else 25, "init_skills": 8 if D > 16 else 4})
         line = next(s for s in run.summary().splitlines() if s.startswith("reward prior"))
         assert family in line and start in line and f"{D} reward weights" in line
+        assert f"windows of {5 if D > 16 else 25} steps among {8 if D > 16 else 4} skills" in line

@@ -363,6 +363,11 @@ def summary(result) -> str:
         lines.append(f"best log joint {result.best_log_joint:.1f} (chain {result.best_chain})")
     prior = reward_prior_text(result.emission, len(result.feature_names))
     if prior:
+        sampler = (result.config or {}).get("sampler", {})
+        if sampler.get("init_window") is not None and sampler.get("init_skills") is not None:
+            # (the emission's init_window and initial_skills also follow the number of weights)
+            prior += (f"; the initial segmentation: windows of {sampler['init_window']} steps among "
+                      f"{sampler['init_skills']} skills")
         lines.append(prior)
     if getattr(result, "action_names", None):
         lines.append(result.action_names["text"])

@@ -109,7 +109,8 @@ def log_predictive(result, mdp, demos, *, num_samples: int = 64, num_draws: int 
         emission: the emission instance, for a run fitted with one (by default the run's
             configured emission is rebuilt in ``mdp``).
     Returns:
-        :class:`HeldOut`.
+        :class:`HeldOut` (for a run that learns the names of equivalent actions,
+        :mod:`npbrs.models.names`, with that factor's exact predictive term in each trajectory's).
     Raises:
         ValueError: demonstrations outside the MDP, an MDP unlike the run's, bad options.
     """
@@ -157,7 +158,9 @@ def pointwise_log_likelihood(result, mdp, *, num_samples: int = 32, seed: int = 
     and transition weights (their prior) integrated out by Monte Carlo (``num_samples`` per
     draw), the skill sequence by the forward filter. ``az.loo``'s importance weighting of these
     values by the posterior draws then estimates log p(x_i | the other trajectories, x_i has
-    steps), the quantity :func:`log_predictive` gives for new trajectories.
+    steps), the quantity :func:`log_predictive` gives for new trajectories. For a run that learns
+    the names of equivalent actions (:mod:`npbrs.models.names`) each value also holds that
+    factor's exact leave-one-out term, the same under every draw.
     """
     _check_counts(num_samples=num_samples)
     if result.demos is None:
