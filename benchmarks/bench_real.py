@@ -13,7 +13,10 @@ state, one-hot state features; DIRL's best discount), scores the validation traj
 ``FitResult.log_predictive`` and reports:
 
 - ``heldout_ll``: nats per validation step (the actions given the states), ``heldout_se`` its
-  Monte Carlo standard error (``HeldOut.per_step_se``);
+  Monte Carlo standard error (``HeldOut.per_step_se``); ``heldout_ll_even_names``: the same
+  draws scored with the Boltzmann policy's even split among equivalent actions (the convention
+  of the published reward models), and ``action_names`` what the fit learned of the names
+  (:mod:`npbrs.models.names`): the difference of the two is the names' share;
 - ``skills``: ``FitResult.num_skills`` (the best draw's segmentation), ``labelled_skills``: the
   skills that the per-step labels of the training trajectories use (each step's most probable
   skill over the sampler's draws, ``FitResult.skill_probabilities().labels``);
@@ -46,6 +49,7 @@ before and after each fit and ``--note`` (what else was running).
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import os
 import re
@@ -156,10 +160,15 @@ def fit_and_score(mdp, train, validation, fit_options: dict, predictive: dict) -
     with warnings.catch_warnings():  # (that some validation trajectories equal training ones: meta says how many)
         warnings.filterwarnings("ignore", message="log_predictive: .* are ones the run was fitted to")
         held = result.log_predictive(mdp, validation, **predictive)
+        # the same draws scored with the even split among equivalent actions (the Boltzmann
+        # policy's, as the published reward models score them): the names' share of the score
+        even = dataclasses.replace(result, emission=dict(result.emission, action_names="uniform"))
+        held_even = even.log_predictive(mdp, validation, **predictive)
     labels = result.skill_probabilities().labels
     rhat, ess = result.rhat, result.ess
     finite = [v for v in rhat.values() if np.isfinite(v)]
     return {"heldout_ll": float(held.per_step), "heldout_se": float(held.per_step_se),
+            "heldout_ll_even_names": float(held_even.per_step), "action_names": result.action_names,
             "skills": int(result.num_skills), "labelled_skills": int(len(np.unique(np.concatenate(labels)))),
             "wall_s": round(wall, 2), "rhat_max": max(finite) if finite else None,
             "rhat": {k: _finite(v) for k, v in rhat.items()}, "ess": {k: _finite(v) for k, v in ess.items()},
@@ -181,6 +190,9 @@ def table(out: dict) -> str:
                      f"({r['labelled_skills']}) | {r['wall_s']:.0f} | {_fmt(r['rhat_max'], '.3f')} |")
 
     npbrs_row("npbrs, a reward per state (fit's defaults)", out)
+    if out.get("heldout_ll_even_names") is not None:
+        lines.append(f"| the same draws, equivalent actions named evenly (the Boltzmann policy's split) "
+                     f"| {out['heldout_ll_even_names']:.3f} | | | | |")
     if out.get("state_action_rewards"):
         npbrs_row("npbrs, a reward per (state, action) [not a state reward]", out["state_action_rewards"])
     bc = out["behaviour_cloning"]

@@ -59,7 +59,7 @@ def test_the_benchmark_runs_on_a_few_trajectories(tmp_path, capsys):
     assert _script().main(["--data", DATA, "--json", str(path), "--trajectories", "6", "--no-references",
                            "--num-warmup", "3", "--num-samples", "3"]) == 0
     out = json.loads(path.read_text())
-    assert {"heldout_ll", "heldout_se", "skills", "labelled_skills", "wall_s", "rhat_max", "published",
+    assert {"heldout_ll", "heldout_ll_even_names", "heldout_se", "skills", "labelled_skills", "wall_s", "rhat_max", "published",
             "behaviour_cloning", "state_action_rewards", "meta"} <= set(out)
     assert out["heldout_ll"] < 0 and out["heldout_se"] >= 0 and out["skills"] >= 1 and out["wall_s"] > 0
     assert 1 <= out["labelled_skills"] <= out["skills"]
