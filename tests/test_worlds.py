@@ -6,14 +6,15 @@ import numpy as np
 import pytest
 
 from npbrs.domains import Demonstrations
-from npbrs.domains.worlds import (WORLDS, SkillProcess, grid_mdp, labyrinth, labyrinth_mdp, rooms, rooms_mdp,
-                                  tabular_grid)
+from npbrs.domains.worlds import (WORLDS, SkillProcess, grid_mdp, labyrinth, labyrinth_mdp, pair_grid_mdp, rooms,
+                                  rooms_mdp, swirl_grid, tabular_grid)
 
-# tiny versions of the three worlds (one solver compilation each)
+# tiny versions of the four worlds (one solver compilation each)
 TINY = {
     "tabular_grid": dict(size=4, num_modes=2, num_trajectories=6, length=30, num_heldout=3, goal_size=1),
     "labyrinth": dict(depth=2, num_trajectories=8, min_length=5, max_length=9, num_heldout=4),
     "rooms": dict(size=5, num_skills=3, num_trajectories=6, min_length=5, max_length=12, num_heldout=3),
+    "swirl_grid": dict(size=3, num_trajectories=6, length=30, num_heldout=3),
 }
 
 
@@ -84,6 +85,8 @@ def test_the_full_sized_worlds_have_the_published_shapes():
     np.testing.assert_array_equal(maze.successors[1:, 2, 0], (np.arange(1, 127) - 1) // 2)  # ... all a parent
     assert (grid_mdp().num_states, grid_mdp().num_actions) == (25, 5)
     assert (rooms_mdp().num_states, rooms_mdp().num_actions) == (104, 5)
+    pairs = pair_grid_mdp()  # 25 cells entered from themselves, 40 neighbouring pairs each way
+    assert (pairs.num_states, pairs.num_actions) == (105, 5)
 
 
 def test_labyrinth_trajectories_start_at_the_entrance(tiny):
@@ -111,6 +114,39 @@ def test_the_gridworld_switches_at_the_requested_rate_mostly_at_the_goals(rate):
     ratio = switched[at_goal].mean() / switched[~at_goal].mean()
     assert 4 < ratio < 25, ratio
     assert world.params["switch_at_goal"] == pytest.approx(10 * world.params["switch_elsewhere"])
+
+
+def test_the_pair_grid_moves_from_pair_to_pair_and_starts_without_a_move():
+    mdp, size = pair_grid_mdp(4), 4
+    v = mdp.state_vectors.astype(int)  # (previous row, previous column, row, column)
+    assert np.all(np.abs(v[:, :2] - v[:, 2:]).sum(-1) <= 1)  # the previous cell is the cell or a neighbour
+    assert len({tuple(r) for r in v}) == mdp.num_states
+    np.testing.assert_array_equal(v[mdp.initial > 0][:, :2], v[mdp.initial > 0][:, 2:])
+    assert np.sum(mdp.initial > 0) == size * size and np.allclose(mdp.initial[mdp.initial > 0], 1 / 16)
+    # from (p, c) each action leads to (c, c') with c' the cell the move reaches on the plain grid
+    cells = grid_mdp(size)
+    nxt = v[mdp.successors[:, :, 0]]  # (S, A, 4)
+    np.testing.assert_array_equal(nxt[..., :2], np.broadcast_to(v[:, None, 2:], nxt[..., :2].shape))
+    c = v[:, 2] * size + v[:, 3]
+    np.testing.assert_array_equal(nxt[..., 2] * size + nxt[..., 3], cells.successors[c, :, 0])
+
+
+def test_the_swirl_grid_rewards_pairs_and_switches_at_the_requested_rate_mostly_at_the_goals():
+    world = swirl_grid(seed=1, size=4, num_trajectories=60, length=200, num_heldout=1)
+    v = world.mdp.state_vectors.astype(int)
+    for states in world.demos.states:  # the observed walk on the cells: each pair's previous cell is the last cell
+        np.testing.assert_array_equal(v[states[1:], :2], v[states[:-1], 2:])
+    # the modes' rewards differ between pairs that enter the same cell (a move's reward)
+    w = world.domain.skill_weights
+    c = v[:, 2] * 4 + v[:, 3]
+    assert all(np.ptp(w[k, c == cell]) > 0.1 for k in range(2) for cell in range(16))
+    assert world.params["switch_at_goal"] == pytest.approx(10 * world.params["switch_elsewhere"])
+    switched = np.concatenate([np.diff(z) != 0 for z in world.demos.skills])
+    assert abs(switched.mean() - 0.05) < 0.15 * 0.05, switched.mean()
+    goal = np.array([0, 15])  # water: top-left; home: bottom-right
+    at_goal = np.concatenate([c[s[1:]] == goal[z[:-1]] for z, s in zip(world.demos.skills, world.demos.states)])
+    ratio = switched[at_goal].mean() / switched[~at_goal].mean()
+    assert 4 < ratio < 25, ratio
 
 
 # ---------------------------------------------------------------------------- the oracle
@@ -263,6 +299,13 @@ def test_the_generator_draws_from_the_distribution_the_oracle_scores():
     (rooms, dict(skills_per_trajectory=(2, 6)), "skills_per_trajectory"),
     (rooms, dict(switch_prob=-0.5), "switch_prob"),
     (rooms, dict(size=4), "size"),
+    (swirl_grid, dict(size=1), "size"),
+    (swirl_grid, dict(length=1), "length"),
+    (swirl_grid, dict(switch_rate=0.0), "switch_rate"),
+    (swirl_grid, dict(goal_factor=0.9), "goal_factor"),
+    (swirl_grid, dict(pair_scale=-1.0), "pair_scale"),
+    (swirl_grid, dict(inverse_temperature=-1.0), "inverse_temperature"),
+    (swirl_grid, dict(discount=1.5), "discount"),
 ])
 def test_bad_arguments_raise_a_value_error_naming_them(make, kwargs, name):
     with pytest.raises(ValueError, match=name):

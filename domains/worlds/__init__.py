@@ -2,7 +2,7 @@
 experts and skill switching that depends on where the agent is, with their generating model and
 an oracle.
 
-Three generators, each ``f(seed, **sizes) -> World`` (the same seed gives the same data):
+Four generators, each ``f(seed, **sizes) -> World`` (the same seed gives the same data):
 
 - :func:`tabular_grid`: a small gridworld (5 x 5, actions up, down, left, right, stay) with a
   reward per state and 2-3 modes, each seeking its own corner region; 200 trajectories x 500
@@ -15,15 +15,21 @@ Three generators, each ``f(seed, **sizes) -> World`` (the same seed gives the sa
   port or the entrance, as in the mouse labyrinth data.
 - :func:`rooms`: the four-room gridworld with 5 goal-seeking skills; each trajectory uses its
   own 2 or 3 of them (the beta process's setting), sticky switching, ragged lengths.
+- :func:`swirl_grid`: the kind of the published switching-IRL (SWIRL) gridworld: 5 x 5, 2 modes
+  (water and home) whose rewards are on (previous cell, cell) pairs, ends that depend on the
+  cell, 200 trajectories x 500 steps with about 25 switches each. Its MDP
+  (:func:`pair_grid_mdp`) has the pairs as states (105 of them), so that a reward on pairs is a
+  weight per state; the demonstrations' states are those pairs.
 
 Every world uses one-hot state features (a reward weight per state: what a new user without
-features has), and its experts act by the Boltzmann policy of their skill's reward scaled by an
-inverse temperature, pi_k(a | s) = exp(Q_k(s, a) - V_k(s)) with the soft Q-function of
-``inverse_temperature * reward`` (the library's soft value iteration): exactly the reward
-emission's model, with weights ``domain.skill_weights``.
+features has; in :func:`swirl_grid` a state is a pair of cells), and its experts act by the
+Boltzmann policy of their skill's reward scaled by an inverse temperature,
+pi_k(a | s) = exp(Q_k(s, a) - V_k(s)) with the soft Q-function of ``inverse_temperature * reward``
+(the library's soft value iteration): exactly the reward emission's model, with weights
+``domain.skill_weights``.
 
-The generating model (:class:`SkillProcess`): a trajectory draws its skill set m (for the
-first two worlds, always all skills), its first state from ``mdp.initial``, its first skill from
+The generating model (:class:`SkillProcess`): a trajectory draws its skill set m (except in
+:func:`rooms`, always all skills), its first state from ``mdp.initial``, its first skill from
 ``initial_skill[m]``; at step t the agent in state s_t with skill z_t acts a_t ~ pi_{z_t}(. | s_t)
 and moves to s_{t+1} ~ P(. | s_t, a_t); then the skill of step t + 1 is drawn from
 ``transitions[m, s_{t+1}, z_t]``, which may depend on the state just entered. Trajectory lengths
@@ -44,8 +50,9 @@ from .base import Oracle, SkillProcess, World
 from .grid_world import grid_mdp, tabular_grid
 from .labyrinth_world import labyrinth, labyrinth_mdp
 from .rooms_world import rooms, rooms_mdp
+from .swirl_world import pair_grid_mdp, swirl_grid
 
-__all__ = ["World", "SkillProcess", "Oracle", "tabular_grid", "labyrinth", "rooms", "grid_mdp", "labyrinth_mdp",
-           "rooms_mdp", "WORLDS"]
+__all__ = ["World", "SkillProcess", "Oracle", "tabular_grid", "labyrinth", "rooms", "swirl_grid", "grid_mdp",
+           "labyrinth_mdp", "rooms_mdp", "pair_grid_mdp", "WORLDS"]
 
-WORLDS = {"tabular_grid": tabular_grid, "labyrinth": labyrinth, "rooms": rooms}
+WORLDS = {"tabular_grid": tabular_grid, "labyrinth": labyrinth, "rooms": rooms, "swirl_grid": swirl_grid}
