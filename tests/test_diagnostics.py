@@ -214,3 +214,182 @@ def test_the_summary_shows_arviz_diagnostics_and_says_when_a_run_has_not_converg
                           mixed.stats["num_switches"][:2])
     assert "not converged: num_skills (" in apart.convergence_warning()
     assert "num_skills 3.00 -> 3.00 | 4.00 -> 4.00" in apart.convergence_warning()
+
+
+# ------------------------------------------------ chains that share a start: nested R-hat
+def _nested_by_hand(x, superchains):
+    """Margossian et al.'s nested R-hat, written out loop by loop (superchains weighed equally)."""
+    labels = sorted(set(superchains))
+    K = len(labels)
+    super_means, within = [], []
+    for k in labels:
+        chains = [c for c in range(len(x)) if superchains[c] == k]
+        means, variances = [], []
+        for c in chains:
+            total = 0.0
+            for value in x[c]:
+                total += value
+            mean = total / len(x[c])
+            squares = 0.0
+            for value in x[c]:
+                squares += (value - mean) ** 2
+            means.append(mean)
+            variances.append(squares / (len(x[c]) - 1))
+        super_mean = sum(means) / len(means)
+        between = (sum((m - super_mean) ** 2 for m in means) / (len(means) - 1)) if len(means) > 1 else 0.0
+        super_means.append(super_mean)
+        within.append(between + sum(variances) / len(variances))
+    overall = sum(super_means) / K
+    B = sum((m - overall) ** 2 for m in super_means) / (K - 1)
+    W = sum(within) / K
+    return (1.0 + B / W) ** 0.5
+
+
+def test_nested_rhat_is_the_papers_formula_with_superchains_weighed_equally():
+    from npbrs.inference.analysis.diagnostics import nested_rhat
+
+    rng = np.random.default_rng(3)
+    x = rng.normal(size=(5, 7)) + rng.normal(size=(5, 1))
+    for superchains in ([0, 0, 1, 1, 2], [4, 4, 4, 9, 9], [0, 1, 0, 1, 0], list("aabbb")):
+        assert nested_rhat(x, superchains) == pytest.approx(_nested_by_hand(x, superchains), rel=1e-12)
+    # one chain per superchain: the classic (neither split nor rank-normalised) R-hat but for its
+    # (N - 1)/N factor: nested R-hat^2 = R-hat^2 + 1/N
+    C, N = x.shape
+    means = x.mean(1)
+    B = N / (C - 1) * np.sum((means - means.mean()) ** 2)
+    W = np.mean(x.var(1, ddof=1))
+    classic = np.sqrt(((N - 1) / N * W + B / N) / W)
+    assert nested_rhat(x, np.arange(C)) ** 2 == pytest.approx(classic ** 2 + 1 / N, rel=1e-12)
+    # superchains at different levels: far above 1; superchains that agree: near 1 (and never below)
+    mixed = rng.normal(size=(4, 2000))
+    assert 1.0 <= nested_rhat(mixed, [0, 0, 1, 1]) < 1.01
+    apart = mixed + np.array([[0.0], [0.0], [3.0], [3.0]])
+    assert nested_rhat(apart, [0, 0, 1, 1]) > 1.5
+    # (the same chains, grouped across the levels: each superchain holds both, so they agree)
+    assert nested_rhat(apart, [0, 1, 0, 1]) < 1.01
+    # undefined: a single superchain, no spread at all, a draw not finite
+    assert np.isnan(nested_rhat(mixed, [0, 0, 0, 0]))
+    assert np.isnan(nested_rhat(np.repeat([[1.0], [1.0], [2.0]], 5, axis=1), [0, 1, 2]))
+    bad = mixed.copy()
+    bad[1, 3] = np.nan
+    assert np.isnan(nested_rhat(bad, [0, 0, 1, 1]))
+    with pytest.raises(ValueError, match="3 superchain ids for 4 chains"):
+        nested_rhat(mixed, [0, 0, 1])
+
+
+def test_chains_that_continued_from_anothers_state_share_its_superchain():
+    from npbrs.inference.analysis.diagnostics import shares_start, superchain_ids
+
+    np.testing.assert_array_equal(superchain_ids(None, 3), [0, 1, 2])
+    record = {"margin": 50.0, "scores": [-100.0, -130.0, -200.0], "from": [0, 1, 0]}  # restart_lagging's record
+    np.testing.assert_array_equal(superchain_ids(record, 3), [0, 1, 0])
+    np.testing.assert_array_equal(superchain_ids(dict(record, **{"from": [2, 2, 2, 3]}), 4), [2, 2, 2, 3])
+    np.testing.assert_array_equal(superchain_ids(dict(record, **{"from": [0, 1, 2]}), 3), [0, 1, 2])
+    assert shares_start([0, 1, 0]) and not shares_start([0, 1, 2])
+    with pytest.raises(ValueError, match="names 3 chains, the run has 2"):
+        superchain_ids(record, 2)
+
+
+def _restarted(source, offsets=None, D=300, seed=4):
+    """A hand-built run of len(source) well-mixed chains, chain i having continued from chain
+    source[i]'s state at warmup's end; ``offsets``: each chain's level of the log joint."""
+    rng = np.random.default_rng(seed)
+    C = len(source)
+    result = _stats_result(rng.normal(size=(C, D)) + (0.0 if offsets is None else np.asarray(offsets)[:, None]),
+                           rng.integers(2, 5, (C, D)).astype(float), rng.normal(size=(C, D)))
+    result.restart = {"margin": 50.0, "scores": [-100.0 - 40.0 * i for i in range(C)], "from": list(source)}
+    return result
+
+
+def test_a_run_whose_chains_all_share_one_start_has_not_shown_that_it_converged():
+    import arviz as az
+    from npbrs.inference import ConvergenceWarning
+    from npbrs.inference.driver.fit import warn_if_unconverged
+
+    run = _restarted([0, 0])  # chain 1 continued from chain 0's state: one superchain
+    free = _restarted([0, 1])  # the same draws, each chain from its own start
+    np.testing.assert_array_equal(run.superchains, [0, 0])
+    assert all(np.isnan(v) for v in run.rhat.values())
+    for name in ("log_joint", "num_skills", "num_switches"):  # ArviZ's figures beside it, unchanged
+        x = run.stats[name]
+        assert run.rank_rhat[name] == pytest.approx(float(az.rhat(x))) == pytest.approx(free.rhat[name])
+        assert run.rank_rhat[name] < 1.05 and run.ess[name] > 100
+    text = run.summary()
+    assert ("chains 0 and 1 share a start (chain 1 continued from chain 0's state at warmup's end, 40 nats behind "
+            "it; restart_margin 50)") in text
+    assert "label-invariant diagnostics (nested R-hat undefined: every chain shares one start;" in text
+    assert f"log_joint nested R-hat undefined R-hat {run.rank_rhat['log_joint']:.3f}" in text
+    first = run.convergence_warning().splitlines()[0]
+    assert first.startswith("not converged: log_joint, num_skills, num_switches (nested R-hat undefined: every "
+                            "chain shares one start")
+    assert "restart_margin=0" in first and "more chains" in first
+    assert "fewer than 4 draws" not in first and "R-hat above 1.05" not in first  # (ArviZ's figures pass)
+    with pytest.warns(ConvergenceWarning, match="every chain shares one start.*restart_margin=0"):
+        warn_if_unconverged(run)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        warn_if_unconverged(free)  # the same draws from two starts have converged
+    assert "share a start" not in free.summary() and "not converged" not in free.summary()
+
+
+def test_superchains_at_different_levels_fail_and_agreeing_ones_pass():
+    from npbrs.inference.analysis.diagnostics import nested_rhat
+
+    # chains 0 and 2 share chain 0's start; chain 1 kept its own: superchains {0, 2} and {1}
+    agree = _restarted([0, 1, 0])
+    np.testing.assert_array_equal(agree.superchains, [0, 1, 0])
+    for name, v in agree.rhat.items():
+        assert v == pytest.approx(nested_rhat(agree.stats[name], [0, 1, 0]), rel=1e-12) and v < 1.05
+    text = agree.summary()
+    assert "chains 0 and 2 share a start (chain 2 continued from chain 0's state at warmup's end" in text
+    assert "nested R-hat over the superchains {0, 2} and {1}" in text and "not converged" not in text
+    # three chains continue from chain 0's state; chain 3's own start found another level: the
+    # chains' rank-normalised R-hat passes (three of four agree), the superchains' does not
+    apart = _restarted([0, 0, 0, 3], offsets=[0.0, 0.0, 0.0, 0.55], D=600)
+    assert apart.rank_rhat["log_joint"] < 1.05 < apart.rhat["log_joint"] and apart.ess["log_joint"] > 100
+    text = apart.summary()
+    assert "chains 0, 1 and 2 share a start (chains 1 and 2 continued from chain 0's state" in text
+    assert "nested R-hat over the superchains {0, 1, 2} and {3}" in text
+    assert "not converged: log_joint (nested R-hat over the chains that share a start" in text
+    apart.restart = None  # the same draws, read as four independent starts, pass
+    assert apart.convergence_warning() == ""
+    # the rank-normalised R-hat must pass too: it sees chains of different spread (its folded
+    # R-hat), which the nested R-hat of means does not
+    spread = _restarted([0, 0, 2, 0], D=600)
+    spread.stats["log_joint"] = spread.stats["log_joint"] * np.array([[1.0], [2.5], [1.0], [1.0]])
+    assert spread.rhat["log_joint"] < 1.05 < spread.rank_rhat["log_joint"] and spread.ess["log_joint"] > 100
+    assert spread.convergence_warning().startswith("not converged: log_joint (")
+
+
+def test_without_restarts_the_figures_are_arviz_rank_normalised_rhat_as_before():
+    import arviz as az
+
+    moved_none = _restarted([0, 1, 2])  # a restart record in which no chain moved
+    none = _restarted([0, 1, 2])
+    none.restart = None
+    for run in (moved_none, none):
+        np.testing.assert_array_equal(run.superchains, [0, 1, 2])
+        for name in ("log_joint", "num_skills", "num_switches"):
+            assert run.rhat[name] == float(az.rhat(run.stats[name])) == run.rank_rhat[name]
+    assert moved_none.summary() == none.summary()
+    assert "label-invariant diagnostics (ArviZ): log_joint R-hat" in none.summary() and "nested" not in none.summary()
+
+
+def test_the_arviz_form_records_each_chains_superchain(tmp_path):
+    from npbrs.inference import load
+    from npbrs.inference.analysis.diagnostics import nested_rhat
+
+    run = _restarted([0, 1, 0, 0])
+    idata = run.to_arviz()
+    for group in ("posterior", "sample_stats"):
+        np.testing.assert_array_equal(idata[group]["superchain"].values, [0, 1, 0, 0])
+        assert idata[group]["superchain"].dims == ("chain",)
+    assert nested_rhat(idata.posterior["log_joint"].values, idata.posterior["superchain"].values) == \
+        run.rhat["log_joint"]
+    means = idata.posterior["log_joint"].groupby("superchain").mean()
+    np.testing.assert_allclose(means.sel(superchain=1).values, run.stats["log_joint"][1])
+    run.save(tmp_path / "run.nc")
+    again = load(tmp_path / "run.nc")
+    assert again.equals(run) and again.summary() == run.summary()
+    np.testing.assert_array_equal(again.to_arviz().sample_stats["superchain"].values, [0, 1, 0, 0])
+    np.testing.assert_array_equal(_restarted([0, 1]).to_arviz().posterior["superchain"].values, [0, 1])

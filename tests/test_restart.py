@@ -10,6 +10,7 @@ import pytest
 
 from gridworld import ragged_policy_problem
 from npbrs.inference import fit, load
+from npbrs.inference.analysis.diagnostics import superchain_ids
 from npbrs.inference.driver.config import SamplerConfig
 from npbrs.inference.driver.chains import Chains, restart_lagging, warmup_scores
 from npbrs.inference.driver.compiled import Compiled
@@ -48,6 +49,7 @@ def test_chains_beyond_the_margin_take_the_best_chains_state_and_keep_their_keys
         record = restart_lagging(chains, scores, 50.0)
         out = chains.state()
         assert record == {"margin": 50.0, "scores": scores, "from": [0, 1, 0]}, (method, record)
+        np.testing.assert_array_equal(superchain_ids(record, 3), [0, 1, 0])  # chain 2 shares chain 0's start
         for c, source in enumerate(record["from"]):
             assert _same(_chain(out, c)._replace(rng_key=0), _chain(state, source)._replace(rng_key=0)), (method, c)
             np.testing.assert_array_equal(_chain(out, c).rng_key, _chain(state, c).rng_key)  # its own key
@@ -100,11 +102,23 @@ def test_a_fit_restarts_a_lagging_chain_at_warmups_end_and_records_it(tmp_path):
     assert not np.array_equal(tight.stats["log_joint"][other], tight.stats["log_joint"][best])
     np.testing.assert_array_equal(tight.warmup_stats["log_joint"], off.warmup_stats["log_joint"])
     assert "continued from chain" in tight.summary() and "continued from" not in loose.summary()
+    # both chains now share the best chain's start: one superchain, whose nested R-hat is
+    # undefined, so the run has not shown that it converged (ArviZ's R-hat is still shown beside)
+    np.testing.assert_array_equal(tight.superchains, [best, best])
+    np.testing.assert_array_equal(loose.superchains, [0, 1])
+    text = tight.summary()
+    assert f"chains 0 and 1 share a start (chain {other} continued from chain {best}'s state at warmup's end" in text
+    assert "nested R-hat undefined: every chain shares one start" in text
+    assert all(np.isnan(v) for v in tight.rhat.values())
+    assert "every chain shares one start" in tight.convergence_warning().splitlines()[0]
+    assert "share a start" not in loose.summary()
+    np.testing.assert_equal(loose.rhat, loose.rank_rhat)  # (NaN where undefined, alike)
     # kept with the saved run, and the sequential chains do the same
     path = tmp_path / "run.nc"
     tight.save(path)
     again = load(path)
     assert again.restart == tight.restart and again.equals(tight)
+    np.testing.assert_array_equal(again.to_arviz().posterior["superchain"].values, [best, best])
     sequential = fit(MDP, DEMOS, dict(CONFIG, restart_margin=1e-9, chain_method="sequential"), **KW)
     assert sequential.restart["from"] == tight.restart["from"]
     np.testing.assert_allclose(sequential.restart["scores"], scores, rtol=1e-9)

@@ -6,6 +6,11 @@ matched. Hence:
 
 - :func:`convergence` — R-hat and ESS (ArviZ) of the label-invariant scalars only: the log
   joint, the number of skills, the number of switches;
+- :func:`nested_rhat` and :func:`superchain_ids` — where chains share a start (a chain restarted
+  from another's state at warmup's end, ``SamplerConfig.restart_margin``), the nested R-hat of
+  Margossian et al. (Bayesian Analysis 2024) over superchains of the chains that share one: what
+  :attr:`FitResult.rhat`, :func:`unconverged`, :func:`convergence_warning` and :func:`summary`
+  judge such a run by, beside ArviZ's rank-normalised R-hat;
 - :func:`relabel` — each chain's skill slots matched to the result's skills (those of the best
   draw) by Hungarian matching, on segmentation agreement (default) or parameter distance;
 - :func:`skill_summary` — per skill and parameter entry (e.g. reward weight per feature): the
@@ -27,9 +32,9 @@ import numpy as np
 from scipy.optimize import linear_sum_assignment
 
 
-__all__ = ["convergence", "relabel", "relabelled_draws", "skill_summary", "LABEL_INVARIANT", "ConvergenceWarning",
-           "label_invariant_diagnostic", "unconverged", "convergence_warning", "summary", "reward_prior_text",
-           "shown_segmentation"]
+__all__ = ["convergence", "nested_rhat", "superchain_ids", "shares_start", "shared_starts", "relabel",
+           "relabelled_draws", "skill_summary", "LABEL_INVARIANT", "ConvergenceWarning", "label_invariant_diagnostic",
+           "unconverged", "convergence_warning", "summary", "reward_prior_text", "shown_segmentation"]
 
 
 
@@ -43,20 +48,122 @@ class ConvergenceWarning(UserWarning):
 LABEL_INVARIANT = ("log_joint", "num_skills", "num_switches")
 
 
-def label_invariant_diagnostic(stats: Dict[str, np.ndarray], which: str = "rhat") -> Dict[str, float]:
+def nested_rhat(draws, superchains) -> float:
+    """Nested R-hat (Margossian, Hoffman, Sountsov, Riou-Durand, Vehtari and Gelman, "Nested
+    R-hat: assessing the convergence of Markov chain Monte Carlo when running many short
+    chains", Bayesian Analysis 2024) of one scalar: R-hat with superchains, groups of chains that
+    share a start, in the place of chains.
+
+    With chain means m_c, each superchain k's mean (the mean of its chains' means) and the
+    overall mean (the mean of the superchains' means):
+
+    - B: the variance of the superchains' means around the overall mean, 1/(K-1);
+    - W: the mean over superchains of (the variance of its chains' means around the
+      superchain's mean, 1/(M_k-1), 0 for a superchain of one chain) + (the mean of its chains'
+      within-chain variances, 1/(N-1), 0 for chains of one draw);
+    - nested R-hat = sqrt(1 + B / W).
+
+    The paper's superchains are of equal size. Here a restart moves a chain into the best
+    chain's superchain, so sizes differ (superchains of 2, 1 and 1 chains); every superchain
+    weighs the same in the overall mean, in B and in W, as every superchain does in the paper
+    (not every chain: a superchain of many chains that share one start is one piece of evidence
+    about where the chains go from different starts, not many). With one chain per superchain
+    it is the classic R-hat (Gelman and Rubin's, neither split nor rank-normalised) but for its
+    (N-1)/N factor: nested R-hat^2 = R-hat^2 + 1/N, so never below 1.
+
+    Args:
+        draws: (chains, draws) array of the scalar.
+        superchains: (chains,) the superchain of each chain (any hashable ids; e.g.
+            :func:`superchain_ids`).
+    Returns:
+        the nested R-hat; NaN where undefined: a single superchain (no two starts to compare),
+        W = 0 (every chain constant, at its superchain's value), a draw not finite.
+    """
+    x = np.asarray(draws, dtype=np.float64)
+    if x.ndim != 2:
+        raise ValueError(f"draws must be (chains, draws), got shape {x.shape}")
+    ids = np.asarray(superchains).reshape(-1)
+    if len(ids) != x.shape[0]:
+        raise ValueError(f"{len(ids)} superchain ids for {x.shape[0]} chains")
+    C, N = x.shape
+    groups = [np.flatnonzero(ids == k) for k in np.unique(ids)]
+    if len(groups) < 2 or N == 0 or not np.all(np.isfinite(x)):
+        return float("nan")
+    chain_means = x.mean(axis=1)
+    chain_vars = x.var(axis=1, ddof=1) if N > 1 else np.zeros(C)
+    super_means = np.array([chain_means[g].mean() for g in groups])
+    within = np.array([(chain_means[g].var(ddof=1) if len(g) > 1 else 0.0) + chain_vars[g].mean()
+                       for g in groups])
+    B, W = super_means.var(ddof=1), within.mean()
+    if not W > 0:
+        return float("nan")
+    return float(np.sqrt(1.0 + B / W))
+
+
+def superchain_ids(restart: Optional[dict], num_chains: int) -> np.ndarray:
+    """The superchain of each chain: the chains that share a start. A chain restarted at
+    warmup's end (``restart["from"][i] != i``, :attr:`FitResult.restart`) continued from
+    ``restart["from"][i]``'s state, so it joins that chain's superchain; without restarts
+    (``restart`` None) every chain is its own superchain.
+
+    Returns:
+        (num_chains,) int: each chain's superchain, named by the chain of it that kept its own
+        state (e.g. [0, 0, 2] for chain 1 restarted from chain 0's state).
+    """
+    if restart is None:
+        return np.arange(num_chains)
+    source = [int(c) for c in restart["from"]]
+    if len(source) != num_chains:
+        raise ValueError(f"restart['from'] names {len(source)} chains, the run has {num_chains}")
+    parent = list(range(num_chains))
+
+    def root(c):
+        while parent[c] != c:
+            c = parent[c]
+        return c
+
+    for i, c in enumerate(source):  # (union of i and the chain it continued from)
+        a, b = root(i), root(c)
+        if a != b:
+            parent[max(a, b)] = min(a, b)
+    groups: Dict[int, list] = {}
+    for i in range(num_chains):
+        groups.setdefault(root(i), []).append(i)
+    out = np.empty(num_chains, dtype=np.int64)
+    for members in groups.values():
+        kept = [i for i in members if source[i] == i]
+        out[members] = kept[0] if kept else min(members)
+    return out
+
+
+def shares_start(superchains) -> bool:
+    """Whether two chains share a superchain (:func:`superchain_ids`): then R-hat across the
+    chains alone does not show that they found the same region from different starts."""
+    ids = np.asarray(superchains).reshape(-1)
+    return len(np.unique(ids)) < len(ids)
+
+
+def label_invariant_diagnostic(stats: Dict[str, np.ndarray], which: str = "rhat",
+                               superchains=None) -> Dict[str, float]:
     """ArviZ's rank-normalised split R-hat (``which="rhat"``) or bulk ESS (``"ess"``) of each
     label-invariant scalar in ``stats`` ({name: (chains, draws)}): the numbers ``convergence``
-    (``az.summary``) shows; NaN where undefined (a constant scalar, chains that are each constant
-    at different values, fewer than 4 draws)."""
+    (``az.summary``) shows; or (``"nested_rhat"``) :func:`nested_rhat` over ``superchains``
+    (each chain's superchain, :func:`superchain_ids`). NaN where undefined (a constant scalar,
+    chains that are each constant at different values, fewer than 4 draws for ArviZ's, a single
+    superchain for the nested R-hat)."""
     import logging
     import warnings
 
     from ..arviz_import import arviz
 
+    if which == "nested_rhat":
+        if superchains is None:
+            raise ValueError("which='nested_rhat' needs each chain's superchain (superchains=)")
+        return {name: nested_rhat(stats[name], superchains) for name in LABEL_INVARIANT}
     az = arviz()
 
     if which not in ("rhat", "ess"):
-        raise ValueError(f"which must be 'rhat' or 'ess', got {which!r}")
+        raise ValueError(f"which must be 'rhat', 'ess' or 'nested_rhat', got {which!r}")
     fn = az.rhat if which == "rhat" else az.ess
     logger = logging.getLogger("arviz")
     level = logger.level
@@ -73,25 +180,61 @@ def label_invariant_diagnostic(stats: Dict[str, np.ndarray], which: str = "rhat"
         logger.setLevel(level)
     return out
 def unconverged(stats: Dict[str, np.ndarray], rhat: Dict[str, float], ess: Optional[Dict[str, float]] = None,
-                target_rhat: float = 1.05, min_ess: float = 100.0):
+                target_rhat: float = 1.05, min_ess: float = 100.0, rank_rhat: Optional[Dict[str, float]] = None):
     """(failing, undefined): the label-invariant scalars in ``stats`` ({name: (chains, draws)})
     that have not converged, and those of them whose diagnostics are undefined although they
-    vary (fewer than 4 draws a chain, chains each constant at a different value). A scalar
-    constant over every draw of every chain has converged; one that varies fails on an
-    undefined diagnostic, an R-hat above ``target_rhat`` or (where ``ess`` is given) an ESS
-    below ``min_ess``. ``rhat``, ``ess``: :func:`label_invariant_diagnostic`'s."""
+    vary (fewer than 4 draws a chain, chains each constant at a different value, every chain
+    sharing one start). A scalar constant over every draw of every chain has converged; one that
+    varies fails on an undefined diagnostic, an R-hat above ``target_rhat``, (where ``ess`` is
+    given) an ESS below ``min_ess`` or (where ``rank_rhat`` is given) a rank-normalised R-hat
+    above ``target_rhat``. ``rhat``: the R-hat a run is judged by (:attr:`FitResult.rhat`: the
+    nested R-hat over superchains where chains share a start, else ArviZ's rank-normalised
+    R-hat); ``rank_rhat``: where ``rhat`` is the nested one, ArviZ's, which must pass too (it
+    sees a chain drifting within its draws, the nested R-hat does not); ``ess``:
+    :func:`label_invariant_diagnostic`'s."""
     failing, undefined = [], []
     for name in LABEL_INVARIANT:
         x = np.asarray(stats[name], float)
         if x.size == 0 or np.ptp(x) == 0:
             continue
-        values = [rhat[name]] + ([] if ess is None else [ess[name]])
+        rhats = [rhat[name]] + ([] if rank_rhat is None else [rank_rhat[name]])
+        values = rhats + ([] if ess is None else [ess[name]])
         if not np.all(np.isfinite(values)):
             failing.append(name)
             undefined.append(name)
-        elif rhat[name] > target_rhat or (ess is not None and ess[name] < min_ess):
+        elif max(rhats) > target_rhat or (ess is not None and ess[name] < min_ess):
             failing.append(name)
     return failing, undefined
+
+
+def _and(items) -> str:
+    items = [str(i) for i in items]
+    return items[0] if len(items) == 1 else ", ".join(items[:-1]) + " and " + items[-1]
+
+
+def shared_starts(result) -> str:
+    """Which chains share a start, in words ("" when none does): per superchain of several
+    chains (:func:`superchain_ids`), e.g. "chains 0 and 1 share a start (chain 1 continued from
+    chain 0's state at warmup's end, 87 nats behind it; restart_margin 50)"."""
+    restart = result.restart
+    ids = superchain_ids(restart, result.num_chains)
+    if not shares_start(ids):
+        return ""
+    source, scores = restart["from"], restart["scores"]
+    parts = []
+    for k in np.unique(ids):
+        members = np.flatnonzero(ids == k).tolist()
+        if len(members) < 2:
+            continue
+        moves = []
+        for s in sorted({source[i] for i in members if source[i] != i}):
+            moved = [i for i in members if source[i] == s and i != s]
+            behind = _and(f"{scores[s] - scores[i]:.0f}" for i in moved)
+            moves.append(f"chain{'s' if len(moved) > 1 else ''} {_and(moved)} continued from chain {s}'s state "
+                         f"at warmup's end, {behind} nats behind it")
+        parts.append(f"chains {_and(members)} share a start ({'; '.join(moves)}; restart_margin "
+                     f"{restart['margin']:g})")
+    return "; ".join(parts)
 
 
 def _idata(result):
@@ -262,15 +405,25 @@ def skill_summary(result, site: Optional[str] = None, prob: float = 0.9, by: str
     return frame.iloc[(np.arange(L)[:, None] * P + order).reshape(-1)]
 
 
-def convergence_warning(result, rhat: Optional[Dict[str, float]] = None, ess: Optional[Dict[str, float]] = None) -> str:
+def convergence_warning(result, rhat: Optional[Dict[str, float]] = None, ess: Optional[Dict[str, float]] = None,
+                        rank_rhat: Optional[Dict[str, float]] = None) -> str:
     """Lines saying which label-invariant scalars have R-hat above 1.05 or ESS below 100, or
     diagnostics that are undefined although the scalar varies (:func:`unconverged`), how
     each chain's mean of them moved from the first to the second half of its draws (a
     chain still drifting, or chains holding different levels), and what to do; "" when
-    none has. ``rhat``, ``ess``: the run's, where the caller has them already."""
+    none has. Where chains share a start (:func:`superchain_ids`), the R-hat is the nested one
+    over the superchains and the rank-normalised one must pass too; where every chain shares
+    one start the nested R-hat is undefined and the run has not shown that it converged, which
+    the first line says with what to do (restart_margin off, or more chains). ``rhat``, ``ess``,
+    ``rank_rhat``: the run's (:attr:`FitResult.rhat`, ``ess``, ``rank_rhat``), where the caller
+    has them already."""
     rhat = result.rhat if rhat is None else rhat
     ess = result.ess if ess is None else ess
-    bad, undefined = unconverged(result.stats, rhat, ess)
+    ids = superchain_ids(result.restart, result.num_chains)
+    shared = shares_start(ids)
+    if shared and rank_rhat is None:
+        rank_rhat = label_invariant_diagnostic(result.stats, "rhat")
+    bad, undefined = unconverged(result.stats, rhat, ess, rank_rhat=rank_rhat if shared else None)
     if not bad:
         return ""
     halves = []
@@ -283,15 +436,30 @@ def convergence_warning(result, rhat: Optional[Dict[str, float]] = None, ess: Op
             halves.append(f"{name} {per_chain}")
     moved = ("\n  each chain's mean over the first -> the second half of its draws: " + "; ".join(halves)
              if halves else "")
-    why = "R-hat above 1.05 or ESS below 100"
+    one_start = shared and len(np.unique(ids)) == 1
+    todo = "run more sweeps (samples, warmup) or more chains"
+    if not shared:
+        why = "R-hat above 1.05 or ESS below 100"
+    elif one_start:  # (the nested R-hat is undefined for every scalar: the other reasons are ArviZ's)
+        why = ("nested R-hat undefined: every chain shares one start (a restart at warmup's end), so no two "
+               "chains that started apart can show that they reach the same region")
+        plain_bad, undefined = unconverged(result.stats, rank_rhat, ess)
+        if plain_bad:
+            why += f"; rank-normalised R-hat above 1.05 or ESS below 100 for {', '.join(plain_bad)}"
+        todo = ("run with restart_margin=0 (restarts off) or more chains, and more sweeps (samples, warmup) if "
+                "need be,")
+    else:
+        why = ("nested R-hat over the chains that share a start, or rank-normalised R-hat, above 1.05, or ESS "
+               "below 100")
     if undefined:
         why += (f"; undefined for {', '.join(undefined)}, which varies: fewer than 4 draws a chain, or chains "
                 "each constant at a different value")
-    return (f"not converged: {', '.join(bad)} ({why}); run more sweeps "
-            f"(samples, warmup) or more chains before trusting the skills found{moved}\n  (a chain whose "
-            "halves differ is still moving: more warmup; chains steady at different levels sit in different "
+    starts = ("; chains that share a start count as one superchain (nested R-hat): restart_margin=0 keeps every "
+              "chain's own start, and the run-length rule reads the rank-normalised R-hat only" if shared else "")
+    return (f"not converged: {', '.join(bad)} ({why}); {todo} before trusting the skills found{moved}\n  (a chain "
+            "whose halves differ is still moving: more warmup; chains steady at different levels sit in different "
             "regions: more chains or sampling sweeps; a config with max_samples and time_budget samples on "
-            "until every R-hat is at most 1.05)")
+            f"until every R-hat is at most 1.05{starts})")
 
 
 def shown_segmentation(result):
@@ -345,6 +513,8 @@ def summary(result) -> str:
         the text, one line per item."""
     lengths = [len(s) for s in result.segmentation]
     shown, what = shown_segmentation(result)
+    ids = superchain_ids(result.restart, result.num_chains)
+    shared = shares_start(ids)
 
     def switches(labels):
         return np.mean([np.count_nonzero(np.diff(s)) for s in labels])
@@ -380,19 +550,14 @@ def summary(result) -> str:
         lines.append(f"started from a given segmentation ({used} skills)")
     if result.run_length is not None:
         r = result.run_length
-        why = {"converged": f"every label-invariant R-hat at most {r['target_rhat']}",
+        why = {"converged": f"every label-invariant R-hat at most {r['target_rhat']}" + (
+                   ": the rank-normalised R-hat, which does not see chains that share a start" if shared else ""),
                "max_samples": f"max_samples reached before every R-hat was at most {r['target_rhat']}",
                "time_budget": f"the time budget ({r['time_budget']:g} s) spent before every R-hat was at most "
                               f"{r['target_rhat']}"}.get(r["stopped"], r["stopped"])
         lines.append(f"run length chosen by convergence: {r['samples']} sampling sweeps per chain ({why})")
-    if result.restart is not None and any(c != i for i, c in enumerate(result.restart["from"])):
-        r = result.restart
-        moved = [i for i, c in enumerate(r["from"]) if c != i]
-        best = r["from"][moved[0]]
-        behind = ", ".join(f"{r['scores'][best] - r['scores'][i]:.0f}" for i in moved)
-        lines.append(f"at warmup's end chain{'s' if len(moved) > 1 else ''} {', '.join(map(str, moved))} "
-                     f"continued from chain {best}'s state ({behind} nats behind it; restart_margin "
-                     f"{r['margin']:g})")
+    if shared:
+        lines.append(shared_starts(result))
     if result.truncation is not None:
         t = result.truncation
         models = t.get("switching") or [None] * len(t["max_skills"])  # (a run saved before it was kept)
@@ -406,13 +571,22 @@ def summary(result) -> str:
                      f"switching, given the sticky fit's skill sequences: {c['log_bayes_factor']:+.1f} nats; "
                      f"state needs more than {c['margin']:g})")
     rhat, ess = result.rhat, result.ess
+    rank_rhat = result.rank_rhat if shared else None
 
     def shown(value, fmt):
         return format(value, fmt) if np.isfinite(value) else "undefined"
 
-    lines.append("label-invariant diagnostics (ArviZ): " + "; ".join(
-        f"{n} R-hat {shown(rhat[n], '.3f')} ESS {shown(ess[n], '.0f')}" for n in LABEL_INVARIANT))
-    warning = convergence_warning(result, rhat, ess)
+    if not shared:
+        lines.append("label-invariant diagnostics (ArviZ): " + "; ".join(
+            f"{n} R-hat {shown(rhat[n], '.3f')} ESS {shown(ess[n], '.0f')}" for n in LABEL_INVARIANT))
+    else:
+        groups = [np.flatnonzero(ids == k).tolist() for k in np.unique(ids)]
+        over = ("nested R-hat undefined: every chain shares one start" if len(groups) == 1 else
+                "nested R-hat over the superchains " + _and("{" + ", ".join(map(str, g)) + "}" for g in groups))
+        lines.append(f"label-invariant diagnostics ({over}; rank-normalised R-hat and ESS from ArviZ): " + "; ".join(
+            f"{n} nested R-hat {shown(rhat[n], '.3f')} R-hat {shown(rank_rhat[n], '.3f')} ESS {shown(ess[n], '.0f')}"
+            for n in LABEL_INVARIANT))
+    warning = convergence_warning(result, rhat, ess, rank_rhat)
     if warning:
         lines.append(warning)
     return "\n".join(lines)

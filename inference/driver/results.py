@@ -10,6 +10,10 @@ the h5netcdf engine, ``npbrs.inference.load`` reads it back): an ``InferenceData
   hyperparameters, and the label-invariant scalars ``log_joint``, ``num_skills``, ``num_switches``;
 - ``sample_stats``: ``lp`` (the log joint) and every per-draw scalar of the kernel
   (``log_joint``, ``num_skills``, ``num_switches``, ``accept``, ...);
+- in ``posterior``, ``sample_stats`` and ``log_likelihood``, the coordinate ``superchain``
+  (chain): the chains that share a start (:attr:`FitResult.superchains`; a chain restarted at
+  warmup's end shares the start of the chain whose state it continued from), what the nested
+  R-hat groups;
 - ``constant_data``: the best segmentation ``segmentation`` (trajectory, step; -1 on padding)
   with ``lengths`` (trajectory), its skills' parameters ``best_<site>`` (skill, ...), their
   sampler slots ``skill_slots`` (skill), and each chain's best segmentation in slot labels
@@ -45,7 +49,8 @@ from npbrs.domains.util.files import atomic_write
 from npbrs.domains.util.precision import float64_all
 
 from ..analysis.diagnostics import (LABEL_INVARIANT, ConvergenceWarning, convergence_warning,
-                                     label_invariant_diagnostic, summary, unconverged)
+                                     label_invariant_diagnostic, shares_start, summary, superchain_ids,
+                                     unconverged)
 from .config import ModelConfig
 
 #: ``fit``'s draws entry counting each step's skill slots over the sampling sweeps (C, N, T, K)
@@ -313,9 +318,30 @@ class FitResult:
         return self.stats["log_joint"]
 
     @property
+    def superchains(self) -> np.ndarray:
+        """(C,) the superchain of each chain: the chains that share a start (a chain restarted at
+        warmup's end joins the superchain of the chain whose state it continued from; without
+        restarts every chain is its own), named by the chain of it that kept its own state
+        (:func:`npbrs.inference.analysis.diagnostics.superchain_ids`)."""
+        return superchain_ids(self.restart, self.num_chains)
+
+    @property
     def rhat(self) -> Dict[str, float]:
-        """Rank-normalised split R-hat (ArviZ) of the label-invariant scalars across chains;
-        NaN where undefined (a constant scalar, fewer than 4 draws)."""
+        """The R-hat of the label-invariant scalars the run is judged by: where chains share a
+        start (:attr:`superchains`), the nested R-hat over the superchains
+        (:func:`npbrs.inference.analysis.diagnostics.nested_rhat`; NaN for every scalar where
+        every chain shares one start); otherwise ArviZ's rank-normalised split R-hat across
+        chains (:attr:`rank_rhat`). NaN where undefined (a constant scalar, fewer than 4 draws)."""
+        ids = self.superchains
+        if shares_start(ids):
+            return label_invariant_diagnostic(self.stats, "nested_rhat", ids)
+        return label_invariant_diagnostic(self.stats, "rhat")
+
+    @property
+    def rank_rhat(self) -> Dict[str, float]:
+        """Rank-normalised split R-hat (ArviZ) of the label-invariant scalars across chains, shared
+        starts or not (the :attr:`rhat` of a run whose chains all kept their own starts); NaN
+        where undefined (a constant scalar, fewer than 4 draws)."""
         return label_invariant_diagnostic(self.stats, "rhat")
 
     @property
@@ -324,10 +350,12 @@ class FitResult:
         return label_invariant_diagnostic(self.stats, "ess")
 
     def convergence_warning(self, rhat: Optional[Dict[str, float]] = None,
-                            ess: Optional[Dict[str, float]] = None) -> str:
+                            ess: Optional[Dict[str, float]] = None,
+                            rank_rhat: Optional[Dict[str, float]] = None) -> str:
         """What :func:`npbrs.inference.analysis.diagnostics.convergence_warning` says of this run
-        ("" when it has converged); ``rhat``, ``ess``: the run's, where the caller has them."""
-        return convergence_warning(self, rhat, ess)
+        ("" when it has converged); ``rhat``, ``ess``, ``rank_rhat``: the run's, where the
+        caller has them."""
+        return convergence_warning(self, rhat, ess, rank_rhat)
 
     def check_mdp(self, mdp) -> None:
         """Raise ValueError unless ``mdp`` is the MDP the run was fitted in (when the run knows it)."""
@@ -413,14 +441,24 @@ class FitResult:
 
     def to_arviz(self):
         """ArviZ InferenceData: draws, label-invariant sample stats, the best segmentation and
-        the run's description (the layout of saved runs: see the module docstring)."""
+        the run's description (the layout of saved runs: see the module docstring).
+
+        The groups of the sampling draws (``posterior``, ``sample_stats``, ``log_likelihood``)
+        carry a coordinate ``superchain`` along ``chain``: each chain's superchain
+        (:attr:`superchains`), the chains that share a start because a restart at warmup's end
+        moved some onto another's state (without restarts, each chain its own). Group by it
+        with xarray (``idata.posterior["log_joint"].groupby("superchain").mean()``) or compute the
+        nested R-hat the run is judged by with
+        ``npbrs.inference.analysis.diagnostics.nested_rhat(idata.posterior["log_joint"].values,
+        idata.posterior["superchain"].values)``; ArviZ's own ``az.rhat`` compares chains and does
+        not read it. (``warmup_sample_stats`` has none: the chains' warmups started apart.)"""
         import xarray as xr
 
         from ..arviz_import import arviz
 
         az = arviz()
         C, D = np.shape(self.stats["log_joint"])
-        chain_draw = {"chain": np.arange(C), "draw": np.arange(D)}
+        chain_draw = {"chain": np.arange(C), "draw": np.arange(D), "superchain": ("chain", self.superchains)}
         sites = set(self.skill_params)
         posterior = {name: (["chain", "draw"] + _site_dims(name, v.shape[2:], sites), np.asarray(v))
                      for name, v in self.samples.items()}
