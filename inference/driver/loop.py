@@ -20,7 +20,8 @@ from jax.sharding import Mesh
 from npbrs.domains.demos import Demonstrations
 from npbrs.models.emissions import Emission, make_emission
 
-from ..analysis.diagnostics import LABEL_INVARIANT, label_invariant_diagnostic, unconverged
+from ..analysis.diagnostics import (LABEL_INVARIANT, label_invariant_diagnostic, shares_start, superchain_ids,
+                                    unconverged)
 from ..threads import threads_for
 from .chains import Chains, choose_chain_method, restart_lagging, warmup_scores
 from .compiled import compiled_kernel, default_moves, mdp_key, use_compilation_cache
@@ -255,7 +256,7 @@ def run_fit(mdp, demos, cfg: ModelConfig, emission: Optional[Emission] = None, *
                 if not extend or stopped:
                     break
                 elapsed = wall + time.perf_counter() - start
-                run_length = run_length_status(draws, sampler, done - W, cap - W, elapsed)
+                run_length = run_length_status(draws, sampler, done - W, cap - W, elapsed, restart)
                 if run_length["stopped"] != "running":
                     break
                 total = min(total + block, cap)
@@ -275,13 +276,19 @@ def _count_skills(counts: np.ndarray, z: np.ndarray) -> None:
         counts[..., k] += z == k
 
 
-def run_length_status(draws: dict, sampler, drawn: int, most: int, elapsed: float) -> dict:
+def run_length_status(draws: dict, sampler, drawn: int, most: int, elapsed: float, restart=None) -> dict:
     """Where a run whose length is chosen by convergence stands after ``drawn`` sampling sweeps
     (of at most ``most``, ``elapsed`` seconds since it started): the R-hat of each label-invariant
     scalar over the draws so far and the rule that stops it ("converged", "max_samples",
-    "time_budget"), or "running"."""
-    rhat = label_invariant_diagnostic(draws, "rhat")
-    if not unconverged(draws, rhat, target_rhat=sampler.target_rhat)[0]:  # (R-hat alone: the rule's target)
+    "time_budget"), or "running". ``restart``: the run's restart record (chains that share a
+    start are judged by the nested R-hat over superchains, as :attr:`FitResult.rhat` is)."""
+    C = next(iter(draws[n] for n in LABEL_INVARIANT)).shape[0]
+    superchains = superchain_ids(restart, C)
+    rank = label_invariant_diagnostic(draws, "rhat")
+    shared = shares_start(superchains)
+    rhat = label_invariant_diagnostic(draws, "nested_rhat", superchains) if shared else rank
+    if not unconverged(draws, rhat, target_rhat=sampler.target_rhat,
+                       rank_rhat=rank if shared else None)[0]:  # (R-hat alone: the rule's target)
         stopped = "converged"
     elif drawn >= most:
         stopped = "max_samples"
