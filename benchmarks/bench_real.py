@@ -172,6 +172,9 @@ def fit_and_score(mdp, train, validation, fit_options: dict, predictive: dict) -
             "skills": int(result.num_skills), "labelled_skills": int(len(np.unique(np.concatenate(labels)))),
             "wall_s": round(wall, 2), "rhat_max": max(finite) if finite else None,
             "rhat": {k: _finite(v) for k, v in rhat.items()}, "ess": {k: _finite(v) for k, v in ess.items()},
+            # (ArviZ's R-hat; ``rhat`` is the nested one where chains share a start: FitResult.rhat)
+            "rank_rhat_max": max((v for v in result.rank_rhat.values() if np.isfinite(v)), default=None),
+            "superchains": [int(s) for s in result.superchains],
             "switching": result.switching, "num_features": int(mdp.num_features),
             "load_before": round(load_before, 2), "load_after": round(os.getloadavg()[0], 2)}
 
