@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 
 from npbrs.domains import Demonstrations
-from npbrs.domains.worlds import (WORLDS, SkillProcess, grid_mdp, labyrinth, labyrinth_mdp, pair_grid_mdp, rooms,
-                                  rooms_mdp, swirl_grid, tabular_grid)
+from npbrs.domains.worlds import (WORLDS, SkillProcess, cell_view, grid_mdp, labyrinth, labyrinth_mdp, pair_grid_mdp,
+                                  rooms, rooms_mdp, swirl_grid, tabular_grid)
 
 # tiny versions of the four worlds (one solver compilation each)
 TINY = {
@@ -147,6 +147,19 @@ def test_the_swirl_grid_rewards_pairs_and_switches_at_the_requested_rate_mostly_
     at_goal = np.concatenate([c[s[1:]] == goal[z[:-1]] for z, s in zip(world.demos.skills, world.demos.states)])
     ratio = switched[at_goal].mean() / switched[~at_goal].mean()
     assert 4 < ratio < 25, ratio
+
+
+def test_the_cell_view_is_the_same_walk_on_the_plain_grid(tiny):
+    world = tiny["swirl_grid"]
+    mdp, demos, heldout = cell_view(world)
+    v = world.mdp.state_vectors.astype(int)
+    assert mdp.num_states == 9 and mdp.fingerprint() == grid_mdp(3).fingerprint()
+    for view, pairs in [(demos, world.demos), (heldout, world.heldout)]:
+        view.validate(mdp, check_transitions=True)
+        for a, b in [(view.actions, pairs.actions), (view.skills, pairs.skills)]:
+            assert all(np.array_equal(x, y) for x, y in zip(a, b)) and len(a) == len(b)
+        for cells, states in zip(view.states, pairs.states):
+            np.testing.assert_array_equal(cells, v[states, 2] * 3 + v[states, 3])
 
 
 # ---------------------------------------------------------------------------- the oracle

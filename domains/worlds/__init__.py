@@ -19,7 +19,8 @@ Four generators, each ``f(seed, **sizes) -> World`` (the same seed gives the sam
   (water and home) whose rewards are on (previous cell, cell) pairs, ends that depend on the
   cell, 200 trajectories x 500 steps with about 25 switches each. Its MDP
   (:func:`pair_grid_mdp`) has the pairs as states (105 of them), so that a reward on pairs is a
-  weight per state; the demonstrations' states are those pairs.
+  weight per state; the demonstrations' states are those pairs (:func:`cell_view`: the same data
+  on the cells, with a reward per cell).
 
 Every world uses one-hot state features (a reward weight per state: what a new user without
 features has; in :func:`swirl_grid` a state is a pair of cells), and its experts act by the
@@ -50,9 +51,9 @@ from .base import Oracle, SkillProcess, World
 from .grid_world import grid_mdp, tabular_grid
 from .labyrinth_world import labyrinth, labyrinth_mdp
 from .rooms_world import rooms, rooms_mdp
-from .swirl_world import pair_grid_mdp, swirl_grid
+from .swirl_world import cell_view, pair_grid_mdp, swirl_grid
 
 __all__ = ["World", "SkillProcess", "Oracle", "tabular_grid", "labyrinth", "rooms", "swirl_grid", "grid_mdp",
-           "labyrinth_mdp", "rooms_mdp", "pair_grid_mdp", "WORLDS"]
+           "labyrinth_mdp", "rooms_mdp", "pair_grid_mdp", "cell_view", "WORLDS"]
 
 WORLDS = {"tabular_grid": tabular_grid, "labyrinth": labyrinth, "rooms": rooms, "swirl_grid": swirl_grid}

@@ -8,12 +8,13 @@ from typing import Tuple
 
 import numpy as np
 
+from ..demos import Demonstrations
 from ..mdp import TabularMDP
 from ..util.precision import float64_all
 from .base import World, _ending_transitions, _expert_log_policies, _int, _one_set, _real, _seed, _world
-from .grid_world import _grid_dense, _switch_rate
+from .grid_world import _grid_dense, _switch_rate, grid_mdp
 
-__all__ = ["swirl_grid", "pair_grid_mdp"]
+__all__ = ["swirl_grid", "pair_grid_mdp", "pair_cells", "cell_view"]
 
 
 # ------------------------------------------------------------------------- the pair-state MDP
@@ -64,10 +65,26 @@ def pair_cells(mdp: TabularMDP, size: int) -> np.ndarray:
     return np.stack([v[:, 0] * size + v[:, 1], v[:, 2] * size + v[:, 3]], -1)
 
 
+def cell_view(world: World):
+    """(mdp, demos, heldout): ``world``'s demonstrations (from :func:`swirl_grid`) on the cells
+    alone, the plain gridworld :func:`~npbrs.domains.worlds.grid_mdp` with its one-hot cell
+    features (a reward per cell), as data recorded as cells would be fitted without features of
+    pairs; the actions and true skills are the same."""
+    size = int(world.params["size"])
+    cells = pair_cells(world.mdp, size)[:, 1]
+    mdp = grid_mdp(size, slip=world.params["slip"], discount=world.params["discount"])
+
+    def view(d):
+        return Demonstrations([cells[s] for s in d.states], list(d.actions), list(d.skills),
+                              mdp_fingerprint=mdp.fingerprint())
+
+    return mdp, view(world.demos), view(world.heldout)
+
+
 # ------------------------------------------------------------------------------- the world
 def swirl_grid(seed: int = 0, *, size: int = 5, num_trajectories: int = 200, length: int = 500,
                num_heldout: int = 50, switch_rate: float = 0.05, goal_factor: float = 10.0,
-               goal_reward: float = 1.0, pair_scale: float = 0.5, inverse_temperature: float = 3.0,
+               goal_reward: float = 1.0, pair_scale: float = 0.25, inverse_temperature: float = 3.0,
                slip: float = 0.0, discount: float = 0.9) -> World:
     """Two modes, water and home, with rewards on (previous cell, cell) pairs and ends that
     depend on the cell: the kind of SWIRL's gridworld benchmark.
@@ -95,12 +112,14 @@ def swirl_grid(seed: int = 0, *, size: int = 5, num_trajectories: int = 200, len
         goal_factor: how much likelier a mode ends at its goal cell than elsewhere (>= 1).
         goal_reward: the reward of entering or staying at the goal cell.
         pair_scale: the standard deviation of the modes' rewards per pair (>= 0; 0: rewards on
-            the cell alone, as in :func:`~npbrs.domains.worlds.tabular_grid`).
+            the cell alone).
         inverse_temperature: the experts' beta (on both reward terms).
         slip: probability that a move is a uniformly random one; discount: gamma.
     Returns:
         a :class:`World` whose demonstrations' states are the pair-states; the cells are
-        ``mdp.state_vectors[:, 2:]`` (row, column) of them (the previous cell's in ``[:, :2]``).
+        ``mdp.state_vectors[:, 2:]`` (row, column) of them (the previous cell's in ``[:, :2]``);
+        :func:`cell_view` gives the same data on the cells alone (a reward per cell: features
+        that cannot express the truth's rewards on pairs).
     """
     rng = _seed(seed)
     size = _int("size", size, 2)
