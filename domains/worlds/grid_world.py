@@ -71,6 +71,35 @@ def _switch_rate(step: np.ndarray, p0: np.ndarray, end: np.ndarray, length: int)
     return total / (length - 1)
 
 
+def goal_ends(step: np.ndarray, p0: np.ndarray, goal: np.ndarray, goal_factor: float, switch_rate: float,
+              length: int) -> np.ndarray:
+    """End probabilities q, ``goal_factor`` q at the goal (capped at 1), with q chosen by
+    bisection so that trajectories of ``length`` steps switch at ``switch_rate`` per step
+    (:func:`_switch_rate`); a ValueError when no q reaches it.
+
+    Args:
+        step: (K, S, S) each mode's state transitions under its policy; p0: (K, S) the first
+            (mode, state) distribution; goal: (K, S) bool, where each mode's goal is.
+        goal_factor, switch_rate, length: as the worlds take them.
+    Returns:
+        ((K, S) the end probability of each mode in each state, q).
+    """
+    def ends(q):
+        return np.where(goal, min(1.0, goal_factor * q), q)
+
+    # the rate rises with q: bisect on it (q = 1 switches at every step)
+    lo, hi = 0.0, 1.0
+    for _ in range(50):
+        mid = 0.5 * (lo + hi)
+        lo, hi = (mid, hi) if _switch_rate(step, p0, ends(mid), length) < switch_rate else (lo, mid)
+    q = 0.5 * (lo + hi)
+    achieved = _switch_rate(step, p0, ends(q), length)
+    if abs(achieved - switch_rate) > 1e-3 * switch_rate + 1e-9:
+        raise ValueError(f"switch_rate {switch_rate} cannot be reached with goal_factor {goal_factor} "
+                         f"(closest: {achieved:.4g})")
+    return ends(q), q
+
+
 def tabular_grid(seed: int = 0, *, size: int = 5, num_modes: int = 2, num_trajectories: int = 200,
                  length: int = 500, num_heldout: int = 50, switch_rate: float = 0.05, goal_factor: float = 10.0,
                  goal_size: int = 2, goal_reward: float = 1.0, inverse_temperature: float = 3.0,
@@ -124,21 +153,9 @@ def tabular_grid(seed: int = 0, *, size: int = 5, num_modes: int = 2, num_trajec
     step = np.einsum("ksa,sat->kst", np.exp(log_pi), mdp.dense_transitions())
     p0 = np.full((K, S), 1.0 / (K * S))
 
-    def ends(q):
-        return np.where(goal, min(1.0, goal_factor * q), q)
-
-    # the rate rises with q: bisect on it (q = 1 switches at every step)
-    lo, hi = 0.0, 1.0
-    for _ in range(50):
-        mid = 0.5 * (lo + hi)
-        lo, hi = (mid, hi) if _switch_rate(step, p0, ends(mid), length) < switch_rate else (lo, mid)
-    q = 0.5 * (lo + hi)
-    achieved = _switch_rate(step, p0, ends(q), length)
-    if abs(achieved - switch_rate) > 1e-3 * switch_rate + 1e-9:
-        raise ValueError(f"switch_rate {switch_rate} cannot be reached with goal_factor {goal_factor} "
-                         f"(closest: {achieved:.4g})")
+    end, q = goal_ends(step, p0, goal, goal_factor, switch_rate, length)
     next_mode = (1.0 - np.eye(K)) / (K - 1)
-    parts = _one_set(K, np.full(K, 1.0 / K), _ending_transitions(ends(q), next_mode))
+    parts = _one_set(K, np.full(K, 1.0 / K), _ending_transitions(end, next_mode))
     names = tuple(("top_left", "bottom_right", "top_right", "bottom_left")[:K])
     params = dict(seed=int(seed), size=size, num_modes=K, num_trajectories=num_trajectories, length=length,
                   num_heldout=num_heldout, switch_rate=switch_rate, goal_factor=goal_factor, goal_size=goal_size,

@@ -12,7 +12,7 @@ from ..demos import Demonstrations
 from ..mdp import TabularMDP
 from ..util.precision import float64_all
 from .base import World, _ending_transitions, _expert_log_policies, _int, _one_set, _real, _seed, _world
-from .grid_world import _grid_dense, _switch_rate, grid_mdp
+from .grid_world import _grid_dense, goal_ends, grid_mdp
 
 __all__ = ["swirl_grid", "pair_grid_mdp", "pair_cells", "cell_view"]
 
@@ -142,21 +142,9 @@ def swirl_grid(seed: int = 0, *, size: int = 5, num_trajectories: int = 200, len
     step = np.einsum("ksa,sat->kst", np.exp(log_pi), mdp.dense_transitions())
     p0 = np.broadcast_to(mdp.initial / K, (K, S))
 
-    def ends(q):
-        return np.where(at_goal, min(1.0, goal_factor * q), q)
-
-    # the rate rises with q: bisect on it (q = 1 switches at every step)
-    lo, hi = 0.0, 1.0
-    for _ in range(50):
-        mid = 0.5 * (lo + hi)
-        lo, hi = (mid, hi) if _switch_rate(step, p0, ends(mid), length) < switch_rate else (lo, mid)
-    q = 0.5 * (lo + hi)
-    achieved = _switch_rate(step, p0, ends(q), length)
-    if abs(achieved - switch_rate) > 1e-3 * switch_rate + 1e-9:
-        raise ValueError(f"switch_rate {switch_rate} cannot be reached with goal_factor {goal_factor} "
-                         f"(closest: {achieved:.4g})")
+    end, q = goal_ends(step, p0, at_goal, goal_factor, switch_rate, length)
     other = 1.0 - np.eye(K)
-    parts = _one_set(K, np.full(K, 1.0 / K), _ending_transitions(ends(q), other))
+    parts = _one_set(K, np.full(K, 1.0 / K), _ending_transitions(end, other))
     params = dict(seed=int(seed), size=size, num_trajectories=num_trajectories, length=length,
                   num_heldout=num_heldout, switch_rate=switch_rate, goal_factor=goal_factor, goal_reward=goal_reward,
                   pair_scale=pair_scale, inverse_temperature=beta, slip=float(slip), discount=float(discount),
