@@ -3,6 +3,7 @@
 import jax
 import jax.numpy as jnp
 import numpy as np
+import pytest
 
 from npbrs.inference.sampler import (BPHMMKernel, MoveState, birth_death_log_ratio, birth_death_proposal,
                                      window_weights)
@@ -106,6 +107,8 @@ def test_a_birth_is_possible_only_where_the_emission_reports_the_born_skill_ok()
         np.testing.assert_array_equal(p[~b], possible[~b])
 
 
+@pytest.mark.slow  # (two compiles of the reward birth; the default run checks the move's rule with a stand-in
+# above and the reward emission's report in test_reward_emission.py)
 def test_a_birth_whose_soft_solve_does_not_converge_is_impossible():
     """The reward emission reports its solves (``reports_solves``): with a solver that stops
     after one Newton step, short of its tolerance, no birth is possible; with the default solver
